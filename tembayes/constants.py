@@ -1,0 +1,49 @@
+"""Names and numbers fixed by the data contract (``shared/spec/contract.md``).
+
+Everything inside tembayes is SI: temperatures in kelvin, times in seconds,
+currents in amperes, voltages in volts.  The CSV's degrees Celsius appear only
+at the edges (``tembayes.data``).
+"""
+
+#: Offset between degrees Celsius and kelvin [K].
+KELVIN = 273.15
+
+#: Reference temperature of the linear laws, 25 degC [K].
+T_REF = 25.0 + KELVIN
+
+#: Columns every experiment CSV must carry, in contract order.
+CSV_COLUMNS = (
+    "time_s",
+    "current_A",
+    "voltage_V",
+    "T1_C",
+    "T2_C",
+    "T3_C",
+    "T4_C",
+    "T_water_C",
+    "T_amb_C",
+)
+
+#: The four block-sensor temperature channels, top (water side) to bottom.
+SENSOR_CHANNELS = ("T1_C", "T2_C", "T3_C", "T4_C")
+
+#: All temperature columns (sensors and boundaries).
+TEMPERATURE_COLUMNS = SENSOR_CHANNELS + ("T_water_C", "T_amb_C")
+
+#: Law parameter names, in the order used by every parameter vector.
+LAW_PARAMETERS = ("R0_ohm", "R1_ohm_per_K", "S0_V_per_K", "S1_V_per_K2")
+
+#: Law parameters plus the module's thermal conductance.
+MODULE_PARAMETERS = LAW_PARAMETERS + ("K_W_per_K",)
+
+#: The effect catalogue of contract section 5.
+EFFECTS = (
+    "k_temperature",
+    "thomson",
+    "sensor_lag",
+    "contact_resistance",
+    "joule_split",
+    "current_offset",
+    "quadratic_laws",
+    "ambient_leak",
+)

@@ -1,0 +1,347 @@
+"""A batch folder (contract section 1): ``batch.toml`` plus one folder per module."""
+
+from __future__ import annotations
+
+import math
+import re
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ..constants import KELVIN
+from ..errors import DataError, ModelError
+from .experiment import Experiment, load_experiment
+
+__all__ = [
+    "Datasheet",
+    "Module",
+    "Batch",
+    "load_batch",
+    "load_batch_toml",
+    "natural_key",
+    "BATCH_TOML",
+    "IDENTIFICATION_CSV",
+    "DEFAULT_RIG_CONFIG",
+]
+
+BATCH_TOML = "batch.toml"
+IDENTIFICATION_CSV = "identification.csv"
+#: The rig used when ``batch.toml`` has no ``[rig]`` table.
+DEFAULT_RIG_CONFIG = {"preset": "reference"}
+
+# toml key -> (Datasheet attribute, unit for messages)
+_DATASHEET_KEYS = {
+    "th_C": ("th", "degC"),
+    "imax_A": ("imax", "A"),
+    "vmax_V": ("vmax", "V"),
+    "dtmax_K": ("dtmax", "K"),
+    "qmax_W": ("qmax", "W"),
+}
+
+
+def natural_key(name: str):
+    """Sort key that orders embedded numbers by value (TEM2 before TEM10).
+
+    Parameters
+    ----------
+    name : str
+        A module id or file name (compare stems: ``validation`` sorts before
+        ``validation2``).
+
+    Returns
+    -------
+    tuple
+        Alternating text and integer parts; the original name breaks ties.
+    """
+    parts = re.split(r"(\d+)", name.casefold())
+    # re.split with a group alternates text/number, so positions never mix types.
+    return tuple(int(p) if i % 2 else p for i, p in enumerate(parts)), name
+
+
+@dataclass(frozen=True)
+class Datasheet:
+    """Datasheet figures of a module type, in SI units.
+
+    Attributes
+    ----------
+    name : str
+        Free-text module type name.
+    th : float
+        Hot-side temperature of the datasheet figures [K].
+    imax : float
+        Maximum current [A].
+    vmax : float
+        Voltage at ``imax`` [V].
+    dtmax : float
+        Maximum temperature difference [K].
+    qmax : float
+        Maximum heat pumped [W].
+    """
+
+    name: str
+    th: float
+    imax: float
+    vmax: float
+    dtmax: float
+    qmax: float
+
+    def seebeck(self) -> float:
+        """Module Seebeck coefficient ``S = Vmax / Th`` [V/K]."""
+        return self.vmax / self.th
+
+    def resistance(self) -> float:
+        """Module electrical resistance ``R = (Th - dTmax) Vmax / (Th Imax)`` [ohm]."""
+        return (self.th - self.dtmax) * self.vmax / (self.th * self.imax)
+
+    def conductance(self) -> float:
+        """Module thermal conductance ``K = (Th - dTmax) Vmax Imax / (2 Th dTmax)`` [W/K]."""
+        return (self.th - self.dtmax) * self.vmax * self.imax / (2.0 * self.th * self.dtmax)
+
+    def to_table(self) -> dict:
+        """The ``[module_type]`` table with contract keys and CSV units.
+
+        Returns
+        -------
+        dict
+            ``name``, ``th_C`` [degC], ``imax_A``, ``vmax_V``, ``dtmax_K``,
+            ``qmax_W``.
+        """
+        return {
+            "name": self.name,
+            # round away the K -> degC float residue (298.15 - 273.15 != 25.0 exactly)
+            "th_C": round(self.th - KELVIN, 9),
+            "imax_A": self.imax,
+            "vmax_V": self.vmax,
+            "dtmax_K": self.dtmax,
+            "qmax_W": self.qmax,
+        }
+
+    @classmethod
+    def from_table(cls, table: dict, path) -> "Datasheet":
+        """Build from a ``[module_type]`` table, validating it.
+
+        Parameters
+        ----------
+        table : dict
+            Contract keys ``name`` (free text, optional), ``th_C`` [degC],
+            ``imax_A`` [A], ``vmax_V`` [V], ``dtmax_K`` [K], ``qmax_W`` [W].
+            Unknown keys are allowed and ignored.
+        path : str or Path
+            The ``batch.toml`` the table came from (for messages).
+
+        Returns
+        -------
+        Datasheet
+
+        Raises
+        ------
+        DataError
+            Naming ``path`` and the offending key.
+        """
+        path = Path(path)
+        if not isinstance(table, dict):
+            raise DataError(path, "'module_type' must be a table",
+                            "Write it as a [module_type] section", column="module_type")
+        name = table.get("name", "")
+        if not isinstance(name, str):
+            raise DataError(path, f"module_type.name must be text, found {name!r}",
+                            'Quote it, e.g. name = "TEC1-12706"', column="name")
+        values = {}
+        for key, (attr, unit) in _DATASHEET_KEYS.items():
+            if key not in table:
+                raise DataError(path, f"[module_type] has no {key!r}",
+                                f"Add {key} = <datasheet value in {unit}>", column=key)
+            v = table[key]
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise DataError(path, f"{key} = {v!r} is not a finite number",
+                                f"Give the datasheet value as a plain number in {unit}", column=key)
+            if key != "th_C" and v <= 0:
+                raise DataError(path, f"{key} = {v!r} must be positive",
+                                f"Give the datasheet value in {unit}", column=key)
+            values[attr] = float(v)
+        values["th"] += KELVIN
+        if values["th"] <= 0:
+            raise DataError(path, f"th_C = {table['th_C']!r} is below absolute zero",
+                            "Give the datasheet hot-side temperature in degC", column="th_C")
+        if values["dtmax"] >= values["th"]:
+            raise DataError(path, f"dtmax_K = {table['dtmax_K']!r} is not below Th = {values['th']:.2f} K",
+                            "Check dtmax_K (kelvin) and th_C (degC) against the datasheet",
+                            column="dtmax_K")
+        return cls(name=name, **values)
+
+
+@dataclass(frozen=True, eq=False)
+class Module:
+    """One module's experiments.
+
+    Attributes
+    ----------
+    id : str
+        The module folder's name.
+    path : Path
+        The module folder.
+    identification : Experiment
+        ``identification.csv``, the current staircase.
+    validations : tuple of Experiment
+        ``validation*.csv`` in natural order (validation, validation2, ...,
+        validation10).
+    """
+
+    id: str
+    path: Path
+    identification: Experiment
+    validations: tuple = ()
+
+
+@dataclass(frozen=True, eq=False)
+class Batch:
+    """A loaded batch folder.
+
+    Attributes
+    ----------
+    path : Path
+        The batch folder.
+    datasheet : Datasheet
+        From ``[module_type]``.
+    rig_config : dict
+        The ``[rig]`` table (``{"preset": "reference"}`` when absent; a
+        missing ``preset`` defaults to ``"reference"``).
+    modules : dict of str to Module
+        In natural order of the ids (TEM1, TEM2, TEM10).
+    """
+
+    path: Path
+    datasheet: Datasheet
+    rig_config: dict = field(default_factory=lambda: dict(DEFAULT_RIG_CONFIG))
+    modules: dict = field(default_factory=dict)
+
+
+def load_batch_toml(path) -> tuple[Datasheet, dict]:
+    """Read and validate ``batch.toml``.
+
+    Parameters
+    ----------
+    path : str or Path
+        The ``batch.toml`` file, or the batch folder holding it.
+
+    Returns
+    -------
+    datasheet : Datasheet
+    rig_config : dict
+        The ``[rig]`` table with ``preset`` defaulted to ``"reference"``.
+
+    Raises
+    ------
+    DataError
+        Naming the file, the TOML line for syntax errors, and the key.
+    """
+    path = Path(path)
+    if path.is_dir():
+        path = path / BATCH_TOML
+    if not path.is_file():
+        raise DataError(path, "batch.toml does not exist",
+                        "Every batch folder needs a batch.toml with a [module_type] table "
+                        "(see the data contract, section 1)")
+    try:
+        raw = path.read_bytes()
+    except OSError as e:
+        raise DataError(path, f"the file cannot be read ({e.strerror or e})",
+                        "Check the file's permissions") from None
+    try:
+        doc = tomllib.loads(raw.decode("utf-8-sig"))
+    except UnicodeDecodeError:
+        raise DataError(path, "the file is not UTF-8 text", "Save batch.toml as UTF-8") from None
+    except tomllib.TOMLDecodeError as e:
+        m = re.search(r"line (\d+)", str(e))
+        raise DataError(path, f"TOML syntax error ({e})", "Fix the TOML syntax",
+                        line=int(m.group(1)) if m else None) from None
+    if "module_type" not in doc:
+        raise DataError(path, "there is no [module_type] table",
+                        "Add [module_type] with name, th_C, imax_A, vmax_V, dtmax_K, qmax_W "
+                        "from the module's datasheet", column="module_type")
+    datasheet = Datasheet.from_table(doc["module_type"], path)
+
+    rig = doc.get("rig", None)
+    if rig is None:
+        rig_config = dict(DEFAULT_RIG_CONFIG)
+    else:
+        if not isinstance(rig, dict):
+            raise DataError(path, "'rig' must be a table",
+                            'Write it as a [rig] section, e.g. [rig] preset = "reference"', column="rig")
+        rig_config = dict(rig)
+        rig_config.setdefault("preset", DEFAULT_RIG_CONFIG["preset"])
+        if not isinstance(rig_config["preset"], str):
+            raise DataError(path, f"rig.preset must be text, found {rig_config['preset']!r}",
+                            'Quote it, e.g. preset = "reference"', column="preset")
+    _check_rig(path, rig_config)
+    return datasheet, rig_config
+
+
+def _check_rig(path: Path, rig_config: dict) -> None:
+    try:
+        from ..physics.rig import rig_from_config  # lazy: physics is heavier than data
+    except ImportError:
+        return  # physics not available: the rig is checked when a model is built
+    try:
+        rig_from_config(rig_config)
+    except ModelError as e:
+        raise DataError(path, str(e),
+                        "Fix the [rig] table (or remove it to use the reference rig)",
+                        column="rig") from None
+
+
+def load_batch(path) -> Batch:
+    """Load and validate a batch folder (contract section 1).
+
+    Parameters
+    ----------
+    path : str or Path
+        The batch folder: ``batch.toml`` and one sub-folder per module, each
+        with ``identification.csv`` and zero or more ``validation*.csv``.
+        Hidden folders and ``__pycache__`` are not modules.
+
+    Returns
+    -------
+    Batch
+        Modules in natural order of their ids; experiments in SI units.
+
+    Raises
+    ------
+    DataError
+        Naming the folder or file at fault and what to do.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise DataError(path, "the batch folder does not exist", "Check the path")
+    if not path.is_dir():
+        raise DataError(path, "this is not a folder",
+                        "Pass the batch folder (the one holding batch.toml and the module folders)")
+    datasheet, rig_config = load_batch_toml(path / BATCH_TOML)
+
+    folders = sorted(
+        (p for p in path.iterdir()
+         if p.is_dir() and not p.name.startswith(".") and p.name != "__pycache__"),
+        key=lambda p: natural_key(p.name),
+    )
+    if not folders:
+        raise DataError(path, "the batch folder has no module folders",
+                        "Put each module's experiments in its own sub-folder "
+                        "(e.g. TEM1/identification.csv)")
+    modules = {}
+    for folder in folders:
+        ident = folder / IDENTIFICATION_CSV
+        if not ident.is_file():
+            raise DataError(folder, "the module folder has no identification.csv",
+                            "Each module folder needs identification.csv "
+                            "(move other folders out of the batch folder)")
+        validation_files = sorted(
+            (p for p in folder.glob("validation*.csv") if p.is_file()),
+            key=lambda p: natural_key(p.stem),
+        )
+        modules[folder.name] = Module(
+            id=folder.name,
+            path=folder,
+            identification=load_experiment(ident, imax=datasheet.imax),
+            validations=tuple(load_experiment(p, imax=datasheet.imax) for p in validation_files),
+        )
+    return Batch(path=path, datasheet=datasheet, rig_config=rig_config, modules=modules)

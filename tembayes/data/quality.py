@@ -1,0 +1,90 @@
+"""Quick numbers about an experiment, for ``tembayes inspect`` and the report."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..constants import CSV_COLUMNS, KELVIN, TEMPERATURE_COLUMNS
+from .experiment import Experiment
+
+__all__ = ["summarize_experiment", "noise_estimate", "CURRENT_LEVEL_STEP_A"]
+
+#: Currents are rounded to this before counting distinct levels [A].
+CURRENT_LEVEL_STEP_A = 0.05
+#: 1.4826 * MAD estimates the standard deviation of Gaussian data.
+_MAD_TO_SD = 1.4826
+
+
+def noise_estimate(values) -> float:
+    """Robust white-noise level of a slowly varying signal.
+
+    Parameters
+    ----------
+    values : array_like, shape (n,)
+        Samples, in any unit.
+
+    Returns
+    -------
+    float
+        ``1.4826 * MAD(diff(values)) / sqrt(2)``, in the unit of ``values``.
+        Differencing removes the slow signal; the median ignores the few
+        large differences at steps; ``sqrt(2)`` because a difference of two
+        independent samples has twice the variance.  NaN for fewer than 2
+        samples.
+    """
+    d = np.diff(np.asarray(values, dtype=np.float64))
+    if d.size == 0:
+        return math.nan
+    mad = np.median(np.abs(d - np.median(d)))
+    return float(_MAD_TO_SD * mad / math.sqrt(2.0))
+
+
+def summarize_experiment(exp: Experiment) -> dict:
+    """Summary numbers of one experiment, in CSV units.
+
+    Parameters
+    ----------
+    exp : Experiment
+
+    Returns
+    -------
+    dict
+        Plain Python numbers (ints for counts, floats otherwise):
+
+        - ``n_samples``, ``duration_s``, ``t_start_s``, ``t_end_s``,
+          ``dt_median_s``, ``dt_min_s``, ``dt_max_s`` [s]
+        - ``current_min_A``, ``current_max_A`` [A],
+          ``voltage_min_V``, ``voltage_max_V`` [V]
+        - ``n_current_levels``: distinct currents after rounding to 0.05 A
+          (rough: noise near a rounding edge can add a level)
+        - ``<T>_min``, ``<T>_max`` for each temperature column ``<T>``
+          (``T1_C`` .. ``T_amb_C``) [degC]
+        - ``<col>_noise`` for every measured column (current_A, voltage_V and
+          the temperatures), robust white-noise sd in the column's CSV unit
+          (A, V, degC = K); see :func:`noise_estimate`.
+    """
+    t = exp.time
+    dt = np.diff(t)
+    out = {
+        "n_samples": int(exp.n),
+        "duration_s": float(exp.duration),
+        "t_start_s": float(t[0]),
+        "t_end_s": float(t[-1]),
+        "dt_median_s": float(np.median(dt)) if dt.size else math.nan,
+        "dt_min_s": float(dt.min()) if dt.size else math.nan,
+        "dt_max_s": float(dt.max()) if dt.size else math.nan,
+        "current_min_A": float(exp.current.min()),
+        "current_max_A": float(exp.current.max()),
+        "voltage_min_V": float(exp.voltage.min()),
+        "voltage_max_V": float(exp.voltage.max()),
+        "n_current_levels": int(np.unique(np.round(exp.current / CURRENT_LEVEL_STEP_A)).size),
+    }
+    for c in TEMPERATURE_COLUMNS:
+        v = exp.channel(c) - KELVIN
+        out[f"{c}_min"] = float(v.min())
+        out[f"{c}_max"] = float(v.max())
+    for c in CSV_COLUMNS[1:]:  # every measured column; time is the axis
+        out[f"{c}_noise"] = noise_estimate(exp.channel(c))  # K and degC noise are equal
+    return out

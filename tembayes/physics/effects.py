@@ -1,0 +1,309 @@
+"""The effect catalogue (contract section 5) as parameterised model extensions.
+
+Every effect adds named parameters to the model.  With all of them at zero the
+model is exactly the paper's; :func:`tembayes.physics.simulate.simulate`
+always applies every hook, so a parameter that is absent is simply zero.
+
+An effect acts at one of four places, through one hook each:
+
+``tem``
+    coefficients of the module element (:mod:`tembayes.physics.kernel`),
+``network``
+    the rig's conductances,
+``sensors``
+    what the temperature sensors report,
+``input``
+    how the measured current relates to the true one (a ``tem`` coefficient
+    that the kernel applies to the input).
+
+To add an effect: write its :class:`Effect` below with its parameters and
+hook, and add it to :data:`CATALOGUE`.
+
+``default`` is the realistic magnitude the virtual bench uses for
+``tembayes simulate --effect NAME``; ``NAME=VALUE`` sets the first parameter
+to VALUE and scales the others by the same factor.  ``scale`` is the size the
+gap diagnosis's prior gives it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from tembayes.constants import EFFECTS
+from tembayes.errors import ModelError
+from tembayes.physics import kernel as K
+
+
+@dataclass(frozen=True)
+class EffectParameter:
+    """A parameter of an effect.
+
+    Attributes
+    ----------
+    name : str
+    default : float
+        Bench magnitude (SI).
+    scale : float
+        Prior scale for the gap diagnosis (SI).
+    unit : str
+    doc : str
+    """
+
+    name: str
+    default: float
+    scale: float
+    unit: str
+    doc: str
+
+
+@dataclass(frozen=True)
+class Effect:
+    """An unmodelled effect as an extension of the base model.
+
+    Attributes
+    ----------
+    name : str
+        Catalogue name (contract section 5).
+    doc : str
+    parameters : tuple of EffectParameter
+    stage : {"tem", "network", "sensors", "input"}
+    """
+
+    name: str
+    doc: str
+    parameters: tuple
+    stage: str
+    hook: object = field(default=None, repr=False, compare=False)
+
+    @property
+    def parameter_names(self):
+        return tuple(p.name for p in self.parameters)
+
+    def defaults(self, value=None):
+        """Bench parameter values; ``value`` sets the first and scales the rest."""
+        first = self.parameters[0].default
+        f = 1.0 if value is None else float(value) / first
+        return {p.name: p.default * f for p in self.parameters}
+
+
+# --- hooks --------------------------------------------------------------------
+def _get(params, name, nd):
+    v = params.get(name)
+    if v is None:
+        return np.zeros(nd)
+    return np.broadcast_to(np.asarray(v, dtype=float), (nd,))
+
+
+def _tem_k_temperature(P, params):
+    P[:, K.P_K1] = _get(params, "K1_per_K", len(P))
+
+
+def _tem_thomson(P, params):
+    P[:, K.P_THOMSON] = _get(params, "thomson_fraction", len(P))
+
+
+def _tem_joule_split(P, params):
+    P[:, K.P_JOULE] = _get(params, "joule_hot_excess", len(P))
+
+
+def _tem_quadratic(P, params):
+    nd = len(P)
+    P[:, K.P_R2] = P[:, K.P_R0] * _get(params, "R2_rel_per_K2", nd)
+    P[:, K.P_S2] = P[:, K.P_S0] * _get(params, "S2_rel_per_K2", nd)
+
+
+def _input_current(P, params):
+    nd = len(P)
+    P[:, K.P_IGAIN] = _get(params, "current_gain_error", nd)
+    P[:, K.P_IOFFSET] = _get(params, "current_offset_A", nd)
+
+
+def _module_links(rig, node):
+    """Links from a module plate to the rig (not to the module's own chain)."""
+    chain = {rig.hot, rig.cold, *rig.legs}
+    out = []
+    for a, b, _ in rig.links:
+        if node in (a, b):
+            other = b if a == node else a
+            if other not in chain:
+                out.append(other)
+    return out
+
+
+def _network_contact(net, rig, params):
+    nd = net.C.shape[0]
+    for side, node in (("cold", rig.cold), ("hot", rig.hot)):
+        r = _get(params, f"contact_R_{side}_K_per_W", nd)
+        if not np.any(r):
+            continue
+        i = net.index(node)
+        for other in _module_links(rig, node):
+            j = net.index(other)
+            g = net.G[:, i, j]
+            g_new = 1.0 / (1.0 / g + r)
+            net.G[:, i, j] = g_new
+            net.G[:, j, i] = g_new
+
+
+def _network_ambient(net, rig, params):
+    extra = _get(params, "extra_leak_W_per_K", net.C.shape[0])
+    if not np.any(extra):
+        return
+    # spread in proportion to the leaks the rig already has
+    amb = net.Gb[:, :, 1]
+    share = amb / amb.sum(axis=1, keepdims=True)
+    net.Gb[:, :, 1] = amb + share * extra[:, None]
+
+
+def _sensor_lag(time, Y, params):
+    """First-order sensor lag, exact for signals linear between samples.
+
+    ``Y`` has shape (nd, nch, nt); modified in place.
+    """
+    tau = _get(params, "sensor_tau_s", Y.shape[0])
+    if not np.any(tau):
+        return
+    dt = np.diff(time)
+    for d in np.flatnonzero(tau > 0):
+        y = Y[d]
+        a = np.exp(-dt / tau[d])
+        u = y.copy()
+        slope = np.diff(u, axis=1) / dt
+        for n in range(len(dt)):
+            # y' = (u - y)/tau with u linear on the interval
+            y[:, n + 1] = u[:, n + 1] - slope[:, n] * tau[d] + (y[:, n] - u[:, n] + slope[:, n] * tau[d]) * a[n]
+
+
+CATALOGUE = {
+    e.name: e
+    for e in (
+        Effect(
+            "k_temperature",
+            "the module's thermal conductance depends on temperature: K(T) = K (1 + K1 (T - T_ref))",
+            (EffectParameter("K1_per_K", 0.004, 0.005, "1/K", "relative slope of K"),),
+            "tem",
+            _tem_k_temperature,
+        ),
+        Effect(
+            "thomson",
+            "Peltier heat at each junction's own Seebeck coefficient plus Thomson heat T dS/dT I dT in the legs",
+            (EffectParameter("thomson_fraction", 1.0, 1.0, "1", "0 = S(T_mean) at both junctions, 1 = full"),),
+            "tem",
+            _tem_thomson,
+        ),
+        Effect(
+            "sensor_lag",
+            "the temperature sensors respond with a first-order lag",
+            (EffectParameter("sensor_tau_s", 6.0, 10.0, "s", "sensor time constant"),),
+            "sensors",
+            _sensor_lag,
+        ),
+        Effect(
+            "contact_resistance",
+            "extra thermal resistance between the module and a block",
+            (
+                EffectParameter("contact_R_cold_K_per_W", 0.06, 0.1, "K/W", "module cold face to bottom block"),
+                EffectParameter("contact_R_hot_K_per_W", 0.0, 0.1, "K/W", "module hot face to top block"),
+            ),
+            "network",
+            _network_contact,
+        ),
+        Effect(
+            "joule_split",
+            "Joule heat not split equally: a fraction 0.5 + delta is released at the hot side",
+            (EffectParameter("joule_hot_excess", 0.1, 0.15, "1", "delta, excess hot-side fraction"),),
+            "tem",
+            _tem_joule_split,
+        ),
+        Effect(
+            "current_offset",
+            "the current measurement has a gain and offset error: I_meas = (1 + g) I + o",
+            (
+                EffectParameter("current_gain_error", 0.015, 0.03, "1", "gain error g"),
+                EffectParameter("current_offset_A", 0.006, 0.02, "A", "offset o"),
+            ),
+            "input",
+            _input_current,
+        ),
+        Effect(
+            "quadratic_laws",
+            "R_m and S_m curved in T: R0 R2 x^2 and S0 S2 x^2 added to the linear laws",
+            (
+                EffectParameter("R2_rel_per_K2", 4e-5, 6e-5, "1/K^2", "relative curvature of R"),
+                EffectParameter("S2_rel_per_K2", -6e-5, 8e-5, "1/K^2", "relative curvature of S"),
+            ),
+            "tem",
+            _tem_quadratic,
+        ),
+        Effect(
+            "ambient_leak",
+            "more heat exchange with ambient than the rig model allows",
+            (EffectParameter("extra_leak_W_per_K", 0.15, 0.2, "W/K", "extra conductance to ambient"),),
+            "network",
+            _network_ambient,
+        ),
+    )
+}
+
+assert tuple(CATALOGUE) == EFFECTS  # the contract's names, in its order
+
+#: Every effect parameter name -> its effect name.
+EFFECT_PARAMETERS = {p.name: e.name for e in CATALOGUE.values() for p in e.parameters}
+
+
+def get(name):
+    """The catalogue effect called ``name``."""
+    try:
+        return CATALOGUE[name]
+    except KeyError:
+        raise ModelError(f"unknown effect '{name}'; the catalogue has: {', '.join(CATALOGUE)}") from None
+
+
+def parse_effects(specs):
+    """Parse ``["k_temperature", "sensor_lag=4"]`` into effect parameter values.
+
+    Returns
+    -------
+    dict
+        Effect name -> {parameter name: value}.
+    """
+    out = {}
+    for spec in specs or ():
+        name, _, value = str(spec).partition("=")
+        effect = get(name.strip())
+        if value:
+            try:
+                v = float(value)
+            except ValueError:
+                raise ModelError(f"effect '{spec}': VALUE must be a number") from None
+            if not np.isfinite(v):
+                raise ModelError(f"effect '{spec}': VALUE must be finite")
+        else:
+            v = None
+        if effect.name in out:
+            raise ModelError(f"effect '{effect.name}' given twice")
+        out[effect.name] = effect.defaults(v)
+    return out
+
+
+def apply_tem(P, params):
+    """Write every ``tem`` and ``input`` effect coefficient into ``P`` (in place)."""
+    for e in CATALOGUE.values():
+        if e.stage in ("tem", "input"):
+            e.hook(P, params)
+
+
+def apply_network(net, rig, params):
+    """Apply every ``network`` effect to ``net`` (in place)."""
+    for e in CATALOGUE.values():
+        if e.stage == "network":
+            e.hook(net, rig, params)
+
+
+def apply_sensors(time, Y, params):
+    """Apply every ``sensors`` effect to the sensor readings ``Y`` (nd, nch, nt) in place."""
+    for e in CATALOGUE.values():
+        if e.stage == "sensors":
+            e.hook(time, Y, params)

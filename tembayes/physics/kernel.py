@@ -1,0 +1,473 @@
+"""Compiled core of the simulator: the TEM heat terms and a stiff integrator.
+
+Everything here is numba-compiled and works on plain arrays; the readable
+model (rig descriptions, laws, effects) lives in :mod:`tembayes.physics.rig`,
+:mod:`tembayes.physics.tem` and :mod:`tembayes.physics.effects`, and
+:mod:`tembayes.physics.simulate` turns it into these arrays.
+
+The state is the vector of node temperatures [K] of a thermal network:
+
+    C_i dT_i/dt = sum_j G_ij (T_j - T_i) + sum_b Gb_ib (T_b - T_i) + Q_i(T, I)
+
+written as ``dT/dt = A T + Bb u_b + Cinv * Q`` with ``A`` and ``Bb`` built once
+per parameter draw.  ``Q`` is the heat the thermoelectric module releases into
+its nodes: a chain ``tem_nodes = (hot plate, leg cells..., cold plate)``.
+With no leg cells this is exactly the paper's lumped element (eqs 4-5);
+leg cells give the virtual bench's higher-fidelity module.
+
+The integrator is Shampine & Reichelt's modified Rosenbrock pair (MATLAB's
+``ode23s``): L-stable, so the plates (tau ~ 0.1 s) and the blocks (minutes)
+are both handled, with an embedded error estimate for step control.  Inputs
+(current, water and ambient temperatures) are linear between samples, and the
+steps land exactly on every sample time.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+# Index of each coefficient in a TEM parameter vector ``p``.  Every effect
+# coefficient is zero in the paper's model.
+P_R0, P_R1, P_R2 = 0, 1, 2  # R = R0 + R1 x + R2 x^2 [ohm], x = T - T_ref [K]
+P_S0, P_S1, P_S2 = 3, 4, 5  # S = S0 + S1 x + S2 x^2 [V/K]
+P_K0, P_K1 = 6, 7  # K = K0 (1 + K1 x) [W/K], K1 relative [1/K]
+P_THOMSON = 8  # 0: S(T_mean) at both junctions; 1: own S at each junction + Thomson heat
+P_JOULE = 9  # excess fraction of Joule heat released at the hot side (0 = equal split)
+P_IGAIN = 10  # measured current = (1 + gain) I + offset
+P_IOFFSET = 11  # [A]
+P_TREF = 12  # reference temperature of the laws [K]
+N_P = 13
+
+_SQRT2 = np.sqrt(2.0)
+_D = 1.0 / (2.0 + _SQRT2)
+_E32 = 6.0 + _SQRT2
+_HC = 1e-20  # complex-step size: derivative exact to rounding, no cancellation
+
+
+@njit(cache=True)
+def _poly(p, i, x):
+    return p[i] + p[i + 1] * x + p[i + 2] * x * x
+
+
+@njit(cache=True)
+def _dpoly(p, i, x):
+    return p[i + 1] + 2.0 * p[i + 2] * x
+
+
+@njit(cache=True)
+def tem_heat(T, I, p, Q):
+    """Heat released by the module into its chain of nodes.
+
+    Parameters
+    ----------
+    T : ndarray, shape (m,)
+        Temperatures of (hot plate, leg cells..., cold plate) [K]; real or
+        complex (complex for complex-step derivatives).
+    I : float or complex
+        True module current [A]; positive cools the cold plate.
+    p : ndarray, shape (N_P,)
+        TEM parameter vector (see the ``P_*`` indices).
+    Q : ndarray, shape (m,)
+        Output: heat into each node [W].
+    """
+    m = T.shape[0]
+    n_leg = m - 2
+    tref = p[P_TREF]
+    Th = T[0]
+    Tc = T[m - 1]
+    Tm = 0.5 * (Th + Tc)
+    x = Tm - tref
+    lam = p[P_THOMSON]
+    delta = p[P_JOULE]
+    I2 = I * I
+    for k in range(m):
+        Q[k] = 0.0 * T[k]
+    # Peltier heat at the junctions, at each junction's own Seebeck
+    # coefficient when lam = 1 and at S(T_mean) (the paper) when lam = 0.
+    d = 0.5 * lam * (Th - Tc)
+    Sh = _poly(p, P_S0, x + d)
+    Sc = _poly(p, P_S0, x - d)
+    Q[0] += Sh * Th * I
+    Q[m - 1] -= Sc * Tc * I
+    # Joule heat: equal split (paper) unless delta moves part of it to one
+    # side, as a contact resistance on that side would.
+    Rm = _poly(p, P_R0, x)
+    if n_leg == 0:
+        Q[0] += (0.5 + delta) * Rm * I2
+        Q[1] += (0.5 - delta) * Rm * I2
+    else:
+        if delta >= 0.0:
+            Q[0] += 2.0 * delta * Rm * I2
+            frac = 1.0 - 2.0 * delta
+        else:
+            Q[m - 1] -= 2.0 * delta * Rm * I2
+            frac = 1.0 + 2.0 * delta
+        for k in range(1, m - 1):
+            Q[k] += frac * _poly(p, P_R0, T[k] - tref) / n_leg * I2
+    # Fourier conduction and Thomson heat, segment by segment.
+    for j in range(m - 1):
+        if n_leg == 0:
+            w = 1.0
+        elif j == 0 or j == m - 2:
+            w = 2.0 * n_leg
+        else:
+            w = 1.0 * n_leg
+        Ts = 0.5 * (T[j] + T[j + 1])
+        xs = Ts - tref
+        dT = T[j] - T[j + 1]
+        q = w * p[P_K0] * (1.0 + p[P_K1] * xs) * dT
+        Q[j] -= q
+        Q[j + 1] += q
+        qt = -lam * Ts * _dpoly(p, P_S0, xs) * I * dT
+        Q[j] += 0.5 * qt
+        Q[j + 1] += 0.5 * qt
+
+
+@njit(cache=True)
+def tem_voltage(T, I, p):
+    """Module terminal voltage [V] for the chain temperatures ``T`` [K] and true current ``I`` [A].
+
+    ``V = R I + V_seebeck`` with the paper's ``V_seebeck = S(T_mean) (Th - Tc)``
+    (eq 9), blended towards the integral of S along the legs when the
+    ``thomson`` coefficient is on.
+    """
+    m = T.shape[0]
+    n_leg = m - 2
+    tref = p[P_TREF]
+    Th = T[0]
+    Tc = T[m - 1]
+    x = 0.5 * (Th + Tc) - tref
+    lam = p[P_THOMSON]
+    Rm = _poly(p, P_R0, x)
+    if n_leg == 0:
+        Rt = Rm
+    else:
+        delta = abs(p[P_JOULE])
+        s = 0.0
+        for k in range(1, m - 1):
+            s += _poly(p, P_R0, T[k] - tref)
+        Rt = (1.0 - 2.0 * delta) * s / n_leg + 2.0 * delta * Rm
+    vs = 0.0
+    for j in range(m - 1):
+        vs += _poly(p, P_S0, 0.5 * (T[j] + T[j + 1]) - tref) * (T[j] - T[j + 1])
+    vs = (1.0 - lam) * _poly(p, P_S0, x) * (Th - Tc) + lam * vs
+    return Rt * I + vs
+
+
+@njit(cache=True)
+def true_current(i_meas, p):
+    """True current [A] behind a measured current [A] (``current_offset`` effect)."""
+    return (i_meas - p[P_IOFFSET]) / (1.0 + p[P_IGAIN])
+
+
+@njit(cache=True)
+def _rhs(y, I, uw, ua, A, Bb, Cinv, tem, p, Tt, Qt, f):
+    N = y.shape[0]
+    m = tem.shape[0]
+    for i in range(N):
+        s = Bb[i, 0] * uw + Bb[i, 1] * ua
+        for j in range(N):
+            s += A[i, j] * y[j]
+        f[i] = s
+    for k in range(m):
+        Tt[k] = y[tem[k]]
+    tem_heat(Tt, I, p, Qt)
+    for k in range(m):
+        f[tem[k]] += Cinv[tem[k]] * Qt[k]
+
+
+@njit(cache=True)
+def _jac(y, I, dI, A, Cinv, tem, p, Tz, Qz, J, dfdI):
+    """State Jacobian ``J`` and ``dfdI`` (derivative w.r.t. current) by complex step."""
+    N = y.shape[0]
+    m = tem.shape[0]
+    for i in range(N):
+        dfdI[i] = 0.0
+        for j in range(N):
+            J[i, j] = A[i, j]
+    for k in range(m):
+        for r in range(m):
+            Tz[r] = y[tem[r]] + 0j
+        Tz[k] += 1j * _HC
+        tem_heat(Tz, I + 0j, p, Qz)
+        for r in range(m):
+            J[tem[r], tem[k]] += Cinv[tem[r]] * Qz[r].imag / _HC
+    if dI != 0.0:
+        for r in range(m):
+            Tz[r] = y[tem[r]] + 0j
+        tem_heat(Tz, I + 1j * _HC, p, Qz)
+        for r in range(m):
+            dfdI[tem[r]] = Cinv[tem[r]] * Qz[r].imag / _HC
+
+
+@njit(cache=True)
+def _lu(W, piv):
+    """In-place LU with partial pivoting of a small dense matrix."""
+    n = W.shape[0]
+    for k in range(n):
+        im = k
+        vm = abs(W[k, k])
+        for i in range(k + 1, n):
+            if abs(W[i, k]) > vm:
+                vm = abs(W[i, k])
+                im = i
+        piv[k] = im
+        if im != k:
+            for j in range(n):
+                tmp = W[k, j]
+                W[k, j] = W[im, j]
+                W[im, j] = tmp
+        inv = 1.0 / W[k, k]
+        for i in range(k + 1, n):
+            W[i, k] *= inv
+            lik = W[i, k]
+            for j in range(k + 1, n):
+                W[i, j] -= lik * W[k, j]
+
+
+@njit(cache=True)
+def _lusolve(W, piv, b):
+    n = W.shape[0]
+    for k in range(n):
+        if piv[k] != k:
+            tmp = b[k]
+            b[k] = b[piv[k]]
+            b[piv[k]] = tmp
+    for i in range(n):
+        s = b[i]
+        for j in range(i):
+            s -= W[i, j] * b[j]
+        b[i] = s
+    for i in range(n - 1, -1, -1):
+        s = b[i]
+        for j in range(i + 1, n):
+            s -= W[i, j] * b[j]
+        b[i] = s / W[i, i]
+
+
+@njit(cache=True)
+def _steady(y, I, uw, ua, A, Bb, Cinv, tem, p, Tt, Qt, Tz, Qz, f, J, dfdI, piv):
+    """Newton iterations to the steady state at constant inputs (in place)."""
+    N = y.shape[0]
+    for it in range(60):
+        _rhs(y, I, uw, ua, A, Bb, Cinv, tem, p, Tt, Qt, f)
+        _jac(y, I, 0.0, A, Cinv, tem, p, Tz, Qz, J, dfdI)
+        _lu(J, piv)
+        for i in range(N):
+            f[i] = -f[i]
+        _lusolve(J, piv, f)
+        mx = 0.0
+        for i in range(N):
+            y[i] += f[i]
+            mx = max(mx, abs(f[i]))
+        if mx < 1e-11:
+            return True
+    return False
+
+
+@njit(cache=True)
+def _integrate_one(
+    t, i_meas, tw, ta, A, Bb, Cinv, tem, p, rec, y, steady_start, atol, hmax, out, vout, stats
+):
+    N = y.shape[0]
+    m = tem.shape[0]
+    nt = t.shape[0]
+    nr = rec.shape[0]
+    Tt = np.empty(m)
+    Qt = np.empty(m)
+    Tz = np.empty(m, dtype=np.complex128)
+    Qz = np.empty(m, dtype=np.complex128)
+    F0 = np.empty(N)
+    F1 = np.empty(N)
+    F2 = np.empty(N)
+    k1 = np.empty(N)
+    k2 = np.empty(N)
+    k3 = np.empty(N)
+    yn = np.empty(N)
+    ytmp = np.empty(N)
+    J = np.empty((N, N))
+    W = np.empty((N, N))
+    dfdI = np.empty(N)
+    dfdt = np.empty(N)
+    piv = np.empty(N, dtype=np.int64)
+
+    I0 = true_current(i_meas[0], p)
+    if steady_start:
+        ok = _steady(y, I0, tw[0], ta[0], A, Bb, Cinv, tem, p, Tt, Qt, Tz, Qz, F0, J, dfdI, piv)
+        if not ok:
+            stats[3] = 1.0
+    for r in range(nr):
+        out[0, r] = y[rec[r]]
+    for k in range(m):
+        Tt[k] = y[tem[k]]
+    vout[0] = tem_voltage(Tt, I0, p)
+
+    h = hmax
+    nsteps = 0
+    nrej = 0
+    _rhs(y, I0, tw[0], ta[0], A, Bb, Cinv, tem, p, Tt, Qt, F0)
+    for n in range(nt - 1):
+        t0 = t[n]
+        dt = t[n + 1] - t[n]
+        Ia = true_current(i_meas[n], p)
+        Ib = true_current(i_meas[n + 1], p)
+        mI = (Ib - Ia) / dt
+        mw = (tw[n + 1] - tw[n]) / dt
+        ma = (ta[n + 1] - ta[n]) / dt
+        s = 0.0  # time into the interval
+        h = min(h, hmax)
+        while s < dt:
+            last = False
+            # stretch the step up to 1 % to land on the sample rather than
+            # leave a sliver (float sample times are rarely exact multiples)
+            if s + 1.01 * h >= dt:
+                h = dt - s
+                last = True
+            # inputs and their time derivative at the start of the step
+            I_s = Ia + mI * s
+            _jac(y, I_s, mI, A, Cinv, tem, p, Tz, Qz, J, dfdI)
+            for i in range(N):
+                dfdt[i] = Bb[i, 0] * mw + Bb[i, 1] * ma + dfdI[i] * mI
+            while True:
+                hd = h * _D
+                for i in range(N):
+                    for j in range(N):
+                        W[i, j] = -hd * J[i, j]
+                    W[i, i] += 1.0
+                _lu(W, piv)
+                for i in range(N):
+                    k1[i] = F0[i] + hd * dfdt[i]
+                _lusolve(W, piv, k1)
+                sh = s + 0.5 * h
+                for i in range(N):
+                    ytmp[i] = y[i] + 0.5 * h * k1[i]
+                _rhs(ytmp, Ia + mI * sh, tw[n] + mw * sh, ta[n] + ma * sh, A, Bb, Cinv, tem, p, Tt, Qt, F1)
+                for i in range(N):
+                    k2[i] = F1[i] - k1[i]
+                _lusolve(W, piv, k2)
+                for i in range(N):
+                    k2[i] += k1[i]
+                    yn[i] = y[i] + h * k2[i]
+                se = s + h
+                _rhs(yn, Ia + mI * se, tw[n] + mw * se, ta[n] + ma * se, A, Bb, Cinv, tem, p, Tt, Qt, F2)
+                for i in range(N):
+                    k3[i] = F2[i] - _E32 * (k2[i] - F1[i]) - 2.0 * (k1[i] - F0[i]) + hd * dfdt[i]
+                _lusolve(W, piv, k3)
+                err = 0.0
+                for i in range(N):
+                    e = abs(h / 6.0 * (k1[i] - 2.0 * k2[i] + k3[i])) / atol
+                    if e > err:
+                        err = e
+                if err <= 1.0:
+                    break
+                nrej += 1
+                h = h * max(0.2, 0.8 * err ** (-1.0 / 3.0))
+                last = False
+            nsteps += 1
+            for i in range(N):
+                y[i] = yn[i]
+                F0[i] = F2[i]
+            s = s + h if not last else dt
+            fac = 5.0 if err < 1e-6 else min(5.0, 0.8 * err ** (-1.0 / 3.0))
+            hnew = h * max(0.2, fac)
+            if not last:
+                h = hnew
+            else:
+                # keep the step that the error allowed for the next interval
+                h = max(h, min(hnew, hmax))
+        for r in range(nr):
+            out[n + 1, r] = y[rec[r]]
+        for k in range(m):
+            Tt[k] = y[tem[k]]
+        vout[n + 1] = tem_voltage(Tt, Ib, p)
+    stats[0] = nsteps
+    stats[1] = nrej
+
+
+@njit(cache=True, parallel=True)
+def integrate(t, i_meas, tw, ta, A, Bb, Cinv, tem, P, rec, Y0, steady_start, atol, hmax):
+    """Simulate ``nd`` parameter draws of one experiment.
+
+    Parameters
+    ----------
+    t : ndarray, shape (nt,)
+        Sample times [s], strictly increasing.
+    i_meas, tw, ta : ndarray, shape (nt,)
+        Measured current [A], water and ambient temperatures [K], linear
+        between samples.
+    A : ndarray, shape (nd, N, N)
+        Linear network matrix [1/s].
+    Bb : ndarray, shape (nd, N, 2)
+        Boundary input matrix (water, ambient) [1/s].
+    Cinv : ndarray, shape (nd, N)
+        Inverse node capacitances [K/J].
+    tem : ndarray of int64, shape (m,)
+        Node indices of (hot plate, leg cells..., cold plate).
+    P : ndarray, shape (nd, N_P)
+        TEM parameter vectors.
+    rec : ndarray of int64, shape (nr,)
+        Node indices to record.
+    Y0 : ndarray, shape (nd, N)
+        Initial state [K]; refined to the steady state at the first sample's
+        inputs when ``steady_start``.
+    steady_start : bool
+    atol : float
+        Absolute local error tolerance [K].
+    hmax : float
+        Largest internal step [s].
+
+    Returns
+    -------
+    out : ndarray, shape (nd, nt, nr)
+        Recorded node temperatures [K].
+    volt : ndarray, shape (nd, nt)
+        Terminal voltage [V].
+    stats : ndarray, shape (nd, 4)
+        Accepted steps, rejected steps, unused, steady-start failure flag.
+    """
+    nd = P.shape[0]
+    nt = t.shape[0]
+    nr = rec.shape[0]
+    out = np.empty((nd, nt, nr))
+    volt = np.empty((nd, nt))
+    stats = np.zeros((nd, 4))
+    for d in prange(nd):
+        y = Y0[d].copy()
+        _integrate_one(
+            t, i_meas, tw, ta, A[d], Bb[d], Cinv[d], tem, P[d], rec, y, steady_start, atol, hmax,
+            out[d], volt[d], stats[d],
+        )
+    return out, volt, stats
+
+
+@njit(cache=True)
+def rhs_one(y, I, uw, ua, A, Bb, Cinv, tem, p):
+    """Right-hand side ``dT/dt`` [K/s] for one draw (used by the scipy reference and tests)."""
+    m = tem.shape[0]
+    f = np.empty(y.shape[0])
+    _rhs(y, I, uw, ua, A, Bb, Cinv, tem, p, np.empty(m), np.empty(m), f)
+    return f
+
+
+@njit(cache=True)
+def jac_one(y, I, A, Cinv, tem, p):
+    """State Jacobian [1/s] for one draw (used by the scipy reference and tests)."""
+    N = y.shape[0]
+    m = tem.shape[0]
+    J = np.empty((N, N))
+    _jac(y, I, 0.0, A, Cinv, tem, p, np.empty(m, dtype=np.complex128),
+         np.empty(m, dtype=np.complex128), J, np.empty(N))
+    return J
+
+
+@njit(cache=True)
+def steady_one(y0, I, uw, ua, A, Bb, Cinv, tem, p):
+    """Steady state [K] at constant inputs for one draw, from the guess ``y0``."""
+    N = y0.shape[0]
+    m = tem.shape[0]
+    y = y0.copy()
+    ok = _steady(y, I, uw, ua, A, Bb, Cinv, tem, p, np.empty(m), np.empty(m),
+                 np.empty(m, dtype=np.complex128), np.empty(m, dtype=np.complex128),
+                 np.empty(N), np.empty((N, N)), np.empty(N), np.empty(N, dtype=np.int64))
+    return y, ok

@@ -1,0 +1,84 @@
+"""A scipy ``solve_ivp`` reference of exactly the simulator's equations.
+
+Slow and simple on purpose: it checks :func:`tembayes.physics.simulate` (the
+tests and ``analyses/bench_simulator.py``) and is the baseline the simulator's
+speed is measured against.  Same network, same module element, same inputs
+(linear between samples); only the integrator differs.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.integrate import solve_ivp
+
+from tembayes.errors import ModelError
+from tembayes.physics import effects
+from tembayes.physics import kernel as K
+from tembayes.physics.rig import REFERENCE
+from tembayes.physics.simulate import Simulation, build
+
+
+def simulate_reference(inputs, params, *, rig=REFERENCE, method="BDF", rtol=1e-9, atol=1e-9, jac=True):
+    """Simulate each parameter set with ``scipy.integrate.solve_ivp``, one after the other.
+
+    Parameters
+    ----------
+    inputs : tembayes.physics.Inputs
+    params : mapping
+        As for :func:`tembayes.physics.simulate`.
+    rig : RigDescription, optional
+    method : str, optional
+        ``solve_ivp`` method, default ``"BDF"``.
+    rtol, atol : float, optional
+        ``solve_ivp`` tolerances (``atol`` in kelvin).
+    jac : bool, optional
+        Pass the analytic Jacobian (the fair baseline for a stiff solver).
+
+    Returns
+    -------
+    Simulation
+    """
+    m = build(params, rig)
+    nd = m["nd"]
+    t = inputs.time
+    names = m["network"].nodes
+    channels = tuple(rig.sensors)
+    rec = [names.index(rig.sensors[c]) for c in channels]
+    tem = m["tem"]
+    sensors = np.empty((nd, len(channels), len(t)))
+    volt = np.empty((nd, len(t)))
+    t_hot = np.empty((nd, len(t)))
+    t_cold = np.empty((nd, len(t)))
+    steps = np.empty(nd, dtype=np.int64)
+    for d in range(nd):
+        A, Bb, Cinv, p = m["A"][d], m["Bb"][d], m["Cinv"][d], m["P"][d]
+
+        def u(tt):
+            i_true = K.true_current(np.interp(tt, t, inputs.current), p)
+            return i_true, np.interp(tt, t, inputs.t_water), np.interp(tt, t, inputs.t_amb)
+
+        def fun(tt, y):
+            i_true, tw, ta = u(tt)
+            return K.rhs_one(y, i_true, tw, ta, A, Bb, Cinv, tem, p)
+
+        def jacf(tt, y):
+            return K.jac_one(y, u(tt)[0], A, Cinv, tem, p)
+
+        i0, tw0, ta0 = u(t[0])
+        y0, ok = K.steady_one(np.full(len(names), tw0), i0, tw0, ta0, A, Bb, Cinv, tem, p)
+        if not ok:
+            raise ModelError("reference: steady-state start did not converge")
+        sol = solve_ivp(fun, (t[0], t[-1]), y0, method=method, t_eval=t, rtol=rtol, atol=atol,
+                        jac=jacf if jac else None)
+        if not sol.success:
+            raise ModelError(f"reference solve_ivp failed: {sol.message}")
+        Y = sol.y
+        sensors[d] = Y[rec]
+        t_hot[d] = Y[tem[0]]
+        t_cold[d] = Y[tem[-1]]
+        i_true = K.true_current(inputs.current, p)
+        chain = Y[tem]
+        volt[d] = [K.tem_voltage(np.ascontiguousarray(chain[:, n]), i_true[n], p) for n in range(len(t))]
+        steps[d] = sol.t.size if sol.nfev is None else sol.nfev
+    effects.apply_sensors(t, sensors, m["params"])
+    return Simulation(t, channels, sensors, volt, t_hot, t_cold, steps)

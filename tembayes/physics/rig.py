@@ -1,0 +1,350 @@
+"""Thermal network of a test rig, built from a description.
+
+A rig is data, not code: named physical parameters (with the plausible range
+the rig documentation gives), nodes with a capacitance, links with a
+conductance, two measured boundaries (``water`` and ``ambient``), the two
+nodes the module sits between, and the node each sensor reads.  Another rig is
+another :class:`RigDescription`; :data:`PRESETS` holds the known ones.
+
+Capacitance and conductance entries are *expressions* over the parameters:
+
+- a number, or a parameter name: ``"g_paste_hot"``
+- a scaled name: ``"0.5*leak_top"``
+- a list: conductances in series, ``["g_cooler", "g_steel_quarter"]``
+
+The reference rig (``shared/spec/reference-rig.md``) splits each steel block
+into two 5 mm cells whose centres sit exactly at the sensor depths (2.5 mm
+from each face), so the four sensors read node temperatures.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from types import MappingProxyType
+
+import numpy as np
+
+from tembayes.errors import ModelError
+
+BOUNDARIES = ("water", "ambient")
+
+
+@dataclass(frozen=True)
+class RigParameter:
+    """A named physical parameter of a rig.
+
+    Attributes
+    ----------
+    name : str
+    nominal : float
+        Centre of the prior (SI units).
+    low, high : float
+        Plausible range from the rig documentation (SI units); the gap
+        diagnosis flags posteriors far outside it.
+    unit : str
+    doc : str
+    """
+
+    name: str
+    nominal: float
+    low: float
+    high: float
+    unit: str
+    doc: str = ""
+
+
+@dataclass(frozen=True)
+class Network:
+    """The arrays of a rig network for a batch of parameter draws.
+
+    Attributes
+    ----------
+    nodes : tuple of str
+    C : ndarray, shape (nd, N)
+        Node capacitances [J/K].
+    G : ndarray, shape (nd, N, N)
+        Symmetric node-to-node conductances [W/K], zero diagonal.
+    Gb : ndarray, shape (nd, N, 2)
+        Node-to-boundary conductances (water, ambient) [W/K].
+    """
+
+    nodes: tuple
+    C: np.ndarray
+    G: np.ndarray
+    Gb: np.ndarray
+
+    def index(self, node):
+        return self.nodes.index(node)
+
+    def matrices(self):
+        """Return ``(A, Bb, Cinv)`` of ``dT/dt = A T + Bb u + Cinv Q`` [1/s, 1/s, K/J]."""
+        Cinv = 1.0 / self.C
+        A = self.G.copy()
+        diag = self.G.sum(axis=2) + self.Gb.sum(axis=2)
+        idx = np.arange(len(self.nodes))
+        A[:, idx, idx] -= diag
+        A *= Cinv[:, :, None]
+        Bb = self.Gb * Cinv[:, :, None]
+        return A, Bb, Cinv
+
+
+@dataclass(frozen=True)
+class RigDescription:
+    """A rig as data: parameters, nodes, links, module position and sensors.
+
+    Attributes
+    ----------
+    name : str
+    parameters : tuple of RigParameter
+    nodes : tuple of (str, expr)
+        Node name and capacitance expression [J/K].
+    links : tuple of (str, str, expr)
+        Two node names (or a boundary name) and a conductance expression [W/K].
+    hot, cold : str
+        The nodes of the module's hot and cold plates.
+    sensors : mapping of str to str
+        CSV sensor channel (``"T1_C"``...) to the node it reads.
+    legs : tuple of str
+        Nodes of the module's legs from the hot to the cold plate, for a
+        module resolved into cells (the virtual bench); empty for the paper's
+        lumped module.  Leg nodes have a capacitance but no links: the module
+        element conducts along them.
+    """
+
+    name: str
+    parameters: tuple
+    nodes: tuple
+    links: tuple
+    hot: str
+    cold: str
+    sensors: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
+    legs: tuple = ()
+
+    def __post_init__(self):
+        names = [p.name for p in self.parameters]
+        if len(set(names)) != len(names):
+            raise ModelError(f"rig '{self.name}': duplicate parameter names")
+        node_names = [n for n, _ in self.nodes]
+        if len(set(node_names)) != len(node_names):
+            raise ModelError(f"rig '{self.name}': duplicate node names")
+        known = set(node_names)
+        for a, b, expr in self.links:
+            for end in (a, b):
+                if end not in known and end not in BOUNDARIES:
+                    raise ModelError(f"rig '{self.name}': link end '{end}' is not a node or boundary")
+            if a in BOUNDARIES and b in BOUNDARIES:
+                raise ModelError(f"rig '{self.name}': link {a}-{b} joins two boundaries")
+            self._check_expr(expr)
+        for _, expr in self.nodes:
+            self._check_expr(expr)
+        for node in (self.hot, self.cold):
+            if node not in known:
+                raise ModelError(f"rig '{self.name}': module node '{node}' is not a node")
+        for node in self.legs:
+            if node not in known or node in (self.hot, self.cold):
+                raise ModelError(f"rig '{self.name}': leg node '{node}' is not a separate node")
+        for ch, node in self.sensors.items():
+            if node not in known:
+                raise ModelError(f"rig '{self.name}': sensor {ch} reads unknown node '{node}'")
+        object.__setattr__(self, "sensors", MappingProxyType(dict(self.sensors)))
+
+    # -- parameters ---------------------------------------------------------
+    @property
+    def parameter_names(self):
+        return tuple(p.name for p in self.parameters)
+
+    def parameter(self, name):
+        for p in self.parameters:
+            if p.name == name:
+                return p
+        raise ModelError(f"rig '{self.name}' has no parameter '{name}'; it has {self.parameter_names}")
+
+    def nominal(self):
+        """Nominal parameter values as a dict (SI)."""
+        return {p.name: p.nominal for p in self.parameters}
+
+    def with_nominal(self, **values):
+        """A copy with some nominal values replaced (e.g. from batch.toml overrides)."""
+        params = []
+        for p in self.parameters:
+            if p.name in values:
+                v = float(values.pop(p.name))
+                if not np.isfinite(v) or v <= 0:
+                    raise ModelError(f"rig parameter '{p.name}' must be a positive number, got {v}")
+                p = RigParameter(p.name, v, min(p.low, v), max(p.high, v), p.unit, p.doc)
+            params.append(p)
+        if values:
+            raise ModelError(
+                f"unknown rig parameter(s) {sorted(values)}; rig '{self.name}' has {list(self.parameter_names)}"
+            )
+        return RigDescription(
+            self.name, tuple(params), self.nodes, self.links, self.hot, self.cold, self.sensors, self.legs
+        )
+
+    @property
+    def tem_chain(self):
+        """Node names of (hot plate, leg cells..., cold plate)."""
+        return (self.hot, *self.legs, self.cold)
+
+    # -- network ------------------------------------------------------------
+    @property
+    def node_names(self):
+        return tuple(n for n, _ in self.nodes)
+
+    def _check_expr(self, expr):
+        if isinstance(expr, (list, tuple)):
+            if not expr:
+                raise ModelError(f"rig '{self.name}': empty series expression")
+            for e in expr:
+                self._check_expr(e)
+            return
+        if isinstance(expr, (int, float)):
+            if expr <= 0:
+                raise ModelError(f"rig '{self.name}': non-positive constant {expr}")
+            return
+        if not isinstance(expr, str):
+            raise ModelError(f"rig '{self.name}': bad expression {expr!r}")
+        name = expr.split("*")[-1].strip()
+        if name not in self.parameter_names:
+            raise ModelError(f"rig '{self.name}': expression '{expr}' names unknown parameter '{name}'")
+
+    def _eval(self, expr, values):
+        if isinstance(expr, (list, tuple)):
+            return 1.0 / sum(1.0 / self._eval(e, values) for e in expr)
+        if isinstance(expr, (int, float)):
+            return np.float64(expr)
+        if "*" in expr:
+            factor, name = expr.split("*")
+            return float(factor) * values[name.strip()]
+        return values[expr]
+
+    def network(self, values=None):
+        """Build the network arrays.
+
+        Parameters
+        ----------
+        values : mapping of str to float or ndarray of shape (nd,), optional
+            Parameter values (SI); missing ones take their nominal value.
+
+        Returns
+        -------
+        Network
+        """
+        vals = {k: np.atleast_1d(np.asarray(v, dtype=float)) for k, v in self.nominal().items()}
+        for k, v in (values or {}).items():
+            if k in vals:
+                vals[k] = np.atleast_1d(np.asarray(v, dtype=float))
+        nd = max(v.shape[0] for v in vals.values())
+        names = self.node_names
+        N = len(names)
+        C = np.empty((nd, N))
+        for i, (_, expr) in enumerate(self.nodes):
+            C[:, i] = self._eval(expr, vals)
+        G = np.zeros((nd, N, N))
+        Gb = np.zeros((nd, N, 2))
+        for a, b, expr in self.links:
+            g = self._eval(expr, vals)
+            if a in BOUNDARIES or b in BOUNDARIES:
+                node, bnd = (b, a) if a in BOUNDARIES else (a, b)
+                Gb[:, names.index(node), BOUNDARIES.index(bnd)] += g
+            else:
+                i, j = names.index(a), names.index(b)
+                G[:, i, j] += g
+                G[:, j, i] += g
+        if np.any(~np.isfinite(C)) or np.any(C <= 0):
+            raise ModelError(f"rig '{self.name}': non-positive or non-finite capacitance")
+        return Network(names, C, G, Gb)
+
+
+# --- the reference rig -------------------------------------------------------
+_K_STEEL = 16.2  # AISI 304 [W/(m K)]
+_AREA = 0.040 * 0.040  # block and module footprint [m^2]
+_RHO_C = 7900.0 * 500.0  # volumetric heat capacity of the steel [J/(m^3 K)]
+
+
+def _steel_g(d):
+    return _K_STEEL * _AREA / d
+
+
+_REFERENCE_PARAMETERS = (
+    RigParameter("g_cooler", 12.5, 10.0, 15.0, "W/K", "water cooler to top block face"),
+    RigParameter("g_paste_hot", 35.0, 20.0, 50.0, "W/K", "thermal paste, module hot face"),
+    RigParameter("g_paste_cold", 35.0, 20.0, 50.0, "W/K", "thermal paste, module cold face"),
+    RigParameter("c_plate_hot", 5.125, 4.5, 5.75, "J/K", "hot alumina plate plus half the legs"),
+    RigParameter("c_plate_cold", 5.125, 4.5, 5.75, "J/K", "cold alumina plate plus half the legs"),
+    RigParameter("leak_top", 0.02, 0.01, 0.03, "W/K", "top block to ambient (enclosure)"),
+    RigParameter("leak_bottom", 0.04, 0.02, 0.06, "W/K", "bottom block to ambient (enclosure, tabs)"),
+    RigParameter(
+        "c_half_block", _RHO_C * _AREA * 0.005, 0.97 * _RHO_C * _AREA * 0.005,
+        1.03 * _RHO_C * _AREA * 0.005, "J/K", "5 mm of a steel block (rho c V)",
+    ),
+    RigParameter(
+        "g_steel_quarter", _steel_g(0.0025), 0.95 * _steel_g(0.0025), 1.05 * _steel_g(0.0025),
+        "W/K", "2.5 mm of steel (k A / d)",
+    ),
+    RigParameter(
+        "g_steel_half", _steel_g(0.005), 0.95 * _steel_g(0.005), 1.05 * _steel_g(0.005),
+        "W/K", "5 mm of steel (k A / d)",
+    ),
+)
+
+REFERENCE = RigDescription(
+    name="reference",
+    parameters=_REFERENCE_PARAMETERS,
+    nodes=(
+        ("top_upper", "c_half_block"),
+        ("top_lower", "c_half_block"),
+        ("hot_plate", "c_plate_hot"),
+        ("cold_plate", "c_plate_cold"),
+        ("bottom_upper", "c_half_block"),
+        ("bottom_lower", "c_half_block"),
+    ),
+    links=(
+        ("water", "top_upper", ["g_cooler", "g_steel_quarter"]),
+        ("top_upper", "top_lower", "g_steel_half"),
+        ("top_lower", "hot_plate", ["g_steel_quarter", "g_paste_hot"]),
+        ("cold_plate", "bottom_upper", ["g_paste_cold", "g_steel_quarter"]),
+        ("bottom_upper", "bottom_lower", "g_steel_half"),
+        ("top_upper", "ambient", "0.5*leak_top"),
+        ("top_lower", "ambient", "0.5*leak_top"),
+        ("bottom_upper", "ambient", "0.5*leak_bottom"),
+        ("bottom_lower", "ambient", "0.5*leak_bottom"),
+    ),
+    hot="hot_plate",
+    cold="cold_plate",
+    sensors={"T1_C": "top_upper", "T2_C": "top_lower", "T3_C": "bottom_upper", "T4_C": "bottom_lower"},
+)
+
+#: Known rigs by preset name (``[rig] preset = ...`` in batch.toml).
+PRESETS = MappingProxyType({"reference": REFERENCE})
+
+
+def rig_from_config(config):
+    """The rig a batch.toml ``[rig]`` table asks for.
+
+    Parameters
+    ----------
+    config : mapping
+        ``{"preset": "reference", <parameter>: <value>, ...}``; values in SI
+        units override the preset's nominal values (e.g. ``g_cooler = 11.0``).
+
+    Returns
+    -------
+    RigDescription
+
+    Raises
+    ------
+    ModelError
+        Unknown preset or parameter, or a non-positive value.
+    """
+    config = dict(config or {})
+    preset = config.pop("preset", "reference")
+    if not isinstance(preset, str) or preset not in PRESETS:
+        raise ModelError(f"unknown rig preset {preset!r}; known presets: {sorted(PRESETS)}")
+    rig = PRESETS[preset]
+    if config:
+        bad = [k for k, v in config.items() if isinstance(v, bool) or not isinstance(v, (int, float))]
+        if bad:
+            raise ModelError(f"rig override(s) {bad} must be numbers")
+        rig = rig.with_nominal(**config)
+    return rig

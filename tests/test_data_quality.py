@@ -1,0 +1,60 @@
+"""summarize_experiment: the numbers behind ``tembayes inspect``."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tembayes.constants import CSV_COLUMNS, KELVIN, TEMPERATURE_COLUMNS
+from tembayes.data import experiment_from_arrays, load_experiment, noise_estimate, summarize_experiment
+
+
+def test_summary_of_a_staircase():
+    rng = np.random.default_rng(3)
+    n = 6000
+    t = 100.0 + 0.2 * np.arange(n)
+    t[1000:] += 0.1  # one longer gap
+    levels = np.repeat([0.0, 0.2, 0.4, -0.2, -0.4, 0.0], n // 6)
+    cur = levels + rng.normal(0, 1e-3, n)
+    volt = 1.7 * cur + rng.normal(0, 2e-3, n)
+    drift = np.linspace(0, 5, n)  # slow signal: must not inflate the noise estimate
+    sensors = np.array([21.0, 22.0, 27.0, 28.0])[:, None] + drift + KELVIN + rng.normal(0, 0.004, (4, n))
+    tw = 20.0 + KELVIN + rng.normal(0, 0.03, n)
+    ta = np.full(n, 23.0 + KELVIN)
+    s = summarize_experiment(experiment_from_arrays(t, cur, volt, sensors, tw, ta))
+
+    assert s["n_samples"] == n and isinstance(s["n_samples"], int)
+    assert s["duration_s"] == pytest.approx(0.2 * (n - 1) + 0.1)
+    assert s["dt_median_s"] == pytest.approx(0.2)
+    assert s["dt_min_s"] == pytest.approx(0.2)
+    assert s["dt_max_s"] == pytest.approx(0.3)
+    assert s["current_min_A"] == pytest.approx(-0.4, abs=0.01)
+    assert s["current_max_A"] == pytest.approx(0.4, abs=0.01)
+    assert s["n_current_levels"] == 5
+    assert s["T1_C_min"] == pytest.approx(21.0, abs=0.02)
+    assert s["T1_C_max"] == pytest.approx(26.0, abs=0.02)
+    assert s["T_amb_C_min"] == pytest.approx(23.0) and s["T_amb_C_max"] == pytest.approx(23.0)
+    assert s["current_A_noise"] == pytest.approx(1e-3, rel=0.1)
+    assert s["voltage_V_noise"] == pytest.approx(np.hypot(1.7e-3, 2e-3), rel=0.1)  # own + current noise
+    for c in ("T1_C", "T2_C", "T3_C", "T4_C"):
+        assert s[f"{c}_noise"] == pytest.approx(0.004, rel=0.1)
+    assert s["T_water_C_noise"] == pytest.approx(0.03, rel=0.1)
+    assert s["T_amb_C_noise"] == 0.0
+    for c in TEMPERATURE_COLUMNS:
+        assert f"{c}_min" in s and f"{c}_max" in s
+    for c in CSV_COLUMNS[1:]:
+        assert f"{c}_noise" in s
+    assert all(type(v) in (int, float) for v in s.values())
+
+
+def test_summary_of_loaded_file(data_factory):
+    s = summarize_experiment(load_experiment(data_factory.write_csv()))
+    assert s["n_samples"] == 50
+    assert s["dt_median_s"] == pytest.approx(0.2)
+    assert s["n_current_levels"] == 1
+    assert 20.0 < s["T1_C_min"] < s["T1_C_max"] < 30.0
+
+
+def test_noise_estimate_edge_cases():
+    assert np.isnan(noise_estimate([1.0]))
+    assert noise_estimate([1.0, 1.0, 1.0]) == 0.0
