@@ -10,11 +10,16 @@ Capacitance and conductance entries are *expressions* over the parameters:
 
 - a number, or a parameter name: ``"g_paste_hot"``
 - a scaled name: ``"0.5*leak_top"``
+- a sum of those: ``"c_plate_hot + 0.5*c_legs"``
 - a list: conductances in series, ``["g_cooler", "g_steel_quarter"]``
 
 The reference rig (``shared/spec/reference-rig.md``) splits each steel block
 into two 5 mm cells whose centres sit exactly at the sensor depths (2.5 mm
-from each face), so the four sensors read node temperatures.
+from each face), so the four sensors read node temperatures.  Its module is
+the paper's lumped element by default (``leg_cells=0``: each plate carries
+half the legs' capacitance); :func:`reference_rig` with ``leg_cells=n``
+resolves the legs into ``n`` cells, so Joule heat is released along the legs
+at the local resistance.
 """
 
 from __future__ import annotations
@@ -204,19 +209,27 @@ class RigDescription:
             return
         if not isinstance(expr, str):
             raise ModelError(f"rig '{self.name}': bad expression {expr!r}")
-        name = expr.split("*")[-1].strip()
-        if name not in self.parameter_names:
-            raise ModelError(f"rig '{self.name}': expression '{expr}' names unknown parameter '{name}'")
+        for term in expr.split("+"):
+            factor, _, name = term.rpartition("*")
+            name = name.strip()
+            if name not in self.parameter_names:
+                raise ModelError(f"rig '{self.name}': expression '{expr}' names unknown parameter '{name}'")
+            if factor:
+                try:
+                    float(factor)
+                except ValueError:
+                    raise ModelError(f"rig '{self.name}': bad factor '{factor}' in '{expr}'") from None
 
     def _eval(self, expr, values):
         if isinstance(expr, (list, tuple)):
             return 1.0 / sum(1.0 / self._eval(e, values) for e in expr)
         if isinstance(expr, (int, float)):
             return np.float64(expr)
-        if "*" in expr:
-            factor, name = expr.split("*")
-            return float(factor) * values[name.strip()]
-        return values[expr]
+        total = 0.0
+        for term in expr.split("+"):
+            factor, _, name = term.rpartition("*")
+            total = total + (float(factor) if factor else 1.0) * values[name.strip()]
+        return total
 
     def network(self, values=None):
         """Build the network arrays.
@@ -270,8 +283,9 @@ _REFERENCE_PARAMETERS = (
     RigParameter("g_cooler", 12.5, 10.0, 15.0, "W/K", "water cooler to top block face"),
     RigParameter("g_paste_hot", 35.0, 20.0, 50.0, "W/K", "thermal paste, module hot face"),
     RigParameter("g_paste_cold", 35.0, 20.0, 50.0, "W/K", "thermal paste, module cold face"),
-    RigParameter("c_plate_hot", 5.125, 4.5, 5.75, "J/K", "hot alumina plate plus half the legs"),
-    RigParameter("c_plate_cold", 5.125, 4.5, 5.75, "J/K", "cold alumina plate plus half the legs"),
+    RigParameter("c_plate_hot", 4.5, 4.0, 5.0, "J/K", "hot alumina plate"),
+    RigParameter("c_plate_cold", 4.5, 4.0, 5.0, "J/K", "cold alumina plate"),
+    RigParameter("c_legs", 1.25, 1.0, 1.5, "J/K", "all legs of the module together"),
     RigParameter("leak_top", 0.02, 0.01, 0.03, "W/K", "top block to ambient (enclosure)"),
     RigParameter("leak_bottom", 0.04, 0.02, 0.06, "W/K", "bottom block to ambient (enclosure, tabs)"),
     RigParameter(
@@ -288,38 +302,59 @@ _REFERENCE_PARAMETERS = (
     ),
 )
 
-REFERENCE = RigDescription(
-    name="reference",
-    parameters=_REFERENCE_PARAMETERS,
-    nodes=(
+def reference_rig(leg_cells=0):
+    """The reference identification rig.
+
+    Parameters
+    ----------
+    leg_cells : int, optional
+        0 (default): the paper's lumped module between two plate nodes, each
+        plate carrying half the legs' capacitance.  ``n > 0``: the legs
+        resolved into ``n`` cells (Joule heat along the legs at the local
+        resistance, conduction along them).
+    """
+    legs = tuple(f"leg_{i + 1}" for i in range(leg_cells))
+    plate_extra = "" if legs else " + 0.5*c_legs"
+    nodes = (
         ("top_upper", "c_half_block"),
         ("top_lower", "c_half_block"),
-        ("hot_plate", "c_plate_hot"),
-        ("cold_plate", "c_plate_cold"),
+        ("hot_plate", "c_plate_hot" + plate_extra),
+        *((leg, f"{1.0 / leg_cells!r}*c_legs") for leg in legs),
+        ("cold_plate", "c_plate_cold" + plate_extra),
         ("bottom_upper", "c_half_block"),
         ("bottom_lower", "c_half_block"),
-    ),
-    links=(
-        ("water", "top_upper", ["g_cooler", "g_steel_quarter"]),
-        ("top_upper", "top_lower", "g_steel_half"),
-        ("top_lower", "hot_plate", ["g_steel_quarter", "g_paste_hot"]),
-        ("cold_plate", "bottom_upper", ["g_paste_cold", "g_steel_quarter"]),
-        ("bottom_upper", "bottom_lower", "g_steel_half"),
-        ("top_upper", "ambient", "0.5*leak_top"),
-        ("top_lower", "ambient", "0.5*leak_top"),
-        ("bottom_upper", "ambient", "0.5*leak_bottom"),
-        ("bottom_lower", "ambient", "0.5*leak_bottom"),
-    ),
-    hot="hot_plate",
-    cold="cold_plate",
-    sensors={"T1_C": "top_upper", "T2_C": "top_lower", "T3_C": "bottom_upper", "T4_C": "bottom_lower"},
-)
+    )
+    return RigDescription(
+        name="reference" if not legs else f"reference-legs{leg_cells}",
+        parameters=_REFERENCE_PARAMETERS,
+        nodes=nodes,
+        links=(
+            ("water", "top_upper", ["g_cooler", "g_steel_quarter"]),
+            ("top_upper", "top_lower", "g_steel_half"),
+            ("top_lower", "hot_plate", ["g_steel_quarter", "g_paste_hot"]),
+            ("cold_plate", "bottom_upper", ["g_paste_cold", "g_steel_quarter"]),
+            ("bottom_upper", "bottom_lower", "g_steel_half"),
+            ("top_upper", "ambient", "0.5*leak_top"),
+            ("top_lower", "ambient", "0.5*leak_top"),
+            ("bottom_upper", "ambient", "0.5*leak_bottom"),
+            ("bottom_lower", "ambient", "0.5*leak_bottom"),
+        ),
+        hot="hot_plate",
+        cold="cold_plate",
+        sensors={"T1_C": "top_upper", "T2_C": "top_lower", "T3_C": "bottom_upper", "T4_C": "bottom_lower"},
+        legs=legs,
+    )
 
-#: Known rigs by preset name (``[rig] preset = ...`` in batch.toml).
-PRESETS = MappingProxyType({"reference": REFERENCE})
+
+#: The reference rig with the paper's lumped module.
+REFERENCE = reference_rig()
+
+#: Known rigs by preset name (``[rig] preset = ...`` in batch.toml): builders
+#: taking ``leg_cells``.
+PRESETS = MappingProxyType({"reference": reference_rig})
 
 
-def rig_from_config(config):
+def rig_from_config(config, leg_cells=0):
     """The rig a batch.toml ``[rig]`` table asks for.
 
     Parameters
@@ -327,6 +362,8 @@ def rig_from_config(config):
     config : mapping
         ``{"preset": "reference", <parameter>: <value>, ...}``; values in SI
         units override the preset's nominal values (e.g. ``g_cooler = 11.0``).
+    leg_cells : int, optional
+        Resolution of the module's legs (see :func:`reference_rig`).
 
     Returns
     -------
@@ -341,7 +378,7 @@ def rig_from_config(config):
     preset = config.pop("preset", "reference")
     if not isinstance(preset, str) or preset not in PRESETS:
         raise ModelError(f"unknown rig preset {preset!r}; known presets: {sorted(PRESETS)}")
-    rig = PRESETS[preset]
+    rig = PRESETS[preset](leg_cells)
     if config:
         bad = [k for k, v in config.items() if isinstance(v, bool) or not isinstance(v, (int, float))]
         if bad:

@@ -1,0 +1,269 @@
+"""The virtual bench: synthetic batches with known truth.
+
+:func:`simulate_batch` draws a batch of modules of one type (unit-to-unit
+spread of a few percent around a type whose true values differ from the
+datasheet conversions), optionally makes one of them an outlier, runs the
+identification staircase and validation cycles on the higher-fidelity rig
+(:mod:`tembayes.bench.hifi`) with slow water and ambient drifts, adds sensor
+noise, and writes a contract batch folder plus ``truth.json``.
+
+Never the calibration model plus noise: the bench's blocks, legs, leak paths
+and current steps are all resolved more finely than the model that
+calibrates on them.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass, field
+
+import numpy as np
+
+import tembayes
+from tembayes.constants import KELVIN, T_REF
+from tembayes.data import (
+    Datasheet,
+    atomic_directory,
+    experiment_from_arrays,
+    write_batch_toml,
+    write_experiment_csv,
+    write_json,
+)
+from tembayes.errors import ModelError
+from tembayes.bench import hifi
+from tembayes.bench.protocols import (
+    boundary_drifts,
+    identification_staircase,
+    sample_times,
+    validation_cycle,
+)
+from tembayes.physics import effects as fx
+from tembayes.physics.simulate import Inputs, simulate
+
+#: The reference module type (``shared/spec/reference-rig.md``).
+TEC1_12706 = Datasheet(name="TEC1-12706", th=25.0 + KELVIN, imax=6.4, vmax=14.4, dtmax=66.0, qmax=50.0)
+
+#: Measurement noise (rms) of the reference rig.
+NOISE = {"temperature_K": 0.004, "voltage_V": 0.001, "current_A": 0.001}
+
+#: Relative unit-to-unit spread (sd) of each parameter within a batch.
+UNIT_SPREAD = {"R0_ohm": 0.02, "R1_ohm_per_K": 0.05, "S0_V_per_K": 0.01, "S1_V_per_K2": 0.06, "K_W_per_K": 0.03}
+
+
+@dataclass(frozen=True)
+class BenchConfig:
+    """What :func:`simulate_batch` makes.
+
+    Attributes
+    ----------
+    n_modules : int
+    effects : dict
+        Effect name -> {parameter: value} (see :func:`tembayes.physics.parse_effects`).
+    seed : int
+    outlier : str or None
+        Module id (``"TEM1"``...) whose S0 is shifted by ``outlier_shift``.
+    outlier_shift : float
+        Relative S0 shift of the outlier; its sign is drawn.
+    datasheet : Datasheet
+    rate : float
+        Sampling rate of the written files [Hz].
+    hold : float
+        Identification hold duration [s].
+    n_validations : int
+        Validation runs per module.
+    validation_duration : float
+        [s]
+    """
+
+    n_modules: int = 3
+    effects: dict = field(default_factory=dict)
+    seed: int = 0
+    outlier: str | None = None
+    outlier_shift: float = 0.04
+    datasheet: Datasheet = TEC1_12706
+    rate: float = 5.0
+    hold: float = 600.0
+    n_validations: int = 1
+    validation_duration: float = 4 * 3600.0
+
+    def __post_init__(self):
+        if self.n_modules < 1:
+            raise ModelError("n_modules must be at least 1")
+        if self.outlier is not None and self.outlier not in self.module_ids:
+            raise ModelError(f"outlier '{self.outlier}' is not one of the modules {self.module_ids}")
+        if not 0.05 <= self.rate <= 100:
+            raise ModelError(f"rate must be between 0.05 and 100 Hz, got {self.rate}")
+        if self.hold < 30:
+            raise ModelError(f"hold must be at least 30 s, got {self.hold}")
+        if self.n_validations < 0:
+            raise ModelError("n_validations must be >= 0")
+
+    @property
+    def module_ids(self):
+        return tuple(f"TEM{i + 1}" for i in range(self.n_modules))
+
+
+def draw_truth(config, rng):
+    """True parameters of the batch's type and of each module.
+
+    Returns
+    -------
+    dict
+        ``population`` (type means), ``modules`` (id -> law parameters,
+        bench rig values and their lumped equivalent, outlier flag).
+    """
+    ds = config.datasheet
+    # the type's real values differ from the datasheet conversions by a few %
+    R0 = ds.resistance() * rng.normal(1.0, 0.04)
+    S0 = ds.seebeck() * rng.normal(1.0, 0.03)
+    K0 = ds.conductance() * rng.normal(1.0, 0.05)
+    R1 = R0 * 0.005 * rng.normal(1.0, 0.1)  # R rises ~0.5 %/K
+    S1 = S0 * 0.002 * rng.normal(1.0, 0.15)  # S rises ~0.2 %/K
+    population = {"R0_ohm": R0, "R1_ohm_per_K": R1, "S0_V_per_K": S0, "S1_V_per_K2": S1, "K_W_per_K": K0}
+    # one enclosure and one cooler for the whole batch; paste and plates per mounting
+    shared = {k: _draw_rig(rng, k) for k in ("g_cooler", "leak_top", "leak_bottom")}
+    modules = {}
+    for mid in config.module_ids:
+        laws = {k: v * (1.0 + UNIT_SPREAD[k] * rng.standard_normal()) for k, v in population.items()}
+        is_out = mid == config.outlier
+        if is_out:
+            laws["S0_V_per_K"] *= 1.0 + config.outlier_shift * rng.choice([-1.0, 1.0])
+        rig = dict(shared)
+        for k in ("g_paste_hot", "g_paste_cold", "c_plate_hot", "c_plate_cold", "c_legs"):
+            rig[k] = _draw_rig(rng, k)
+        modules[mid] = {
+            **{k: float(v) for k, v in laws.items()},
+            "outlier": bool(is_out),
+            "rig_bench": {k: float(v) for k, v in rig.items()},
+            "rig": {k: float(v) for k, v in hifi.reference_equivalent(rig).items()},
+        }
+    return {"population": {k: float(v) for k, v in population.items()}, "modules": modules}
+
+
+def _draw_rig(rng, name):
+    p = next(q for q in hifi.HIFI_PARAMETERS if q.name == name)
+    sd = (p.high - p.low) / 6.0
+    while True:  # truncated to the documented range
+        v = rng.normal(p.nominal, sd)
+        if p.low <= v <= p.high:
+            return v
+
+
+def run_experiment(protocol, module, effect_params, rng, *, rate=5.0, rig=None, t0=0.0, path=None):
+    """Run one experiment on the bench and return it as a measured Experiment.
+
+    Parameters
+    ----------
+    protocol : tembayes.bench.protocols.Protocol
+    module : dict
+        Law parameters and ``rig_bench`` values (from :func:`draw_truth`).
+    effect_params : dict
+        Effect parameter name -> value (flat).
+    rng : numpy.random.Generator
+    rate : float
+        Sampling rate [Hz].
+    rig : RigDescription, optional
+        Bench rig, default :func:`tembayes.bench.hifi.hifi_rig`.
+    t0 : float
+        Time stamp of the first sample [s].
+    """
+    rig = rig or hifi.hifi_rig()
+    ts = sample_times(rng, protocol.duration, rate=rate)
+    # resolve each current step with a 1 ms ramp (the amplifier), between samples
+    steps = protocol.step_times
+    grid = np.unique(np.concatenate([ts, steps - 1e-3, steps]))
+    grid = grid[np.concatenate([[True], np.diff(grid) > 1e-6])]
+    i_true = protocol.current(grid)
+    i_true[np.isin(grid, steps - 1e-3)] = protocol.current(steps - 2e-3)
+    tw, ta = boundary_drifts(rng, grid)
+    params = {k: module[k] for k in ("R0_ohm", "R1_ohm_per_K", "S0_V_per_K", "S1_V_per_K2", "K_W_per_K")}
+    params.update(module["rig_bench"])
+    # the current error is in the measurement, not in the module: applied below
+    meas = {k: effect_params.pop(k, 0.0) for k in ("current_gain_error", "current_offset_A")}
+    params.update(effect_params)
+    sim = simulate(Inputs(grid, i_true, tw, ta), params, rig=rig)
+    sel = np.searchsorted(grid, ts)
+    n = len(ts)
+    noise = NOISE
+    current = (1.0 + meas["current_gain_error"]) * i_true[sel] + meas["current_offset_A"]
+    current = current + rng.normal(0, noise["current_A"], n)
+    voltage = sim.voltage[0, sel] + rng.normal(0, noise["voltage_V"], n)
+    sensors = sim.sensors[0][:, sel] + rng.normal(0, noise["temperature_K"], (4, n))
+    water = tw[sel] + rng.normal(0, noise["temperature_K"], n)
+    amb = ta[sel] + rng.normal(0, noise["temperature_K"], n)
+    return experiment_from_arrays(ts + t0, current, voltage, sensors, water, amb, path=path)
+
+
+def simulate_batch(out, config, *, overwrite=False, progress=None):
+    """Make a synthetic batch folder (contract section 1) with ``truth.json``.
+
+    Parameters
+    ----------
+    out : str or Path
+        Folder to create; refused if it exists unless ``overwrite``.
+    config : BenchConfig
+    overwrite : bool
+    progress : callable, optional
+        ``progress(message)`` for each experiment; default prints to stderr.
+
+    Returns
+    -------
+    dict
+        The truth that was written to ``truth.json``.
+    """
+    if progress is None:
+        def progress(msg):
+            print(msg, file=sys.stderr, flush=True)
+    # one stream for the batch-level draws, one per module (adding modules
+    # does not change the earlier ones)
+    ss = np.random.SeedSequence(config.seed)
+    batch_ss, *module_ss = ss.spawn(1 + config.n_modules)
+    rng = np.random.default_rng(batch_ss)
+    truth = draw_truth(config, rng)
+    eff_flat = {k: v for params in config.effects.values() for k, v in params.items()}
+    ds = config.datasheet
+    rig = hifi.hifi_rig()
+    with atomic_directory(out, overwrite=overwrite) as tmp:
+        write_batch_toml(tmp / "batch.toml", ds, {"preset": "reference"})
+        for (mid, module), mss in zip(truth["modules"].items(), module_ss):
+            mrng = np.random.default_rng(mss)
+            (tmp / mid).mkdir()
+            progress(f"bench: {mid} identification ({config.hold:.0f} s holds)")
+            exp = run_experiment(
+                identification_staircase(ds.imax, hold=config.hold), module, dict(eff_flat), mrng,
+                rate=config.rate, rig=rig,
+            )
+            write_experiment_csv(tmp / mid / "identification.csv", exp)
+            for v in range(config.n_validations):
+                name = "validation.csv" if v == 0 else f"validation{v + 1}.csv"
+                progress(f"bench: {mid} {name}")
+                proto = validation_cycle(mrng, ds.imax, duration=config.validation_duration)
+                exp = run_experiment(proto, module, dict(eff_flat), mrng, rate=config.rate, rig=rig,
+                                     t0=float(np.round(mrng.uniform(0, 1000), 3)))
+                write_experiment_csv(tmp / mid / name, exp)
+        truth = {
+            "generator": {
+                "tembayes_version": tembayes.__version__,
+                "seed": config.seed,
+                "rate_Hz": config.rate,
+                "hold_s": config.hold,
+                "n_validations": config.n_validations,
+                "validation_duration_s": config.validation_duration,
+                "bench_rig": rig.name,
+                "outlier_shift": config.outlier_shift,
+            },
+            "tref_C": T_REF - KELVIN,
+            "datasheet": ds.to_table(),
+            "noise_rms": NOISE,
+            "unit_spread_rel": UNIT_SPREAD,
+            "effects": config.effects,
+            "outlier": config.outlier,
+            **truth,
+        }
+        write_json(tmp / "truth.json", truth)
+    return truth
+
+
+def effect_names():
+    """Names accepted by ``--effect``."""
+    return tuple(fx.CATALOGUE)

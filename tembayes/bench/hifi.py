@@ -1,0 +1,95 @@
+"""The virtual bench's higher-fidelity rig and module.
+
+Where the calibration model (:data:`tembayes.physics.rig.REFERENCE`) has two
+nodes per steel block and a lumped module, the bench resolves:
+
+- each steel block into 6 cells of 1.67 mm, so the sensors (2.5 mm from a
+  face) sit at cell centres and the heat path from junction to sensor is a
+  distributed one;
+- the module into its alumina plates and ``n_leg`` leg cells, with Joule heat
+  released along the legs at the local temperature's resistance, conduction
+  along the legs, and (``thomson`` effect) Peltier heat at each junction's own
+  Seebeck coefficient plus Thomson heat in the legs;
+- the enclosure leak spread over the block sides, with the bottom block's
+  tabs at its bottom cell.
+
+It reuses the same compiled kernel: a leg chain is just a longer module chain.
+"""
+
+from __future__ import annotations
+
+from tembayes.physics.rig import RigDescription, RigParameter
+
+N_BLOCK_CELLS = 6
+N_LEG_CELLS = 4
+
+_K_STEEL = 16.2
+_AREA = 0.040 * 0.040
+_RHO_C = 7900.0 * 500.0
+_DX = 0.010 / N_BLOCK_CELLS  # cell thickness [m]
+_G_CELL = _K_STEEL * _AREA / _DX  # centre to centre [W/K]
+_C_CELL = _RHO_C * _AREA * _DX  # [J/K]
+
+#: Bench rig parameters: the reference rig's physical ones (same names), with
+#: the steel resolved into cells.
+HIFI_PARAMETERS = (
+    RigParameter("g_cooler", 12.5, 10.0, 15.0, "W/K", "water cooler to top block face"),
+    RigParameter("g_paste_hot", 35.0, 20.0, 50.0, "W/K", "thermal paste, module hot face"),
+    RigParameter("g_paste_cold", 35.0, 20.0, 50.0, "W/K", "thermal paste, module cold face"),
+    RigParameter("c_plate_hot", 4.5, 4.0, 5.0, "J/K", "hot alumina plate"),
+    RigParameter("c_plate_cold", 4.5, 4.0, 5.0, "J/K", "cold alumina plate"),
+    RigParameter("c_legs", 1.25, 1.0, 1.5, "J/K", "all legs together"),
+    RigParameter("leak_top", 0.02, 0.01, 0.03, "W/K", "top block to ambient"),
+    RigParameter("leak_bottom", 0.04, 0.02, 0.06, "W/K", "bottom block to ambient"),
+    RigParameter("c_cell", _C_CELL, 0.97 * _C_CELL, 1.03 * _C_CELL, "J/K", "one block cell"),
+    RigParameter("g_cell", _G_CELL, 0.95 * _G_CELL, 1.05 * _G_CELL, "W/K", "steel, cell centre to centre"),
+    RigParameter("g_half_cell", 2 * _G_CELL, 1.9 * _G_CELL, 2.1 * _G_CELL, "W/K", "steel, face to cell centre"),
+)
+
+
+def hifi_rig(n_leg=N_LEG_CELLS):
+    """The bench's higher-fidelity description of the reference rig."""
+    nb = N_BLOCK_CELLS
+    top = [f"top_{i + 1}" for i in range(nb)]  # top_1 at the water cooler
+    bottom = [f"bottom_{i + 1}" for i in range(nb)]  # bottom_1 at the module
+    legs = [f"leg_{i + 1}" for i in range(n_leg)]  # leg_1 at the hot plate
+    nodes = [(n, "c_cell") for n in top]
+    nodes += [("hot_plate", "c_plate_hot")]
+    nodes += [(n, f"{1.0 / n_leg!r}*c_legs") for n in legs]
+    nodes += [("cold_plate", "c_plate_cold")]
+    nodes += [(n, "c_cell") for n in bottom]
+    links = [("water", top[0], ["g_cooler", "g_half_cell"])]
+    links += [(a, b, "g_cell") for a, b in zip(top[:-1], top[1:])]
+    links += [(top[-1], "hot_plate", ["g_half_cell", "g_paste_hot"])]
+    links += [("cold_plate", bottom[0], ["g_paste_cold", "g_half_cell"])]
+    links += [(a, b, "g_cell") for a, b in zip(bottom[:-1], bottom[1:])]
+    links += [(n, "ambient", f"{1.0 / nb!r}*leak_top") for n in top]
+    # half of the bottom leak through the side walls, half through the tabs
+    links += [(n, "ambient", f"{0.5 / nb!r}*leak_bottom") for n in bottom]
+    links += [(bottom[-1], "ambient", "0.5*leak_bottom")]
+    return RigDescription(
+        name=f"bench-hifi-{n_leg}",
+        parameters=HIFI_PARAMETERS,
+        nodes=tuple(nodes),
+        links=tuple(links),
+        hot="hot_plate",
+        cold="cold_plate",
+        # 6 cells of 1.67 mm: centres 2, 5 are 2.5 mm from a face
+        sensors={"T1_C": top[1], "T2_C": top[4], "T3_C": bottom[1], "T4_C": bottom[4]},
+        legs=tuple(legs),
+    )
+
+
+#: Bench rig parameters that the reference rig shares (same name, same meaning).
+SHARED_WITH_REFERENCE = (
+    "g_cooler", "g_paste_hot", "g_paste_cold", "c_plate_hot", "c_plate_cold", "c_legs", "leak_top", "leak_bottom",
+)
+
+
+def reference_equivalent(bench_values):
+    """The reference rig's parameter values that correspond to bench rig values.
+
+    Written to ``truth.json`` so that a calibration's rig posterior can be
+    checked; the steel's cell parameters have no counterpart.
+    """
+    return {k: bench_values[k] for k in SHARED_WITH_REFERENCE if k in bench_values}

@@ -1,0 +1,123 @@
+"""The experiments a test bench runs (``shared/spec/reference-rig.md``).
+
+A protocol is a list of current holds.  :func:`identification_staircase`
+is the paper's identification run (0 -> +0.8 A -> -1.6 A -> 0 in 0.2 A steps,
+each held ~600 s) and :func:`validation_cycle` the diagnostic-device-like
+validation run.  Levels are given for the reference module (Imax 6.4 A) and
+scale with the datasheet's Imax, so another module type sees the same relative
+load.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+REFERENCE_IMAX = 6.4  # [A] the module the reference levels were written for
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """Piecewise-constant true current.
+
+    Attributes
+    ----------
+    levels : ndarray, shape (n,)
+        Current of each hold [A].
+    durations : ndarray, shape (n,)
+        Duration of each hold [s].
+    """
+
+    levels: np.ndarray
+    durations: np.ndarray
+
+    @property
+    def step_times(self):
+        """Times of the current steps from the protocol start [s]."""
+        return np.cumsum(self.durations)[:-1]
+
+    @property
+    def duration(self):
+        return float(np.sum(self.durations))
+
+    def current(self, t):
+        """True current [A] at times ``t`` [s] from the protocol start."""
+        idx = np.searchsorted(self.step_times, t, side="right")
+        return self.levels[np.minimum(idx, len(self.levels) - 1)]
+
+
+def identification_staircase(imax=REFERENCE_IMAX, hold=600.0, step=0.2, top=0.8, bottom=-1.6):
+    """The identification staircase: every level visited by an up- and a down-step.
+
+    Parameters
+    ----------
+    imax : float
+        Datasheet Imax of the module [A]; levels scale with ``imax / 6.4``.
+    hold : float
+        Duration of each hold [s].
+    step, top, bottom : float
+        Step size and turning levels for the reference module [A].
+    """
+    up = np.arange(0.0, top + 1e-9, step)
+    down = np.arange(top - step, bottom - 1e-9, -step)
+    back = np.arange(bottom + step, 0.0 + 1e-9, step)
+    levels = np.round(np.concatenate([up, down, back]), 6) * imax / REFERENCE_IMAX
+    return Protocol(levels, np.full(len(levels), float(hold)))
+
+
+def validation_cycle(rng, imax=REFERENCE_IMAX, duration=4 * 3600.0, low=-1.6, high=0.9, hold_range=(300.0, 1200.0)):
+    """A validation run: random holds between ``low`` and ``high`` amperes.
+
+    Starts with a 300 s rest at 0 A; levels are drawn on a 0.05 A grid so that
+    consecutive holds differ by at least 0.15 A.
+    """
+    levels, durations = [0.0], [300.0]
+    total = 300.0
+    grid = np.round(np.arange(low, high + 1e-9, 0.05), 6)
+    while total < duration:
+        while True:
+            lv = float(rng.choice(grid))
+            if abs(lv - levels[-1]) >= 0.15:
+                break
+        d = float(np.round(rng.uniform(*hold_range)))
+        levels.append(lv)
+        durations.append(d)
+        total += d
+    scale = imax / REFERENCE_IMAX
+    return Protocol(np.array(levels) * scale, np.array(durations))
+
+
+def sample_times(rng, duration, rate=5.0, jitter=0.002, t0=0.0):
+    """Sample times of a data-acquisition system: ``rate`` Hz with timing jitter [s]."""
+    n = int(np.floor(duration * rate)) + 1
+    t = np.arange(n) / rate
+    t[1:-1] += rng.uniform(-jitter, jitter, n - 2)
+    return t0 + t
+
+
+def boundary_drifts(rng, t, t_water=20.0 + 273.15, t_amb=22.0 + 273.15):
+    """True water and ambient temperatures [K] at times ``t`` [s].
+
+    The chiller wobbles by a few hundredths of a kelvin (a control cycle of a
+    few minutes plus a little wander); the room drifts by a few tenths of a
+    kelvin over hours.
+    """
+    period = rng.uniform(200.0, 400.0)
+    phase = rng.uniform(0, 2 * np.pi)
+    water = t_water + rng.uniform(-0.3, 0.3) + 0.02 * np.sin(2 * np.pi * t / period + phase)
+    water += _smooth_walk(rng, t, 0.01, 600.0)
+    amb = t_amb + rng.uniform(-1.0, 1.0) + _smooth_walk(rng, t, 0.25, 3600.0)
+    return water, amb
+
+
+def _smooth_walk(rng, t, sd, tau):
+    """A stationary Ornstein-Uhlenbeck path with standard deviation ``sd`` and time constant ``tau`` [s]."""
+    knots = np.arange(t[0], t[-1] + tau / 10, tau / 10)
+    a = np.exp(-0.1)
+    x = np.empty(len(knots))
+    x[0] = rng.normal(0, sd)
+    e = rng.normal(0, sd * np.sqrt(1 - a * a), len(knots))
+    for i in range(1, len(knots)):
+        x[i] = a * x[i - 1] + e[i]
+    return np.interp(t, knots, x)
