@@ -28,17 +28,19 @@ def noise_estimate(values) -> float:
     Returns
     -------
     float
-        ``1.4826 * MAD(diff(values)) / sqrt(2)``, in the unit of ``values``.
-        Differencing removes the slow signal; the median ignores the few
-        large differences at steps; ``sqrt(2)`` because a difference of two
-        independent samples has twice the variance.  NaN for fewer than 2
-        samples.
+        ``1.4826 * MAD(second differences) / sqrt(6)``, in the unit of
+        ``values``.  Second differences cancel the signal's local slope (a
+        thermal transient sampled at 1 Hz moves tens of mK between samples,
+        which first differences would count as noise); the median ignores
+        the few large values at steps; ``sqrt(6)`` is the standard deviation
+        of ``x[i+1] - 2 x[i] + x[i-1]`` for unit white noise.  NaN for fewer
+        than 3 samples.
     """
-    d = np.diff(np.asarray(values, dtype=np.float64))
+    d = np.diff(np.asarray(values, dtype=np.float64), n=2)
     if d.size == 0:
         return math.nan
     mad = np.median(np.abs(d - np.median(d)))
-    return float(_MAD_TO_SD * mad / math.sqrt(2.0))
+    return float(_MAD_TO_SD * mad / math.sqrt(6.0))
 
 
 def summarize_experiment(exp: Experiment) -> dict:

@@ -1,0 +1,5 @@
+import sys
+
+from tembayes.cli import main
+
+sys.exit(main())

@@ -1,0 +1,165 @@
+"""The ``tembayes`` command: a thin layer over the library.
+
+Each sub-command parses its arguments, calls one library function and prints
+progress to stderr.  A refused input or impossible request ends with a
+one-line ``tembayes: error: ...`` and exit status 2; nothing is written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import tembayes
+from tembayes.errors import TembayesError
+
+_EPILOG_SIMULATE = """\
+examples:
+  tembayes simulate runs/demo --modules 3 --outlier TEM1 --seed 0
+  tembayes simulate runs/kt --effect k_temperature --effect sensor_lag=8 --seed 3
+  tembayes simulate runs/other --datasheet other_type.toml --rate 1
+
+effects (NAME or NAME=VALUE; VALUE sets the first parameter, others scale along):
+{effects}
+"""
+
+_EPILOG_INSPECT = """\
+example:
+  tembayes inspect data/example
+  tembayes inspect data/example --json > quality.json
+"""
+
+
+def _effects_table():
+    from tembayes.physics.effects import CATALOGUE
+
+    lines = []
+    for e in CATALOGUE.values():
+        ps = ", ".join(f"{p.name}={p.default:g} {p.unit}" for p in e.parameters)
+        lines.append(f"  {e.name:<19s}{ps}")
+    return "\n".join(lines)
+
+
+def _cmd_simulate(args):
+    from tembayes.bench import TEC1_12706, BenchConfig, simulate_batch
+    from tembayes.data import load_batch_toml
+    from tembayes.physics.effects import parse_effects
+
+    datasheet = TEC1_12706
+    if args.datasheet:
+        datasheet, _ = load_batch_toml(args.datasheet)
+    config = BenchConfig(
+        n_modules=args.modules,
+        effects=parse_effects(args.effect),
+        seed=args.seed,
+        outlier=args.outlier,
+        outlier_shift=args.outlier_shift,
+        datasheet=datasheet,
+        rate=args.rate,
+        hold=args.hold,
+        n_validations=args.validations,
+        validation_duration=args.validation_hours * 3600.0,
+    )
+    truth = simulate_batch(args.out, config, overwrite=args.overwrite)
+    print(f"wrote {args.out}: {len(truth['modules'])} modules ({datasheet.name}), "
+          f"effects: {', '.join(config.effects) or 'none'}, outlier: {config.outlier or 'none'}, seed {args.seed}")
+    return 0
+
+
+def _cmd_inspect(args):
+    from tembayes.data import load_batch, summarize_experiment
+
+    batch = load_batch(args.batch)
+    ds = batch.datasheet
+    report = {
+        "batch": str(batch.path),
+        "module_type": ds.to_table(),
+        "derived_SI": {"S_V_per_K": ds.seebeck(), "R_ohm": ds.resistance(), "K_W_per_K": ds.conductance()},
+        "rig": batch.rig_config,
+        "modules": {
+            mid: {e.path.name: summarize_experiment(e) for e in (m.identification, *m.validations)}
+            for mid, m in batch.modules.items()
+        },
+    }
+    if args.json:
+        json.dump(report, sys.stdout, indent=2)
+        print()
+        return 0
+    print(f"batch {batch.path}  type {ds.name or '?'}  rig {batch.rig_config.get('preset', 'reference')}")
+    print(f"  datasheet -> S {ds.seebeck():.4g} V/K, R {ds.resistance():.4g} ohm, K {ds.conductance():.4g} W/K")
+    for mid, files in report["modules"].items():
+        for name, q in files.items():
+            print(
+                f"  {mid:<8s} {name:<18s} {q['n_samples']:>7d} samples {q['duration_s'] / 3600:5.2f} h "
+                f"dt {q['dt_median_s']:.3g} s  I {q['current_min_A']:+.2f}..{q['current_max_A']:+.2f} A  "
+                f"T3 {q['T3_C_min']:.1f}..{q['T3_C_max']:.1f} C  noise T3 {1e3 * q['T3_C_noise']:.1f} mK"
+            )
+    return 0
+
+
+def build_parser():
+    """The argument parser of the ``tembayes`` command."""
+    parser = argparse.ArgumentParser(
+        prog="tembayes",
+        description="Bayesian uncertainty quantification of thermoelectric-module parameters.",
+        epilog="Run 'tembayes COMMAND --help' for a command's options and an example.",
+    )
+    parser.add_argument("--version", action="version", version=f"tembayes {tembayes.__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser(
+        "simulate",
+        help="make a synthetic batch on the virtual bench",
+        description="Make a synthetic batch folder (contract section 1) plus truth.json on the "
+        "virtual bench: a higher-fidelity rig and module than the calibration model, with "
+        "unit-to-unit spread, sensor noise and water/ambient drifts.",
+        epilog=_EPILOG_SIMULATE.format(effects=_effects_table()),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("out", type=Path, help="batch folder to create (refused if it exists, see --overwrite)")
+    p.add_argument("--modules", type=int, default=3, metavar="N", help="modules in the batch (default 3)")
+    p.add_argument("--effect", action="append", default=[], metavar="NAME[=VALUE]",
+                   help="switch on a catalogue effect (repeatable)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--outlier", metavar="ID", help="module id whose S0 sits apart, e.g. TEM1")
+    p.add_argument("--outlier-shift", type=float, default=0.04, metavar="F",
+                   help="relative S0 shift of the outlier (default 0.04)")
+    p.add_argument("--datasheet", type=Path, metavar="TOML",
+                   help="a batch.toml-style file whose [module_type] sets the module type (default TEC1-12706)")
+    p.add_argument("--rate", type=float, default=5.0, metavar="HZ", help="sampling rate (default 5 Hz)")
+    p.add_argument("--hold", type=float, default=600.0, metavar="S", help="identification hold (default 600 s)")
+    p.add_argument("--validations", type=int, default=1, metavar="K", help="validation runs per module (default 1)")
+    p.add_argument("--validation-hours", type=float, default=4.0, metavar="H",
+                   help="length of a validation run (default 4 h)")
+    p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
+    p.set_defaults(func=_cmd_simulate)
+
+    p = sub.add_parser(
+        "inspect",
+        help="load and validate a batch folder, print a data-quality summary",
+        description="Load a batch folder with every contract check and print, per experiment, "
+        "samples, duration, sampling interval, current and temperature ranges and noise.",
+        epilog=_EPILOG_INSPECT,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("batch", type=Path, help="batch folder")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.set_defaults(func=_cmd_inspect)
+    return parser
+
+
+def main(argv=None):
+    """Entry point of the ``tembayes`` command; returns the exit status."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.func(args)
+    except TembayesError as err:
+        print(f"tembayes: error: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
