@@ -182,7 +182,7 @@ CATALOGUE = {
         Effect(
             "k_temperature",
             "the module's thermal conductance depends on temperature: K(T) = K (1 + K1 (T - T_ref))",
-            (EffectParameter("K1_per_K", 0.004, 0.005, "1/K", "relative slope of K"),),
+            (EffectParameter("K1_per_K", 0.0015, 0.005, "1/K", "relative slope of K"),),
             "tem",
             _tem_k_temperature,
         ),
@@ -213,7 +213,7 @@ CATALOGUE = {
         Effect(
             "joule_split",
             "Joule heat not split equally: a fraction 0.5 + delta is released at the hot side",
-            (EffectParameter("joule_hot_excess", 0.1, 0.15, "1", "delta, excess hot-side fraction"),),
+            (EffectParameter("joule_hot_excess", 0.05, 0.15, "1", "delta, excess hot-side fraction"),),
             "tem",
             _tem_joule_split,
         ),
@@ -221,8 +221,8 @@ CATALOGUE = {
             "current_offset",
             "the current measurement has a gain and offset error: I_meas = (1 + g) I + o",
             (
-                EffectParameter("current_gain_error", 0.015, 0.03, "1", "gain error g"),
-                EffectParameter("current_offset_A", 0.006, 0.02, "A", "offset o"),
+                EffectParameter("current_gain_error", 0.01, 0.03, "1", "gain error g"),
+                EffectParameter("current_offset_A", 0.005, 0.02, "A", "offset o"),
             ),
             "input",
             _input_current,
@@ -231,8 +231,8 @@ CATALOGUE = {
             "quadratic_laws",
             "R_m and S_m curved in T: R0 R2 x^2 and S0 S2 x^2 added to the linear laws",
             (
-                EffectParameter("R2_rel_per_K2", 4e-5, 6e-5, "1/K^2", "relative curvature of R"),
-                EffectParameter("S2_rel_per_K2", -6e-5, 8e-5, "1/K^2", "relative curvature of S"),
+                EffectParameter("R2_rel_per_K2", 2e-5, 6e-5, "1/K^2", "relative curvature of R"),
+                EffectParameter("S2_rel_per_K2", -3e-5, 8e-5, "1/K^2", "relative curvature of S"),
             ),
             "tem",
             _tem_quadratic,
@@ -240,7 +240,7 @@ CATALOGUE = {
         Effect(
             "ambient_leak",
             "more heat exchange with ambient than the rig model allows",
-            (EffectParameter("extra_leak_W_per_K", 0.15, 0.2, "W/K", "extra conductance to ambient"),),
+            (EffectParameter("extra_leak_W_per_K", 0.06, 0.2, "W/K", "extra conductance to ambient"),),
             "network",
             _network_ambient,
         ),

@@ -32,7 +32,7 @@ from numba import njit, prange
 P_R0, P_R1, P_R2 = 0, 1, 2  # R = R0 + R1 x + R2 x^2 [ohm], x = T - T_ref [K]
 P_S0, P_S1, P_S2 = 3, 4, 5  # S = S0 + S1 x + S2 x^2 [V/K]
 P_K0, P_K1 = 6, 7  # K = K0 (1 + K1 x) [W/K], K1 relative [1/K]
-P_THOMSON = 8  # 0: S(T_mean) at both junctions; 1: own S at each junction + Thomson heat
+P_THOMSON = 8  # 0: S(T_mean) at both junctions; 1: own S at each junction + Thomson heat (linear blend)
 P_JOULE = 9  # excess fraction of Joule heat released at the hot side (0 = equal split)
 P_IGAIN = 10  # measured current = (1 + gain) I + offset
 P_IOFFSET = 11  # [A]
@@ -48,11 +48,6 @@ _HC = 1e-20  # complex-step size: derivative exact to rounding, no cancellation
 @njit(cache=True)
 def _poly(p, i, x):
     return p[i] + p[i + 1] * x + p[i + 2] * x * x
-
-
-@njit(cache=True)
-def _dpoly(p, i, x):
-    return p[i + 1] + 2.0 * p[i + 2] * x
 
 
 @njit(cache=True)
@@ -83,11 +78,11 @@ def tem_heat(T, I, p, Q):
     I2 = I * I
     for k in range(m):
         Q[k] = 0.0 * T[k]
-    # Peltier heat at the junctions, at each junction's own Seebeck
-    # coefficient when lam = 1 and at S(T_mean) (the paper) when lam = 0.
-    d = 0.5 * lam * (Th - Tc)
-    Sh = _poly(p, P_S0, x + d)
-    Sc = _poly(p, P_S0, x - d)
+    # Peltier heat at the junctions: S(T_mean) (the paper) at lam = 0, each
+    # junction's own S at lam = 1, linear in between.
+    Sm = _poly(p, P_S0, x)
+    Sh = (1.0 - lam) * Sm + lam * _poly(p, P_S0, Th - tref)
+    Sc = (1.0 - lam) * Sm + lam * _poly(p, P_S0, Tc - tref)
     Q[0] += Sh * Th * I
     Q[m - 1] -= Sc * Tc * I
     # Joule heat: equal split (paper) unless delta moves part of it to one
@@ -119,7 +114,11 @@ def tem_heat(T, I, p, Q):
         q = w * p[P_K0] * (1.0 + p[P_K1] * xs) * dT
         Q[j] -= q
         Q[j + 1] += q
-        qt = -lam * Ts * _dpoly(p, P_S0, xs) * I * dT
+        # Thomson heat T dS/dT I dT of the segment, written as
+        # d(S T) - S dT so that it telescopes with the junction terms: the
+        # heat released then equals V I exactly for any law shape.
+        qt = -lam * I * (_poly(p, P_S0, T[j] - tref) * T[j] - _poly(p, P_S0, T[j + 1] - tref) * T[j + 1]
+                         - _poly(p, P_S0, xs) * dT)
         Q[j] += 0.5 * qt
         Q[j + 1] += 0.5 * qt
 

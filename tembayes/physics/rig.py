@@ -247,7 +247,7 @@ class RigDescription:
         for k, v in (values or {}).items():
             if k in vals:
                 vals[k] = np.atleast_1d(np.asarray(v, dtype=float))
-        nd = max(v.shape[0] for v in vals.values())
+        nd = max((v.shape[0] for v in vals.values()), default=1)
         names = self.node_names
         N = len(names)
         C = np.empty((nd, N))
