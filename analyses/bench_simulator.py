@@ -29,6 +29,7 @@ import sys
 import time
 from pathlib import Path
 
+import numba
 import numpy as np
 
 import tembayes
@@ -86,6 +87,14 @@ def main(argv=None):
     fast = simulate(inputs, params)
     t_fast = time.perf_counter() - t0
     print(f"tembayes: {t_fast:.2f} s for {args.sets} sets (first-call compile/cache load {t_compile:.1f} s)", flush=True)
+    # the same on one thread, so the ratio per core is on record too
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    t0 = time.perf_counter()
+    simulate(inputs, params)
+    t_fast1 = time.perf_counter() - t0
+    numba.set_num_threads(threads)
+    print(f"tembayes on 1 thread: {t_fast1:.2f} s", flush=True)
 
     t0 = time.perf_counter()
     base = simulate_reference(inputs, params, method="BDF", rtol=args.bdf_rtol, atol=args.bdf_rtol)
@@ -110,6 +119,9 @@ def main(argv=None):
         "duration_h": exp.duration / 3600,
         "sets": args.sets,
         "tembayes_s": t_fast,
+        "tembayes_threads": threads,
+        "tembayes_1thread_s": t_fast1,
+        "speed_ratio_per_thread": t_base / t_fast1,
         "tembayes_compile_s": t_compile,
         "bdf_s": t_base,
         "bdf_rtol": args.bdf_rtol,
@@ -130,7 +142,9 @@ def main(argv=None):
     for ch, a, b in zip(fast.channels, err_fast_T, err_base_T):
         print(f"{'max |err| ' + ch + ' [K]':28s}{a:12.2e}{b:14.2e}")
     print(f"{'max |err| voltage [V]':28s}{err_fast_V:12.2e}{err_base_V:14.2e}")
-    print(f"\nspeed ratio (BDF / tembayes): {ratio:.1f}x   (target >= 50x)")
+    print(f"{'wall time, 1 thread [s]':28s}{t_fast1:12.2f}{t_base:14.1f}")
+    print(f"\nspeed ratio (BDF / tembayes, {threads} threads): {ratio:.1f}x   (target >= 50x); "
+          f"on 1 thread: {t_base / t_fast1:.1f}x")
     print(f"agreement with tight reference: {err_fast_T.max():.2e} K, {err_fast_V:.2e} V (targets 0.01 K, 1 mV)")
     print("PASS" if result["pass"] else "FAIL")
     if not args.quick:

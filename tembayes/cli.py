@@ -19,7 +19,7 @@ _EPILOG_SIMULATE = """\
 examples:
   tembayes simulate runs/demo --modules 3 --outlier TEM1 --seed 0
   tembayes simulate runs/kt --effect k_temperature --effect sensor_lag=8 --seed 3
-  tembayes simulate runs/other --datasheet other_type.toml --rate 1
+  tembayes simulate runs/other --datasheet other_type.toml --validation-rate 1
 
 effects (NAME or NAME=VALUE; VALUE sets the first parameter, others scale along):
 {effects}
@@ -58,6 +58,7 @@ def _cmd_simulate(args):
         outlier_shift=args.outlier_shift,
         datasheet=datasheet,
         rate=args.rate,
+        validation_rate=args.validation_rate,
         hold=args.hold,
         n_validations=args.validations,
         validation_duration=args.validation_hours * 3600.0,
@@ -128,7 +129,10 @@ def build_parser():
                    help="relative S0 shift of the outlier (default 0.04)")
     p.add_argument("--datasheet", type=Path, metavar="TOML",
                    help="a batch.toml-style file whose [module_type] sets the module type (default TEC1-12706)")
-    p.add_argument("--rate", type=float, default=5.0, metavar="HZ", help="sampling rate (default 5 Hz)")
+    p.add_argument("--rate", type=float, default=5.0, metavar="HZ",
+                   help="sampling rate of the identification runs (default 5 Hz, the reference rig's)")
+    p.add_argument("--validation-rate", type=float, metavar="HZ",
+                   help="sampling rate of the validation runs (default: --rate)")
     p.add_argument("--hold", type=float, default=600.0, metavar="S", help="identification hold (default 600 s)")
     p.add_argument("--validations", type=int, default=1, metavar="K", help="validation runs per module (default 1)")
     p.add_argument("--validation-hours", type=float, default=4.0, metavar="H",

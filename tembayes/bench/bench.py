@@ -66,7 +66,9 @@ class BenchConfig:
         Relative S0 shift of the outlier; its sign is drawn.
     datasheet : Datasheet
     rate : float
-        Sampling rate of the written files [Hz].
+        Sampling rate of the identification runs [Hz].
+    validation_rate : float or None
+        Sampling rate of the validation runs [Hz]; ``None`` = ``rate``.
     hold : float
         Identification hold duration [s].
     n_validations : int
@@ -82,6 +84,7 @@ class BenchConfig:
     outlier_shift: float = 0.04
     datasheet: Datasheet = TEC1_12706
     rate: float = 5.0
+    validation_rate: float | None = None
     hold: float = 600.0
     n_validations: int = 1
     validation_duration: float = 4 * 3600.0
@@ -91,8 +94,10 @@ class BenchConfig:
             raise ModelError("n_modules must be at least 1")
         if self.outlier is not None and self.outlier not in self.module_ids:
             raise ModelError(f"outlier '{self.outlier}' is not one of the modules {self.module_ids}")
-        if not 0.05 <= self.rate <= 100:
-            raise ModelError(f"rate must be between 0.05 and 100 Hz, got {self.rate}")
+        for name in ("rate", "validation_rate"):
+            r = getattr(self, name)
+            if r is not None and not 0.05 <= r <= 100:
+                raise ModelError(f"{name} must be between 0.05 and 100 Hz, got {r}")
         if self.hold < 30:
             raise ModelError(f"hold must be at least 30 s, got {self.hold}")
         if self.n_validations < 0:
@@ -238,14 +243,15 @@ def simulate_batch(out, config, *, overwrite=False, progress=None):
                 name = "validation.csv" if v == 0 else f"validation{v + 1}.csv"
                 progress(f"bench: {mid} {name}")
                 proto = validation_cycle(mrng, ds.imax, duration=config.validation_duration)
-                exp = run_experiment(proto, module, dict(eff_flat), mrng, rate=config.rate, rig=rig,
-                                     t0=float(np.round(mrng.uniform(0, 1000), 3)))
+                exp = run_experiment(proto, module, dict(eff_flat), mrng, rate=config.validation_rate or config.rate,
+                                     rig=rig, t0=float(np.round(mrng.uniform(0, 1000), 3)))
                 write_experiment_csv(tmp / mid / name, exp)
         truth = {
             "generator": {
                 "tembayes_version": tembayes.__version__,
                 "seed": config.seed,
                 "rate_Hz": config.rate,
+                "validation_rate_Hz": config.validation_rate or config.rate,
                 "hold_s": config.hold,
                 "n_validations": config.n_validations,
                 "validation_duration_s": config.validation_duration,

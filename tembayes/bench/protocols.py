@@ -89,9 +89,15 @@ def validation_cycle(rng, imax=REFERENCE_IMAX, duration=4 * 3600.0, low=-1.6, hi
 
 
 def sample_times(rng, duration, rate=5.0, jitter=0.002, t0=0.0):
-    """Sample times of a data-acquisition system: ``rate`` Hz with timing jitter [s]."""
-    n = int(np.floor(duration * rate)) + 1
-    t = np.arange(n) / rate
+    """Sample times of a data-acquisition system [s].
+
+    ``rate`` Hz with timing jitter, on a clock whose phase is independent of
+    the protocol's (the DAQ and the current programme run on different
+    timers), so current steps fall anywhere between two samples.
+    """
+    phase = rng.uniform(0.0, 1.0 / rate)
+    n = int(np.floor((duration - phase) * rate)) + 1
+    t = phase + np.arange(n) / rate
     t[1:-1] += rng.uniform(-jitter, jitter, n - 2)
     return t0 + t
 

@@ -270,13 +270,13 @@ class RigDescription:
 
 
 # --- the reference rig -------------------------------------------------------
-_K_STEEL = 16.2  # AISI 304 [W/(m K)]
-_AREA = 0.040 * 0.040  # block and module footprint [m^2]
-_RHO_C = 7900.0 * 500.0  # volumetric heat capacity of the steel [J/(m^3 K)]
+K_STEEL = 16.2  # AISI 304 [W/(m K)]
+AREA = 0.040 * 0.040  # block and module footprint [m^2]
+RHO_C = 7900.0 * 500.0  # volumetric heat capacity of the steel [J/(m^3 K)]
 
 
 def _steel_g(d):
-    return _K_STEEL * _AREA / d
+    return K_STEEL * AREA / d
 
 
 _REFERENCE_PARAMETERS = (
@@ -289,8 +289,8 @@ _REFERENCE_PARAMETERS = (
     RigParameter("leak_top", 0.02, 0.01, 0.03, "W/K", "top block to ambient (enclosure)"),
     RigParameter("leak_bottom", 0.04, 0.02, 0.06, "W/K", "bottom block to ambient (enclosure, tabs)"),
     RigParameter(
-        "c_half_block", _RHO_C * _AREA * 0.005, 0.97 * _RHO_C * _AREA * 0.005,
-        1.03 * _RHO_C * _AREA * 0.005, "J/K", "5 mm of a steel block (rho c V)",
+        "c_half_block", RHO_C * AREA * 0.005, 0.97 * RHO_C * AREA * 0.005,
+        1.03 * RHO_C * AREA * 0.005, "J/K", "5 mm of a steel block (rho c V)",
     ),
     RigParameter(
         "g_steel_quarter", _steel_g(0.0025), 0.95 * _steel_g(0.0025), 1.05 * _steel_g(0.0025),

@@ -1,0 +1,300 @@
+"""The deterministic identification of a batch (``tembayes identify``).
+
+Per module:
+
+1. detect the current steps of the identification run;
+2. at each step, R from the extrapolated voltage jump (and the paper's
+   first-sample R); at the end of each hold, the steady state;
+3. junction temperatures at each hold end from the rig network (pass 1:
+   nominal rig values);
+4. R(T) fitted to the jumps, then S = (V - R(T) I) / dT at each hold end,
+   S(T) fitted -- the corrected method; the paper's method in parallel
+   (sensor dT = T2 - T3, sensor T_mean, first-sample R);
+5. the rig fit (thermal parameters and K, laws fixed), then pass 2 of 3-4
+   with the fitted rig values, and the rig fit again with the final laws;
+6. validation runs simulated with (a) R, S constant at 35 degC (its own rig
+   fit) and (b) the linear laws: RMSE and max error per sensor.
+
+Everything is returned as plain objects; :mod:`tembayes.identify.report`
+turns them into ``identify.json`` and :mod:`tembayes.plots.identify` into
+figures.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from tembayes.constants import KELVIN, LAW_PARAMETERS, MODULE_PARAMETERS
+from tembayes.errors import ModelError
+from tembayes.identify.estimates import hold_end, jump_resistance, junction_temperatures
+from tembayes.identify.fits import LineFit, fit_line, hysteresis
+from tembayes.identify.rigfit import RigFit, constant_laws, fit_rig, validation_errors
+from tembayes.identify.steps import detect_steps
+from tembayes.physics.rig import rig_from_config
+
+#: Holds whose junction temperature difference is smaller than this give no
+#: usable S (V_S / dT with dT near zero) [K].
+MIN_DT_FOR_S = 2.0
+
+
+@dataclass(frozen=True)
+class ModuleIdentification:
+    """Everything the step method finds for one module (SI inside).
+
+    Attributes
+    ----------
+    module : str
+    steps : list of dict
+        One row per step (contract ``steps`` table, CSV units at the edges
+        are added when written).
+    lines : dict of LineFit
+        ``R``, ``S`` (corrected), ``R_paper``, ``S_paper``.
+    hysteresis : dict
+        ``R`` and ``S``: up- minus down-step residuals.
+    rig_fit : RigFit
+        With the linear laws.
+    rig_fit_constant : RigFit
+        With R, S constant at 35 degC.
+    validation : dict
+        File name -> {"linear": errors, "constant": errors}.
+    """
+
+    module: str
+    steps: list
+    lines: dict
+    hysteresis: dict
+    rig_fit: RigFit
+    rig_fit_constant: RigFit
+    validation: dict = field(default_factory=dict)
+
+    @property
+    def fit(self):
+        """Law parameters of the corrected method (SI)."""
+        return _laws(self.lines["R"], self.lines["S"])
+
+    @property
+    def fit_sd(self):
+        return {"R0_ohm": self.lines["R"].a_sd, "R1_ohm_per_K": self.lines["R"].b_sd,
+                "S0_V_per_K": self.lines["S"].a_sd, "S1_V_per_K2": self.lines["S"].b_sd}
+
+    @property
+    def fit_paper(self):
+        return _laws(self.lines["R_paper"], self.lines["S_paper"])
+
+    @property
+    def fit_paper_sd(self):
+        return {"R0_ohm": self.lines["R_paper"].a_sd, "R1_ohm_per_K": self.lines["R_paper"].b_sd,
+                "S0_V_per_K": self.lines["S_paper"].a_sd, "S1_V_per_K2": self.lines["S_paper"].b_sd}
+
+
+def _laws(R: LineFit, S: LineFit):
+    return {"R0_ohm": R.a, "R1_ohm_per_K": R.b, "S0_V_per_K": S.a, "S1_V_per_K2": S.b}
+
+
+def _step_table(exp, rig, rig_values=None, rig_sds=None, *, seed=0):
+    """Per-step raw estimates (everything that does not need the laws)."""
+    steps = detect_steps(exp.time, exp.current)
+    if len(steps) < 3:
+        raise ModelError(f"{exp.path}: found {len(steps)} current steps; the step method needs a staircase")
+    rng = np.random.default_rng(seed)
+    rows = []
+    ends = {}
+    for st in steps:
+        jump = jump_resistance(exp.time, exp.voltage, exp.current, st)
+        for a, b in ((st.prev_start, st.index), (st.hold_start, st.hold_end)):
+            if (a, b) not in ends:
+                ss = hold_end(exp, a, b)
+                (th, tc), (sh, sc) = junction_temperatures(ss, rig, rig_values, sds=rig_sds, rng=rng)
+                ends[(a, b)] = (ss, th, tc, sh, sc)
+        prev = ends[(st.prev_start, st.index)]
+        this = ends[(st.hold_start, st.hold_end)]
+        ss = this[0]
+        rows.append({
+            "t_s": st.t, "dI_A": st.dI, "direction": st.direction,
+            "jump": jump,
+            # state at the step instant: the end of the previous hold
+            "Tavg_R": 0.5 * (prev[1] + prev[2]), "Tavg_R_sd": 0.5 * float(np.hypot(prev[3], prev[4])),
+            "Tavg_R_paper": 0.5 * (prev[0].sensors[1] + prev[0].sensors[2]),
+            # state at the end of this hold
+            "steady": ss, "Th": this[1], "Tc": this[2], "Th_sd": this[3], "Tc_sd": this[4],
+            "Tavg": 0.5 * (this[1] + this[2]), "dT": this[1] - this[2], "dT_sd": float(np.hypot(this[3], this[4])),
+            "Tavg_paper": 0.5 * (ss.sensors[1] + ss.sensors[2]), "dT_paper": ss.sensors[1] - ss.sensors[2],
+        })
+    return rows
+
+
+def _laws_from_rows(rows):
+    """R and S lines, corrected and paper, from the step table (adds S to the rows)."""
+    jR = np.array([r["jump"].R for r in rows])
+    jRsd = np.array([r["jump"].R_sd_fit for r in rows])
+    jRtime = np.array([r["jump"].R_sd_time for r in rows])
+    jRf = np.array([r["jump"].R_first for r in rows])
+    R = fit_line([r["Tavg_R"] for r in rows], jR, jRsd, common=jRtime)
+    R_paper = fit_line([r["Tavg_R_paper"] for r in rows], jRf)
+    for r in rows:
+        ss = r["steady"]
+        ok = abs(r["dT"]) >= MIN_DT_FOR_S
+        if ok:
+            vs = ss.voltage - R(r["Tavg"]) * ss.current
+            S = vs / r["dT"]
+            # voltage, R-law and dT uncertainties, first order
+            vsd = np.sqrt(ss.voltage_sd ** 2 + (R.sd(r["Tavg"]) * ss.current) ** 2)
+            r["S"] = float(S)
+            r["S_sd"] = float(abs(S) * np.hypot(vsd / abs(vs), r["dT_sd"] / abs(r["dT"])))
+        else:
+            r["S"] = r["S_sd"] = np.nan
+        if abs(r["dT_paper"]) >= MIN_DT_FOR_S:
+            r["S_paper"] = float((ss.voltage - R_paper(r["Tavg_paper"]) * ss.current) / r["dT_paper"])
+            # the sensor-dT error alone (with the corrected R): isolates the
+            # junction-vs-sensor bias from the first-sample R bias
+            r["S_sensor_dT"] = float((ss.voltage - R(r["Tavg_paper"]) * ss.current) / r["dT_paper"])
+        else:
+            r["S_paper"] = r["S_sensor_dT"] = np.nan
+    S = fit_line([r["Tavg"] for r in rows], [r["S"] for r in rows], [r["S_sd"] for r in rows])
+    S_paper = fit_line([r["Tavg_paper"] for r in rows], [r["S_paper"] for r in rows])
+    S_sensor = fit_line([r["Tavg_paper"] for r in rows], [r["S_sensor_dT"] for r in rows])
+    return {"R": R, "S": S, "R_paper": R_paper, "S_paper": S_paper, "S_sensor_dT": S_sensor}
+
+
+def identify_module(module, datasheet, *, rig_config=None, leg_cells=0, rig_fit_options=None, progress=None):
+    """Run the deterministic step method on one module.
+
+    Parameters
+    ----------
+    module : tembayes.data.Module
+    datasheet : tembayes.data.Datasheet
+        Seeds the module conductance K for the rig fit.
+    rig_config : dict, optional
+        The batch's ``[rig]`` table.
+    leg_cells : int
+        Model resolution of the module's legs for the rig fit and validation
+        (0 = the paper's lumped module).
+    rig_fit_options : dict, optional
+        Extra keyword arguments of :func:`tembayes.identify.rigfit.fit_rig`.
+    progress : callable, optional
+
+    Returns
+    -------
+    ModuleIdentification
+    """
+    say = progress or (lambda msg: None)
+    rig = rig_from_config(rig_config or {}, leg_cells=leg_cells)
+    exp = module.identification
+    say(f"identify: {module.id} steps and pass 1")
+    rows = _step_table(exp, rig)
+    lines = _laws_from_rows(rows)
+    say(f"identify: {module.id} rig fit")
+    opts = dict(rig_fit_options or {})
+    rf = fit_rig(exp, _laws(lines["R"], lines["S"]), rig=rig, K0=datasheet.conductance(), **opts)
+    rig_values = {k: v for k, v in rf.values.items() if k in rig.parameter_names}
+    rig_sds = {k: v for k, v in rf.sd.items() if k in rig.parameter_names}
+    say(f"identify: {module.id} pass 2 with the fitted rig")
+    rows = _step_table(exp, rig, rig_values, rig_sds)
+    lines = _laws_from_rows(rows)
+    laws = _laws(lines["R"], lines["S"])
+    rf = fit_rig(exp, laws, rig=rig, K0=datasheet.conductance(), **opts)
+    const = constant_laws(laws)
+    rf_const = fit_rig(exp, const, rig=rig, K0=datasheet.conductance(), **opts)
+    hyst = {
+        "R": hysteresis([r["Tavg_R"] for r in rows], [r["jump"].R for r in rows],
+                        [r["jump"].R_sd for r in rows], [r["direction"] for r in rows], lines["R"]),
+        "S": hysteresis([r["Tavg"] for r in rows], [r["S"] for r in rows], [r["S_sd"] for r in rows],
+                        [r["direction"] for r in rows], lines["S"]),
+    }
+    validation = {}
+    for v in module.validations:
+        say(f"identify: {module.id} validation {v.path.name}")
+        validation[v.path.name] = {
+            "linear": validation_errors(v, laws, rf.values, rig=rig),
+            "constant": validation_errors(v, const, rf_const.values, rig=rig),
+        }
+    return ModuleIdentification(module.id, rows, lines, hyst, rf, rf_const, validation)
+
+
+def identify_batch(batch, *, leg_cells=0, progress=None):
+    """Run :func:`identify_module` on every module of a batch.
+
+    Returns
+    -------
+    dict
+        Module id -> ModuleIdentification.
+    """
+    return {mid: identify_module(m, batch.datasheet, rig_config=batch.rig_config, leg_cells=leg_cells,
+                                 progress=progress)
+            for mid, m in batch.modules.items()}
+
+
+def batch_average(results):
+    """The batch's average laws (the paper's dashed line): mean and spread of the module fits."""
+    out = {}
+    for k in LAW_PARAMETERS:
+        vals = np.array([r.fit[k] for r in results.values()])
+        out[k] = float(vals.mean())
+        out[k + "_spread"] = float(vals.std(ddof=1)) if len(vals) > 1 else 0.0
+    ks = np.array([r.rig_fit.values["K_W_per_K"] for r in results.values()])
+    out["K_W_per_K"] = float(ks.mean())
+    out["K_W_per_K_spread"] = float(ks.std(ddof=1)) if len(ks) > 1 else 0.0
+    return out
+
+
+def to_json(results, batch):
+    """The ``identify.json`` document (contract section 4) for a batch."""
+
+    def c(T):
+        return None if not np.isfinite(T) else float(T - KELVIN)
+
+    def num(x):
+        return None if x is None or not np.isfinite(x) else float(x)
+
+    modules = {}
+    for mid, r in results.items():
+        steps = []
+        for row in r.steps:
+            steps.append({
+                "t_s": row["t_s"], "dI_A": row["dI_A"], "direction": row["direction"],
+                "Tavg_C": c(row["Tavg"]), "R_ohm": row["jump"].R, "S_V_per_K": num(row["S"]),
+                "R_sd_ohm": row["jump"].R_sd, "S_sd_V_per_K": num(row["S_sd"]),
+                "Tavg_R_C": c(row["Tavg_R"]), "dT_K": row["dT"], "dT_sd_K": row["dT_sd"],
+                "T_hot_C": c(row["Th"]), "T_cold_C": c(row["Tc"]),
+                "current_A": row["steady"].current, "voltage_V": row["steady"].voltage,
+                "steady_drift_K_per_s": row["steady"].drift,
+                "paper": {"R_ohm": row["jump"].R_first, "Tavg_R_C": c(row["Tavg_R_paper"]),
+                          "Tavg_C": c(row["Tavg_paper"]), "dT_K": row["dT_paper"], "S_V_per_K": num(row["S_paper"])},
+            })
+        modules[mid] = {
+            "fit": r.fit | {"K_W_per_K": r.rig_fit.values["K_W_per_K"]},
+            "fit_sd": r.fit_sd | {"K_W_per_K": r.rig_fit.sd["K_W_per_K"]},
+            "fit_paper": r.fit_paper,
+            "fit_paper_sd": r.fit_paper_sd,
+            "fit_quality": {k: {"chi2_red": v.chi2_red, "n": v.n} for k, v in r.lines.items()},
+            "steps": steps,
+            "hysteresis": r.hysteresis,
+            "rig_fit": {"values": r.rig_fit.values, "sd": r.rig_fit.sd, "rmse_K": r.rig_fit.rmse,
+                        "success": r.rig_fit.success},
+            "rig_fit_constant_35C": {"values": r.rig_fit_constant.values, "rmse_K": r.rig_fit_constant.rmse},
+            "validation": {
+                name: {model: {ch: e for ch, e in errs.items() if ch != "simulation"} for model, errs in v.items()}
+                for name, v in r.validation.items()
+            },
+        }
+    return {
+        "tref_C": 25.0,
+        "method": {
+            "fit": "R from the voltage jump extrapolated to the step instant (c0 + c1 sqrt(tau)); S from the "
+                   "hold's steady state with junction temperatures reconstructed through the rig network; "
+                   "weighted linear fits (covariance scaled by the reduced chi-square when > 1)",
+            "fit_paper": "the paper's recipe: R from the first sample after the step, S with sensor dT = T2 - T3 "
+                         "and sensor T_mean = (T2 + T3)/2, unweighted linear fits",
+            "Tavg_C": "mean junction temperature at the end of the hold that follows the step (where S is "
+                      "measured); Tavg_R_C is the one at the step instant (where R is measured)",
+            "validation": "RMSE and max |error| per sensor [K] and on the voltage [V]; 'constant' = R, S fixed "
+                          "at their 35 degC values with their own rig fit (paper Fig. 8), 'linear' = the laws "
+                          "(Fig. 9)",
+        },
+        "modules": modules,
+        "batch_average": batch_average(results),
+        "module_parameters": list(MODULE_PARAMETERS),
+        "datasheet": batch.datasheet.to_table(),
+    }
