@@ -201,6 +201,10 @@ def junction_temperatures(steady, rig, values=None, *, sds=None, n_draws=400, rn
         [K]
     (sd_hot, sd_cold) : tuple of float
         [K]
+    (draws_hot, draws_cold) : tuple of ndarray, shape (n_draws,)
+        The Monte-Carlo draws [K].  With the same ``rng`` seed for every hold
+        of a run, the rig-value draws are shared between holds, so the draws
+        carry the correlation between holds.
     """
     rng = np.random.default_rng(0) if rng is None else rng
     values = dict(values or {})
@@ -239,4 +243,4 @@ def junction_temperatures(steady, rig, values=None, *, sds=None, n_draws=400, rn
             flux += net.Gb[:, b, kb] * (Tb - bound[kb])
         out.append(Tb + flux / net.G[:, p, b])
     th, tc = out
-    return (float(th[0]), float(tc[0])), (float(np.std(th[1:])), float(np.std(tc[1:])))
+    return (float(th[0]), float(tc[0])), (float(np.std(th[1:])), float(np.std(tc[1:]))), (th[1:], tc[1:])

@@ -98,7 +98,6 @@ def _step_table(exp, rig, rig_values=None, rig_sds=None, *, seed=0):
     steps = detect_steps(exp.time, exp.current)
     if len(steps) < 3:
         raise ModelError(f"{exp.path}: found {len(steps)} current steps; the step method needs a staircase")
-    rng = np.random.default_rng(seed)
     rows = []
     ends = {}
     for st in steps:
@@ -106,8 +105,11 @@ def _step_table(exp, rig, rig_values=None, rig_sds=None, *, seed=0):
         for a, b in ((st.prev_start, st.index), (st.hold_start, st.hold_end)):
             if (a, b) not in ends:
                 ss = hold_end(exp, a, b)
-                (th, tc), (sh, sc) = junction_temperatures(ss, rig, rig_values, sds=rig_sds, rng=rng)
-                ends[(a, b)] = (ss, th, tc, sh, sc)
+                # the same seed for every hold: shared rig-value draws, so the
+                # draws carry the correlation between holds
+                (th, tc), (sh, sc), (dh, dc) = junction_temperatures(
+                    ss, rig, rig_values, sds=rig_sds, rng=np.random.default_rng(seed))
+                ends[(a, b)] = (ss, th, tc, sh, sc, dh, dc)
         prev = ends[(st.prev_start, st.index)]
         this = ends[(st.hold_start, st.hold_end)]
         ss = this[0]
@@ -120,6 +122,7 @@ def _step_table(exp, rig, rig_values=None, rig_sds=None, *, seed=0):
             # state at the end of this hold
             "steady": ss, "Th": this[1], "Tc": this[2], "Th_sd": this[3], "Tc_sd": this[4],
             "Tavg": 0.5 * (this[1] + this[2]), "dT": this[1] - this[2], "dT_sd": float(np.hypot(this[3], this[4])),
+            "Th_draws": this[5], "Tc_draws": this[6],
             "Tavg_paper": 0.5 * (ss.sensors[1] + ss.sensors[2]), "dT_paper": ss.sensors[1] - ss.sensors[2],
         })
     return rows
@@ -133,18 +136,26 @@ def _laws_from_rows(rows):
     jRf = np.array([r["jump"].R_first for r in rows])
     R = fit_line([r["Tavg_R"] for r in rows], jR, jRsd, common=jRtime)
     R_paper = fit_line([r["Tavg_R_paper"] for r in rows], jRf)
+    n_draws = len(rows[0]["Th_draws"])
+    S_draws = []
     for r in rows:
         ss = r["steady"]
         ok = abs(r["dT"]) >= MIN_DT_FOR_S
         if ok:
             vs = ss.voltage - R(r["Tavg"]) * ss.current
             S = vs / r["dT"]
-            # voltage, R-law and dT uncertainties, first order
-            vsd = np.sqrt(ss.voltage_sd ** 2 + (R.sd(r["Tavg"]) * ss.current) ** 2)
+            # independent: the hold's voltage average; correlated between
+            # holds: the rig values behind the junction temperatures (shared
+            # draws) and the R law
             r["S"] = float(S)
-            r["S_sd"] = float(abs(S) * np.hypot(vsd / abs(vs), r["dT_sd"] / abs(r["dT"])))
+            r["S_sd_indep"] = float(abs(ss.voltage_sd / r["dT"]))
+            tavg_d = 0.5 * (r["Th_draws"] + r["Tc_draws"])
+            S_draws.append((ss.voltage - R(tavg_d) * ss.current) / (r["Th_draws"] - r["Tc_draws"]))
+            sd_R = R.sd(r["Tavg"]) * abs(ss.current) / abs(r["dT"])
+            r["S_sd"] = float(np.hypot(np.std(S_draws[-1]), np.hypot(r["S_sd_indep"], sd_R)))
         else:
-            r["S"] = r["S_sd"] = np.nan
+            r["S"] = r["S_sd"] = r["S_sd_indep"] = np.nan
+            S_draws.append(np.full(n_draws, np.nan))
         if abs(r["dT_paper"]) >= MIN_DT_FOR_S:
             r["S_paper"] = float((ss.voltage - R_paper(r["Tavg_paper"]) * ss.current) / r["dT_paper"])
             # the sensor-dT error alone (with the corrected R): isolates the
@@ -152,7 +163,11 @@ def _laws_from_rows(rows):
             r["S_sensor_dT"] = float((ss.voltage - R(r["Tavg_paper"]) * ss.current) / r["dT_paper"])
         else:
             r["S_paper"] = r["S_sensor_dT"] = np.nan
-    S = fit_line([r["Tavg"] for r in rows], [r["S"] for r in rows], [r["S_sd"] for r in rows])
+    # the R law's own uncertainty enters every S the same way: a common term
+    common_R = [R.sd(r["Tavg"]) * r["steady"].current / r["dT"] if np.isfinite(r["S"]) else np.nan
+                for r in rows]
+    S = fit_line([r["Tavg"] for r in rows], [r["S"] for r in rows], [r["S_sd_indep"] for r in rows],
+                 common=np.nan_to_num(common_R), draws=np.nan_to_num(np.array(S_draws).T))
     S_paper = fit_line([r["Tavg_paper"] for r in rows], [r["S_paper"] for r in rows])
     S_sensor = fit_line([r["Tavg_paper"] for r in rows], [r["S_sensor_dT"] for r in rows])
     return {"R": R, "S": S, "R_paper": R_paper, "S_paper": S_paper, "S_sensor_dT": S_sensor}
@@ -199,9 +214,10 @@ def identify_module(module, datasheet, *, rig_config=None, leg_cells=0, rig_fit_
     rf_const = fit_rig(exp, const, rig=rig, K0=datasheet.conductance(), **opts)
     hyst = {
         "R": hysteresis([r["Tavg_R"] for r in rows], [r["jump"].R for r in rows],
-                        [r["jump"].R_sd for r in rows], [r["direction"] for r in rows], lines["R"]),
+                        [r["jump"].R_sd_fit for r in rows], [r["direction"] for r in rows],
+                        common=[r["jump"].R_sd_time for r in rows]),
         "S": hysteresis([r["Tavg"] for r in rows], [r["S"] for r in rows], [r["S_sd"] for r in rows],
-                        [r["direction"] for r in rows], lines["S"]),
+                        [r["direction"] for r in rows]),
     }
     validation = {}
     for v in module.validations:
@@ -266,14 +282,19 @@ def to_json(results, batch):
         modules[mid] = {
             "fit": r.fit | {"K_W_per_K": r.rig_fit.values["K_W_per_K"]},
             "fit_sd": r.fit_sd | {"K_W_per_K": r.rig_fit.sd["K_W_per_K"]},
+            "fit_sd_note": "R: jump fits plus the step-time error shared by all steps of the run; S: hold "
+                           "averages plus the rig values and R law shared by all holds (propagated, not "
+                           "weighted); both scaled up by the scatter when it exceeds them",
             "fit_paper": r.fit_paper,
             "fit_paper_sd": r.fit_paper_sd,
             "fit_quality": {k: {"chi2_red": v.chi2_red, "n": v.n} for k, v in r.lines.items()},
             "steps": steps,
             "hysteresis": r.hysteresis,
-            "rig_fit": {"values": r.rig_fit.values, "sd": r.rig_fit.sd, "rmse_K": r.rig_fit.rmse,
-                        "success": r.rig_fit.success},
-            "rig_fit_constant_35C": {"values": r.rig_fit_constant.values, "rmse_K": r.rig_fit_constant.rmse},
+            "rig_fit": {"values": r.rig_fit.values, "sd": r.rig_fit.sd, "rmse": r.rig_fit.rmse,
+                        "success": r.rig_fit.success,
+                        "sd_note": "statistical only (noise and residual autocorrelation); the model's own "
+                                   "error (lumped module vs real legs) is not in it and can be larger"},
+            "rig_fit_constant_35C": {"values": r.rig_fit_constant.values, "rmse": r.rig_fit_constant.rmse},
             "validation": {
                 name: {model: {ch: e for ch, e in errs.items() if ch != "simulation"} for model, errs in v.items()}
                 for name, v in r.validation.items()
