@@ -15,7 +15,7 @@ Capacitance and conductance entries are *expressions* over the parameters:
 
 The reference rig (``shared/spec/reference-rig.md``) splits each steel block
 into two 5 mm cells whose centres sit exactly at the sensor depths (2.5 mm
-from each face), so the four sensors read node temperatures.  Its module is
+away from each face), so the four sensors read node temperatures.  Its module is
 the paper's lumped element by default (``leg_cells=0``: each plate carries
 half the legs' capacitance); :func:`reference_rig` with ``leg_cells=n``
 resolves the legs into ``n`` cells, so Joule heat is released along the legs
