@@ -115,7 +115,9 @@ def _cmd_inspect(args):
 def _cmd_identify(args):
     from tembayes.data import load_batch, write_json
     from tembayes.identify.pipeline import identify_batch, to_json
+    from tembayes.physics.rig import reference_rig
 
+    reference_rig(args.leg_cells)  # refuse a bad option before any work
     batch = load_batch(args.batch)  # refused input: nothing is written
 
     def progress(msg):

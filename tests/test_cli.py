@@ -109,10 +109,16 @@ def test_inspect_refuses_bad_batch_with_one_line(tmp_path, capsys):
     assert "batch.toml" in err and err.count("\n") == 1
 
 
-@pytest.mark.parametrize("command", ["simulate", "inspect"])
+@pytest.mark.parametrize("command", ["simulate", "inspect", "identify"])
 def test_every_command_has_help_with_an_example(command, capsys):
     with pytest.raises(SystemExit) as exc:
         build_parser().parse_args([command, "--help"])
     assert exc.value.code == 0
     out = capsys.readouterr().out
     assert "example" in out and f"tembayes {command} " in out
+
+
+def test_identify_refuses_negative_leg_cells(tmp_path, capsys):
+    out = tmp_path / "o"
+    assert main(["identify", str(tmp_path), "--out", str(out), "--leg-cells", "-1"]) == 2
+    assert "leg_cells" in capsys.readouterr().err and not out.exists()

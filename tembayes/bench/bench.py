@@ -37,7 +37,6 @@ from tembayes.bench.protocols import (
     sample_times,
     validation_cycle,
 )
-from tembayes.physics import effects as fx
 from tembayes.physics.simulate import Inputs, simulate
 
 #: The reference module type (``shared/spec/reference-rig.md``).
@@ -269,7 +268,3 @@ def simulate_batch(out, config, *, overwrite=False, progress=None):
         write_json(tmp / "truth.json", truth)
     return truth
 
-
-def effect_names():
-    """Names accepted by ``--effect``."""
-    return tuple(fx.CATALOGUE)

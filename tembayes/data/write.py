@@ -150,7 +150,7 @@ def atomic_directory(path, *, overwrite=False):
     Yields
     ------
     Path
-        A temporary sibling folder ``.{name}.tmp-XXXX`` to write into.
+        A temporary sibling folder ``.{name}.tmp-<random>`` to write into.
 
     Raises
     ------

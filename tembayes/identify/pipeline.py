@@ -76,21 +76,25 @@ class ModuleIdentification:
 
     @property
     def fit_sd(self):
-        return {"R0_ohm": self.lines["R"].a_sd, "R1_ohm_per_K": self.lines["R"].b_sd,
-                "S0_V_per_K": self.lines["S"].a_sd, "S1_V_per_K2": self.lines["S"].b_sd}
+        """Standard errors of :attr:`fit` (SI)."""
+        return _law_sds(self.lines["R"], self.lines["S"])
 
     @property
     def fit_paper(self):
+        """Law parameters of the paper's literal recipe (SI)."""
         return _laws(self.lines["R_paper"], self.lines["S_paper"])
 
     @property
     def fit_paper_sd(self):
-        return {"R0_ohm": self.lines["R_paper"].a_sd, "R1_ohm_per_K": self.lines["R_paper"].b_sd,
-                "S0_V_per_K": self.lines["S_paper"].a_sd, "S1_V_per_K2": self.lines["S_paper"].b_sd}
+        return _law_sds(self.lines["R_paper"], self.lines["S_paper"])
 
 
 def _laws(R: LineFit, S: LineFit):
     return {"R0_ohm": R.a, "R1_ohm_per_K": R.b, "S0_V_per_K": S.a, "S1_V_per_K2": S.b}
+
+
+def _law_sds(R: LineFit, S: LineFit):
+    return {"R0_ohm": R.a_sd, "R1_ohm_per_K": R.b_sd, "S0_V_per_K": S.a_sd, "S1_V_per_K2": S.b_sd}
 
 
 def _step_table(exp, rig, rig_values=None, rig_sds=None, *, seed=0):

@@ -313,6 +313,8 @@ def reference_rig(leg_cells=0):
         resolved into ``n`` cells (Joule heat along the legs at the local
         resistance, conduction along them).
     """
+    if int(leg_cells) != leg_cells or leg_cells < 0:
+        raise ModelError(f"leg_cells must be a whole number >= 0, got {leg_cells}")
     legs = tuple(f"leg_{i + 1}" for i in range(leg_cells))
     plate_extra = "" if legs else " + 0.5*c_legs"
     nodes = (
