@@ -22,7 +22,6 @@ Writes analyses/results/bench_simulator.json and prints a table.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys

@@ -5,7 +5,6 @@ import pytest
 
 from tembayes.bench import BenchConfig, draw_truth, hifi, run_experiment
 from tembayes.bench.protocols import identification_staircase
-from tembayes.constants import KELVIN
 from tembayes.errors import ModelError
 from tembayes.identify.estimates import Steady, jump_resistance, junction_temperatures
 from tembayes.identify.fits import fit_line, hysteresis

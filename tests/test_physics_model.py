@@ -19,16 +19,7 @@ from tembayes.physics import kernel as K
 from tembayes.physics.rig import PRESETS, reference_rig
 from tembayes.physics.simulate import build, check_params, tem_vectors
 
-# The typical module of the brief (TEC1-12706 class), SI.
-PAPER = {
-    "R0_ohm": 1.75,
-    "R1_ohm_per_K": 0.0087,
-    "S0_V_per_K": 0.048,
-    "S1_V_per_K2": 1e-4,
-    "K_W_per_K": 0.54,
-}
-TW = 293.15  # water [K]
-TA = 295.15  # ambient [K]
+from typical import PAPER, TA, TW  # noqa: E402
 
 
 def _steady(params, current, rig=REFERENCE, tw=TW, ta=TA):

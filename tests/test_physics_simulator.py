@@ -10,15 +10,7 @@ from tembayes.physics import Inputs, simulate
 from tembayes.physics.reference import simulate_reference
 from tembayes.physics.rig import reference_rig
 
-PAPER = {
-    "R0_ohm": 1.75,
-    "R1_ohm_per_K": 0.0087,
-    "S0_V_per_K": 0.048,
-    "S1_V_per_K2": 1e-4,
-    "K_W_per_K": 0.54,
-}
-TW = 293.15
-TA = 295.15
+from typical import PAPER, TA, TW  # noqa: E402
 
 # Three draws around the typical module (a few % to ~20 % apart), with rig values.
 DRAWS = {

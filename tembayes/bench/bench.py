@@ -183,6 +183,7 @@ def run_experiment(protocol, module, effect_params, rng, *, rate=5.0, rig=None, 
     params = {k: module[k] for k in ("R0_ohm", "R1_ohm_per_K", "S0_V_per_K", "S1_V_per_K2", "K_W_per_K")}
     params.update(module["rig_bench"])
     # the current error is in the measurement, not in the module: applied below
+    effect_params = dict(effect_params)
     meas = {k: effect_params.pop(k, 0.0) for k in ("current_gain_error", "current_offset_A")}
     params.update(effect_params)
     sim = simulate(Inputs(grid, i_true, tw, ta), params, rig=rig)
@@ -234,7 +235,7 @@ def simulate_batch(out, config, *, overwrite=False, progress=None):
             (tmp / mid).mkdir()
             progress(f"bench: {mid} identification ({config.hold:.0f} s holds)")
             exp = run_experiment(
-                identification_staircase(ds.imax, hold=config.hold), module, dict(eff_flat), mrng,
+                identification_staircase(ds.imax, hold=config.hold), module, eff_flat, mrng,
                 rate=config.rate, rig=rig,
             )
             write_experiment_csv(tmp / mid / "identification.csv", exp)
@@ -242,7 +243,7 @@ def simulate_batch(out, config, *, overwrite=False, progress=None):
                 name = "validation.csv" if v == 0 else f"validation{v + 1}.csv"
                 progress(f"bench: {mid} {name}")
                 proto = validation_cycle(mrng, ds.imax, duration=config.validation_duration)
-                exp = run_experiment(proto, module, dict(eff_flat), mrng, rate=config.validation_rate or config.rate,
+                exp = run_experiment(proto, module, eff_flat, mrng, rate=config.validation_rate or config.rate,
                                      rig=rig, t0=float(np.round(mrng.uniform(0, 1000), 3)))
                 write_experiment_csv(tmp / mid / name, exp)
         truth = {

@@ -105,14 +105,15 @@ def fit_line(T, y, sd=None, *, common=None, draws=None, tref=T_REF):
         raise ModelError(f"a linear law needs at least 3 points at different temperatures, got {n}")
     w = np.ones(n) if sd is None else 1.0 / sd[ok] ** 2
     X = np.c_[np.ones(n), T - tref]
-    cov = np.linalg.inv(X.T @ (w[:, None] * X))
-    coef = cov @ (X.T @ (w * y))
+    A = np.linalg.inv(X.T @ (w[:, None] * X))
+    coef = A @ (X.T @ (w * y))
+    cov = A
     resid = y - X @ coef
     chi2_red = float(np.sum(w * resid ** 2) / (n - 2))
     if sd is None or chi2_red > 1.0:
         cov = cov * chi2_red
     # correlated components: a shift d of the data moves the estimate by G d
-    G = np.linalg.inv(X.T @ (w[:, None] * X)) @ (X.T * w)
+    G = A @ (X.T * w)
     if common is not None:
         g = G @ np.asarray(common, dtype=float)[ok]
         cov = cov + np.outer(g, g)

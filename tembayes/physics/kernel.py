@@ -307,7 +307,6 @@ def _integrate_one(
     nrej = 0
     _rhs(y, I0, tw[0], ta[0], A, Bb, Cinv, tem, p, Tt, Qt, F0)
     for n in range(nt - 1):
-        t0 = t[n]
         dt = t[n + 1] - t[n]
         Ia = true_current(i_meas[n], p)
         Ib = true_current(i_meas[n + 1], p)
@@ -470,3 +469,35 @@ def steady_one(y0, I, uw, ua, A, Bb, Cinv, tem, p):
                  np.empty(m, dtype=np.complex128), np.empty(m, dtype=np.complex128),
                  np.empty(N), np.empty((N, N)), np.empty(N), np.empty(N, dtype=np.int64))
     return y, ok
+
+
+@njit(cache=True)
+def first_order_lag(time, Y, tau):
+    """First-order lag ``y' = (u - y) / tau`` of sampled signals, in place.
+
+    Exact for inputs linear between samples (uneven sampling allowed).
+
+    Parameters
+    ----------
+    time : ndarray, shape (nt,)
+        [s]
+    Y : ndarray, shape (nd, nch, nt)
+        Signals; replaced by the lagged ones.  Draws with ``tau <= 0`` are left alone.
+    tau : ndarray, shape (nd,)
+        Time constants [s].
+    """
+    nd, nch, nt = Y.shape
+    for d in range(nd):
+        if tau[d] <= 0.0:
+            continue
+        for c in range(nch):
+            u_prev = Y[d, c, 0]
+            y = u_prev
+            for n in range(nt - 1):
+                h = time[n + 1] - time[n]
+                u = Y[d, c, n + 1]
+                m = (u - u_prev) / h
+                a = np.exp(-h / tau[d])
+                y = u - m * tau[d] + (y - u_prev + m * tau[d]) * a
+                Y[d, c, n + 1] = y
+                u_prev = u
