@@ -37,6 +37,22 @@ the fitted rig parameters, validation errors; the batch average) and figures
 constant and temperature-dependent laws, error against T_avg).
 """
 
+_EPILOG_CALIBRATE = """\
+examples:
+  tembayes calibrate data/example --out runs/example --seed 0
+  tembayes calibrate data/example --out runs/example --seed 0 --resume   # after an interruption
+  tembayes calibrate runs/demo --out runs/demo-cal --max-steps 20000 --no-figures
+
+writes RUN/summary.json (contract section 4: per module R0, R1, S0, S1 and K
+with mean, sd and 90 % interval, outlier_prob, convergence diagnostics; the
+population's predictive distribution for a new module), RUN/posterior.nc
+(arviz InferenceData: posterior, log_likelihood per step window,
+sample_stats, observed_data, constant_data, prior, population),
+RUN/modules/<id>.nc as each module finishes, and corner plots in
+RUN/figures.  Interrupted runs continue with --resume (finished modules are
+reused, a running one continues from its sampler checkpoint).
+"""
+
 _EPILOG_INSPECT = """\
 example:
   tembayes inspect data/example
@@ -143,6 +159,37 @@ def _cmd_identify(args):
     return 0
 
 
+def _cmd_calibrate(args):
+    from tembayes.calibrate.batch import calibrate_batch
+    from tembayes.calibrate.module import CalibrationOptions
+    from tembayes.data import load_batch
+    from tembayes.data.write import _refuse_existing
+
+    opt = CalibrationOptions(max_steps=args.max_steps, nwalkers=args.walkers)
+    batch = load_batch(args.batch)  # refused input: nothing is written
+    if not args.resume:
+        _refuse_existing(args.out, args.overwrite)
+        if args.out.exists():
+            import shutil
+
+            shutil.rmtree(args.out)
+
+    def progress(msg):
+        print(msg, file=sys.stderr, flush=True)
+
+    summ = calibrate_batch(batch, args.out, seed=args.seed, options=opt, resume=args.resume, progress=progress,
+                           progress_bar=not args.quiet, argv=args.argv, figures=not args.no_figures)
+    for mid, m in summ["modules"].items():
+        op = m["outlier_prob"]
+        print(f"{mid}: R0 {m['R0_ohm']['mean']:.4f}+-{m['R0_ohm']['sd']:.4f} ohm  "
+              f"S0 {1e3 * m['S0_V_per_K']['mean']:.3f}+-{1e3 * m['S0_V_per_K']['sd']:.3f} mV/K  "
+              f"K {m['K_W_per_K']['mean']:.4f}+-{m['K_W_per_K']['sd']:.4f} W/K  "
+              f"outlier_prob {'-' if op is None else f'{op:.2f}'}  "
+              f"{'converged' if m['diagnostics']['converged'] else 'NOT CONVERGED'}")
+    print(f"wrote {args.out / 'summary.json'} and {args.out / 'posterior.nc'}")
+    return 0 if summ["converged"] else 1
+
+
 def build_parser():
     """The argument parser of the ``tembayes`` command."""
     parser = argparse.ArgumentParser(
@@ -202,6 +249,30 @@ def build_parser():
                         "the paper's lumped module)")
     p.add_argument("--no-figures", action="store_true", help="write identify.json only")
     p.set_defaults(func=_cmd_identify)
+
+    p = sub.add_parser(
+        "calibrate",
+        help="Bayesian calibration: per-module posteriors and the batch population",
+        description="Sample each module's posterior of R0, R1, S0, S1 and K (plus the rig's thermal "
+        "nuisance parameters, the step instant and the noise) with emcee from the step responses of "
+        "its identification run, until converged (50 autocorrelation times, R-hat <= 1.01, bulk "
+        "ESS >= 1000), then the batch's population with each module's outlier probability.  Exit "
+        "status 1 when a module or the population did not converge (results are written and marked).",
+        epilog=_EPILOG_CALIBRATE,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("batch", type=Path, help="batch folder")
+    p.add_argument("--out", type=Path, required=True, metavar="RUN", help="run folder to create")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--resume", action="store_true", help="continue an interrupted run in RUN")
+    p.add_argument("--overwrite", action="store_true", help="replace RUN if it exists")
+    p.add_argument("--max-steps", type=int, default=60000, metavar="N",
+                   help="sampler budget per module (default 60000 steps)")
+    p.add_argument("--walkers", type=int, metavar="N",
+                   help="emcee walkers (default 2 x parameters + 2)")
+    p.add_argument("--no-figures", action="store_true", help="skip the corner plots")
+    p.add_argument("--quiet", action="store_true", help="no progress bars (stage messages only)")
+    p.set_defaults(func=_cmd_calibrate)
 
     p = sub.add_parser(
         "inspect",

@@ -439,6 +439,29 @@ def integrate(t, i_meas, tw, ta, A, Bb, Cinv, tem, P, rec, Y0, steady_start, ato
     return out, volt, stats
 
 
+@njit(cache=True, parallel=True)
+def integrate_grids(T, I, TW, TA, A, Bb, Cinv, tem, P, rec, Y0, steady_start, atol, hmax):
+    """:func:`integrate` with a time grid and inputs of its own for every draw.
+
+    Same as :func:`integrate` except ``T``, ``I``, ``TW`` and ``TA`` have shape
+    ``(nd, nt)``: the calibration moves each draw's current steps to its own
+    instant within the sampling interval.
+    """
+    nd = P.shape[0]
+    nt = T.shape[1]
+    nr = rec.shape[0]
+    out = np.empty((nd, nt, nr))
+    volt = np.empty((nd, nt))
+    stats = np.zeros((nd, 4))
+    for d in prange(nd):
+        y = Y0[d].copy()
+        _integrate_one(
+            T[d], I[d], TW[d], TA[d], A[d], Bb[d], Cinv[d], tem, P[d], rec, y, steady_start, atol, hmax,
+            out[d], volt[d], stats[d],
+        )
+    return out, volt, stats
+
+
 @njit(cache=True)
 def rhs_one(y, I, uw, ua, A, Bb, Cinv, tem, p):
     """Right-hand side ``dT/dt`` [K/s] for one draw (used by the scipy reference and tests)."""

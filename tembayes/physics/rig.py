@@ -10,6 +10,7 @@ Capacitance and conductance entries are *expressions* over the parameters:
 
 - a number, or a parameter name: ``"g_paste_hot"``
 - a scaled name: ``"0.5*leak_top"``
+- a product of a number and names: ``"0.5*leak_bottom*tab_share"``
 - a sum of those: ``"c_plate_hot + 0.5*c_legs"``
 - a list: conductances in series, ``["g_cooler", "g_steel_quarter"]``
 
@@ -210,15 +211,21 @@ class RigDescription:
         if not isinstance(expr, str):
             raise ModelError(f"rig '{self.name}': bad expression {expr!r}")
         for term in expr.split("+"):
-            factor, _, name = term.rpartition("*")
-            name = name.strip()
-            if name not in self.parameter_names:
-                raise ModelError(f"rig '{self.name}': expression '{expr}' names unknown parameter '{name}'")
-            if factor:
+            names = 0
+            for part in term.split("*"):
+                part = part.strip()
+                if part in self.parameter_names:
+                    names += 1
+                    continue
                 try:
-                    float(factor)
+                    float(part)
                 except ValueError:
-                    raise ModelError(f"rig '{self.name}': bad factor '{factor}' in '{expr}'") from None
+                    if part.replace("_", "").isalnum() and not part[0].isdigit():
+                        raise ModelError(
+                            f"rig '{self.name}': expression '{expr}' names unknown parameter '{part}'") from None
+                    raise ModelError(f"rig '{self.name}': bad factor '{part}' in '{expr}'") from None
+            if names == 0:
+                raise ModelError(f"rig '{self.name}': term '{term.strip()}' of '{expr}' names no parameter")
 
     def _eval(self, expr, values):
         if isinstance(expr, (list, tuple)):
@@ -227,8 +234,14 @@ class RigDescription:
             return np.float64(expr)
         total = 0.0
         for term in expr.split("+"):
-            factor, _, name = term.rpartition("*")
-            total = total + (float(factor) if factor else 1.0) * values[name.strip()]
+            value = 1.0
+            for part in term.split("*"):
+                part = part.strip()
+                try:
+                    value = value * float(part)
+                except ValueError:
+                    value = value * values[part]
+            total = total + value
         return total
 
     def network(self, values=None):
@@ -288,6 +301,9 @@ _REFERENCE_PARAMETERS = (
     RigParameter("c_legs", 1.25, 1.0, 1.5, "J/K", "all legs of the module together"),
     RigParameter("leak_top", 0.02, 0.01, 0.03, "W/K", "top block to ambient (enclosure)"),
     RigParameter("leak_bottom", 0.04, 0.02, 0.06, "W/K", "bottom block to ambient (enclosure, tabs)"),
+    RigParameter("tab_share", 0.5, 0.2, 0.9, "1",
+                 "share of leak_bottom through the tabs the block rests on (at its bottom face); "
+                 "the rest leaves through the side walls"),
     RigParameter(
         "c_half_block", RHO_C * AREA * 0.005, 0.97 * RHO_C * AREA * 0.005,
         1.03 * RHO_C * AREA * 0.005, "J/K", "5 mm of a steel block (rho c V)",
@@ -302,7 +318,7 @@ _REFERENCE_PARAMETERS = (
     ),
 )
 
-def reference_rig(leg_cells=0):
+def reference_rig(leg_cells=0, block_cells=2):
     """The reference identification rig.
 
     Parameters
@@ -312,38 +328,62 @@ def reference_rig(leg_cells=0):
         plate carrying half the legs' capacitance.  ``n > 0``: the legs
         resolved into ``n`` cells (Joule heat along the legs at the local
         resistance, conduction along them).
+    block_cells : int, optional
+        Cells per steel block: 2 (default, the paper-sized model: cell
+        centres at the sensor depths), or 6, 10, 14, ... (``2 (2k + 1)``, so
+        that a cell centre still sits at each sensor's depth, 2.5 mm from a
+        face).  Heat diffuses through 10 mm of steel in ~25 s, so the step
+        transients need more than two cells per block.
     """
     if int(leg_cells) != leg_cells or leg_cells < 0:
         raise ModelError(f"leg_cells must be a whole number >= 0, got {leg_cells}")
+    nb = block_cells
+    if int(nb) != nb or nb < 2 or (nb - 2) % 4:
+        raise ModelError(f"block_cells must be 2, 6, 10, 14, ... (a cell centre at each sensor), got {block_cells}")
+    nb = int(nb)
     legs = tuple(f"leg_{i + 1}" for i in range(leg_cells))
     plate_extra = "" if legs else " + 0.5*c_legs"
+    if nb == 2:
+        top = ["top_upper", "top_lower"]
+        bottom = ["bottom_upper", "bottom_lower"]
+    else:
+        top = [f"top_{i + 1}" for i in range(nb)]  # top_1 at the water cooler
+        bottom = [f"bottom_{i + 1}" for i in range(nb)]  # bottom_1 at the module
+    f = 2.0 / nb  # cell size in units of a 5 mm half block
+    c_cell = "c_half_block" if nb == 2 else f"{f!r}*c_half_block"
+    g_cell = "g_steel_half" if nb == 2 else f"{1.0 / f!r}*g_steel_half"
+    g_face = "g_steel_quarter" if nb == 2 else f"{1.0 / f!r}*g_steel_quarter"
+    leak = "0.5" if nb == 2 else repr(1.0 / nb)
     nodes = (
-        ("top_upper", "c_half_block"),
-        ("top_lower", "c_half_block"),
+        *((n, c_cell) for n in top),
         ("hot_plate", "c_plate_hot" + plate_extra),
         *((leg, f"{1.0 / leg_cells!r}*c_legs") for leg in legs),
         ("cold_plate", "c_plate_cold" + plate_extra),
-        ("bottom_upper", "c_half_block"),
-        ("bottom_lower", "c_half_block"),
+        *((n, c_cell) for n in bottom),
     )
+    links = [("water", top[0], ["g_cooler", g_face])]
+    links += [(a, b, g_cell) for a, b in zip(top[:-1], top[1:])]
+    links += [(top[-1], "hot_plate", [g_face, "g_paste_hot"])]
+    links += [("cold_plate", bottom[0], ["g_paste_cold", g_face])]
+    links += [(a, b, g_cell) for a, b in zip(bottom[:-1], bottom[1:])]
+    links += [(n, "ambient", f"{leak}*leak_top") for n in top]
+    # the bottom block rests on tabs: part of its leak leaves at the bottom face
+    links += [(n, "ambient", f"{leak}*leak_bottom + -{leak}*leak_bottom*tab_share") for n in bottom]
+    links += [(bottom[-1], "ambient", "leak_bottom*tab_share")]
+    k = (nb - 2) // 4  # the cell whose centre is 2.5 mm from a face
+    name = "reference"
+    if legs:
+        name += f"-legs{leg_cells}"
+    if nb != 2:
+        name += f"-blocks{nb}"
     return RigDescription(
-        name="reference" if not legs else f"reference-legs{leg_cells}",
+        name=name,
         parameters=_REFERENCE_PARAMETERS,
         nodes=nodes,
-        links=(
-            ("water", "top_upper", ["g_cooler", "g_steel_quarter"]),
-            ("top_upper", "top_lower", "g_steel_half"),
-            ("top_lower", "hot_plate", ["g_steel_quarter", "g_paste_hot"]),
-            ("cold_plate", "bottom_upper", ["g_paste_cold", "g_steel_quarter"]),
-            ("bottom_upper", "bottom_lower", "g_steel_half"),
-            ("top_upper", "ambient", "0.5*leak_top"),
-            ("top_lower", "ambient", "0.5*leak_top"),
-            ("bottom_upper", "ambient", "0.5*leak_bottom"),
-            ("bottom_lower", "ambient", "0.5*leak_bottom"),
-        ),
+        links=tuple(links),
         hot="hot_plate",
         cold="cold_plate",
-        sensors={"T1_C": "top_upper", "T2_C": "top_lower", "T3_C": "bottom_upper", "T4_C": "bottom_lower"},
+        sensors={"T1_C": top[k], "T2_C": top[nb - 1 - k], "T3_C": bottom[k], "T4_C": bottom[nb - 1 - k]},
         legs=legs,
     )
 
@@ -356,7 +396,7 @@ REFERENCE = reference_rig()
 PRESETS = MappingProxyType({"reference": reference_rig})
 
 
-def rig_from_config(config, leg_cells=0):
+def rig_from_config(config, leg_cells=0, block_cells=2):
     """The rig a batch.toml ``[rig]`` table asks for.
 
     Parameters
@@ -364,8 +404,9 @@ def rig_from_config(config, leg_cells=0):
     config : mapping
         ``{"preset": "reference", <parameter>: <value>, ...}``; values in SI
         units override the preset's nominal values (e.g. ``g_cooler = 11.0``).
-    leg_cells : int, optional
-        Resolution of the module's legs (see :func:`reference_rig`).
+    leg_cells, block_cells : int, optional
+        Resolution of the module's legs and of the blocks (see
+        :func:`reference_rig`).
 
     Returns
     -------
@@ -380,7 +421,7 @@ def rig_from_config(config, leg_cells=0):
     preset = config.pop("preset", "reference")
     if not isinstance(preset, str) or preset not in PRESETS:
         raise ModelError(f"unknown rig preset {preset!r}; known presets: {sorted(PRESETS)}")
-    rig = PRESETS[preset](leg_cells)
+    rig = PRESETS[preset](leg_cells, block_cells)
     if config:
         bad = [k for k, v in config.items() if isinstance(v, bool) or not isinstance(v, (int, float))]
         if bad:

@@ -6,6 +6,15 @@ Figure.  Inside tembayes everything is SI; the figures show degrees Celsius
 and the CSV units.
 """
 
+from tembayes.plots.calibrate import (
+    load_run,
+    plot_corner_module,
+    plot_corner_population,
+    plot_hysteresis,
+    plot_laws,
+    plot_step_loglike,
+    save_calibration_figures,
+)
 from tembayes.plots.identify import (
     plot_error_vs_tavg,
     plot_identification_run,
@@ -20,4 +29,11 @@ __all__ = [
     "plot_validation",
     "plot_error_vs_tavg",
     "save_identify_figures",
+    "load_run",
+    "plot_corner_module",
+    "plot_corner_population",
+    "plot_laws",
+    "plot_hysteresis",
+    "plot_step_loglike",
+    "save_calibration_figures",
 ]

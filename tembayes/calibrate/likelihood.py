@@ -1,0 +1,193 @@
+"""The step-response likelihood.
+
+For every step window ``k`` and channel ``c`` (voltage, sensor dT, sensor
+mean temperature) the residual ``r = observed - predicted`` is modelled as
+
+    r_i = b_kc + e_i,   e_i ~ N(0, (s_c sigma_c)^2) independent,
+    b_kc ~ N(0, beta_c^2)  (one offset per window and channel)
+
+``sigma_c`` is the measurement noise estimated from the run itself (second
+differences); ``s_c`` scales it (inferred, prior log-normal around 1).  The
+window offset ``b_kc`` is the model discrepancy: no rig model is exact, and
+with ~50 samples per window at sensor noise the data resolve a level error
+of a millikelvin.  Left out, a 1-2 mK mismatch in a few windows drags the
+slopes R1 and S1 by several posterior sd (measured on the virtual bench);
+with it, the windows must agree with each other *as well as the model
+explains them*, and the scatter of their levels sets how much the levels
+say.  ``beta_c`` is inferred (log-normal prior), so a well-fitting model
+loses nothing.  Because the offset is common to the whole window, including
+the samples just before the step, it cannot absorb the voltage jump.
+
+The offsets are integrated out analytically: within a window the residuals
+are jointly normal with covariance ``sigma^2 I + beta^2 1 1^T``, whose
+inverse and determinant are closed-form.
+
+:meth:`StepLikelihood.log_likelihood` takes a parameter mapping (the pure
+function of the style guide); :meth:`StepLikelihood.pointwise` the sampler's
+coordinate vectors, vectorised over walkers, and returns one log-likelihood
+term per step window (the ``log_likelihood`` group of ``posterior.nc``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from tembayes.calibrate.priors import ParameterPrior
+from tembayes.calibrate.stepdata import CHANNELS
+
+#: Names of the noise parameters, per channel: scale of the measurement
+#: noise (dimensionless) and the sd of the window offsets (channel unit).
+NOISE_SCALE = tuple(f"noise_scale_{c.split('_')[0]}" for c in CHANNELS)
+OFFSET_SD = tuple(f"offset_sd_{c}" for c in CHANNELS)
+NOISE_PARAMETERS = NOISE_SCALE + OFFSET_SD
+
+
+def noise_priors(data):
+    """Priors of the noise parameters for a :class:`StepData`.
+
+    ``s_c``: log-normal around 1, log-sd 0.5 (the second-difference
+    estimate is good to ~10 %, but allow for coloured noise).  ``beta_c``:
+    log-normal around 10x the noise's sd of a window mean (~ ``sigma``), log-sd 2: a
+    level error anywhere from 0.02x to 50x the noise is plausible a priori.
+    """
+    pri = [ParameterPrior(n, "lognormal", 1.0, 0.5) for n in NOISE_SCALE]
+    pri += [ParameterPrior(n, "lognormal", float(s), 2.0) for n, s in zip(OFFSET_SD, 0.2 * data.noise)]
+    return tuple(pri)
+
+
+def _window_terms(S1, S2, n, sigma, beta):
+    """Window log-likelihood from residual sums ``S1``, ``S2`` (nw, nc, ns)."""
+    s2 = (sigma * sigma)[:, :, None]
+    b2 = (beta * beta)[:, :, None]
+    quad = (S2 - b2 / (s2 + n * b2) * S1 * S1) / s2
+    logdet = n * np.log(s2) + np.log1p(n * b2 / s2)
+    return (-0.5 * (quad + logdet + n * np.log(2.0 * np.pi))).sum(axis=1)
+
+
+def window_loglike(R, starts, sigma, beta):
+    """Log-likelihood of residuals with a random offset per window.
+
+    Parameters
+    ----------
+    R : ndarray, shape (nw, nc, n)
+        Residuals; window ``k`` is ``R[..., starts[k]:starts[k+1]]``.
+    starts : ndarray of int, shape (ns,)
+        First sample of every window (windows are contiguous).
+    sigma, beta : ndarray, shape (nw, nc)
+        Noise sd and offset sd.
+
+    Returns
+    -------
+    ndarray, shape (nw, ns)
+        Log-likelihood of every window (channels summed).
+    """
+    n = np.diff(np.append(starts, R.shape[2])).astype(float)  # (ns,)
+    S1 = np.add.reduceat(R, starts, axis=2)  # (nw, nc, ns)
+    S2 = np.add.reduceat(R * R, starts, axis=2)
+    return _window_terms(S1, S2, n, sigma, beta)
+
+
+class _ExpansionSums:
+    """Window sums of an expansion's residual, exactly, without the samples.
+
+    With ``r = e - J d - C d^2 / 2 - H d_i d_j`` (``e = obs - f0``) every
+    window's ``sum r`` and ``sum r^2`` are a linear and a quadratic form in
+    ``z = (1, -d, -d^2/2, -d_i d_j)``; their coefficients are summed once, so
+    a likelihood call costs ``O(windows x m^2)`` instead of
+    ``O(samples x m)``.
+    """
+
+    def __init__(self, obs, lin, starts):
+        p = lin.J.shape[0]
+        e = obs - lin.f0  # (nc, n)
+        H = getattr(lin, "H", np.zeros((0,) + e.shape))
+        self.pairs = getattr(lin, "pairs", np.zeros((0, 2), int))
+        Q = np.concatenate([e[None], lin.J, lin.C, H], axis=0)  # (m, nc, n)
+        m, nc, n = Q.shape
+        self.M1 = np.add.reduceat(Q, starts, axis=2)  # (m, nc, ns)
+        outer = Q[:, None] * Q[None, :]  # (m, m, nc, n)
+        G = np.add.reduceat(outer, starts, axis=3)  # (m, m, nc, ns)
+        self.G = np.ascontiguousarray(G.reshape(m, m * nc * len(starts)))
+        self.m, self.nc, self.ns, self.p = m, nc, len(starts), p
+
+    def sums(self, D):
+        nw = D.shape[0]
+        z = np.concatenate([np.ones((nw, 1)), -D, -0.5 * D * D, -D[:, self.pairs[:, 0]] * D[:, self.pairs[:, 1]]],
+                           axis=1)  # (nw, m)
+        S1 = np.einsum("wm,mcs->wcs", z, self.M1)
+        T = (z @ self.G).reshape(nw, self.m, self.nc, self.ns)
+        S2 = np.einsum("wm,wmcs->wcs", z, T)
+        return S1, S2
+
+
+class StepLikelihood:
+    """Likelihood of a run's step responses.
+
+    Parameters
+    ----------
+    data : StepData
+    model : StepResponseModel or LinearisedModel
+        Anything with ``predict``: the exact model takes a parameter mapping,
+        the linearised one coordinate vectors.
+    space : ParameterSpace
+        The sampled coordinates, including :data:`NOISE_PARAMETERS`.
+    """
+
+    def __init__(self, data, model, space):
+        self.data = data
+        self.model = model
+        self.space = space
+        self.starts = np.flatnonzero(np.diff(np.concatenate([[-1], data.step])))
+        if len(self.starts) != data.n_steps or np.any(np.diff(data.step) < 0):
+            raise ValueError("step windows must be contiguous and ordered")
+        self._ni = [space.index(n) for n in NOISE_SCALE]
+        self._bi = [space.index(n) for n in OFFSET_SD]
+        self.model_names = tuple(n for n in space.names if n not in NOISE_PARAMETERS)
+        self._mi = [space.index(n) for n in self.model_names]
+        self._n = np.diff(np.append(self.starts, data.obs.shape[1])).astype(float)
+        self._sums = _ExpansionSums(data.obs, model, self.starts) if hasattr(model, "C") else None
+
+    def _noise(self, X):
+        vals = np.exp(X[:, self._ni]) * self.data.noise[None, :], np.exp(X[:, self._bi])
+        return vals
+
+    def predict(self, X):
+        """Model channels ``(nw, 3, n)`` for coordinate vectors ``X``."""
+        if hasattr(self.model, "x0"):
+            return self.model.predict(X[:, self._mi])
+        return self.model.predict(self.space.params(X, self.model_names))
+
+    def pointwise(self, X, Y=None):
+        """Log-likelihood of every step window, ``(nw, ns)``.
+
+        ``Y``: predictions for ``X`` if already computed.
+        """
+        X = np.atleast_2d(X)
+        sigma, beta = self._noise(X)
+        if Y is None and self._sums is not None:
+            S1, S2 = self._sums.sums(X[:, self._mi] - self.model.x0)
+            return _window_terms(S1, S2, self._n, sigma, beta)
+        if Y is None:
+            Y = self.predict(X)
+        R = self.data.obs[None] - Y
+        return window_loglike(R, self.starts, sigma, beta)
+
+    def log_likelihood_x(self, X):
+        """Total log-likelihood ``(nw,)`` of coordinate vectors ``(nw, p)``."""
+        return self.pointwise(X).sum(axis=1)
+
+    def log_likelihood(self, params):
+        """Log-likelihood of one parameter mapping ``name -> value`` (SI)."""
+        x = self.space.to_x(params)
+        return float(self.log_likelihood_x(x[None])[0])
+
+    def log_prob(self, X):
+        """Log posterior density of coordinate vectors ``(nw, p)`` -> ``(nw,)``
+        (``-inf`` outside the prior's support): the sampler's callable."""
+        X = np.atleast_2d(X)
+        lp = self.space.log_prior(X)
+        ok = np.isfinite(lp)
+        out = np.full(X.shape[0], -np.inf)
+        if np.any(ok):
+            out[ok] = lp[ok] + self.log_likelihood_x(X[ok])
+        return out

@@ -1,0 +1,250 @@
+"""The step-response model: the rig simulated through every step window.
+
+One continuous simulation of the rig from the steady state shortly before the
+first step, with the current an ideal staircase (the hold levels of the run)
+and the measured, smoothed water and ambient temperatures, evaluated at the
+selected samples of :class:`~tembayes.calibrate.stepdata.StepData`.  The
+simulation is the package's stiff integrator
+(:func:`tembayes.physics.kernel.integrate_grids`), batched over parameter
+draws.
+
+The instant of a step within its sampling interval is unknown to the data
+(the DAQ only sees the old level, then the new one) but common to all steps
+of a run, because the amplifier and the DAQ run on fixed clocks: it is the
+nuisance parameter ``step_shift_s`` [s], the offset of every step from the
+midpoint of its sampling interval.  It matters: the plates heat at ~1 K/s
+right after a step, so 0.1 s moves the early voltage by millivolts.
+
+:class:`LinearisedModel` is the same prediction as a second-order expansion
+around a point, built from one batched simulation of all finite-difference
+perturbations; the sampler uses it, and the calibration checks it against
+this exact model by importance sampling.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from tembayes.calibrate.stepdata import RAMP
+from tembayes.constants import MODULE_PARAMETERS
+from tembayes.errors import ModelError
+from tembayes.physics import effects
+from tembayes.physics import kernel as K
+from tembayes.physics.simulate import build
+
+#: Name of the step-instant nuisance parameter [s].
+SHIFT = "step_shift_s"
+
+#: Integrator tolerance [K]: 50x below the sensor noise.
+ATOL = 1e-4
+
+
+class StepResponseModel:
+    """Predict the step-response channels of one run for many parameter draws.
+
+    Parameters
+    ----------
+    data : StepData
+    rig : RigDescription
+        The calibration rig (e.g. ``reference_rig(leg_cells=2)``).
+    input_spacing : float, optional
+        Extra (unobserved) grid points at this spacing [s], so that the
+        water temperature's few-minute wobble reaches the model.
+    atol : float, optional
+        Integrator tolerance [K].
+    hmax : float, optional
+        Largest integrator step [s].
+    """
+
+    def __init__(self, data, rig, *, input_spacing=20.0, atol=ATOL, hmax=60.0):
+        self.data = data
+        self.rig = rig
+        self.atol = float(atol)
+        self.hmax = float(hmax)
+        sensor_nodes = [rig.sensors[c] for c in ("T2_C", "T3_C")]
+        self._sensor_nodes = sensor_nodes
+        ns = data.n_steps
+        # grid: t0, observed samples, regular input points, and two points per step
+        extra = np.arange(data.t0, data.time[-1], input_spacing)[1:]
+        extra = extra[np.min(np.abs(extra[:, None] - data.step_time[None, :]), axis=1) > 1.0]
+        near = np.clip(np.searchsorted(data.time, extra), 1, len(data.time) - 1)
+        gap = np.minimum(np.abs(data.time[near] - extra), np.abs(data.time[near - 1] - extra))
+        extra = extra[gap > 1e-3]
+        base = np.concatenate([[data.t0], data.time, extra])
+        kind = np.concatenate([[0], np.ones(len(data.time), int), np.full(len(extra), 2)])
+        order = np.argsort(base, kind="stable")
+        base, kind = base[order], kind[order]
+        # insert the step pairs before the first point after each nominal step
+        ins = np.searchsorted(base, data.step_time)
+        n = len(base) + 2 * ns
+        is_step = np.zeros(n, bool)
+        pos_step = ins + 2 * np.arange(ns)
+        is_step[pos_step] = True
+        is_step[pos_step + 1] = True
+        grid = np.empty(n)
+        grid[~is_step] = base
+        kinds = np.full(n, 3)
+        kinds[~is_step] = kind
+        self._n = n
+        self._pos_step = pos_step
+        self.obs_pos = np.flatnonzero(kinds == 1)
+        self._base_grid = grid
+        # hold index of every non-step point, and the step points' levels
+        hold = np.searchsorted(data.step_time, grid, side="right")
+        cur = data.levels[hold]
+        cur[pos_step] = data.levels[:-1]
+        cur[pos_step + 1] = data.levels[1:]
+        self._current = cur
+        tw, ta = data.boundaries(grid)
+        self._tw, self._ta = tw, ta
+        # the shift keeps both step points strictly inside every sampling interval
+        self.shift_bound = float(np.min(data.step_window)) - 2 * RAMP
+
+    def grid(self, shift):
+        """Per-draw time grids ``(nd, n)`` for step shifts ``shift`` [s]."""
+        shift = np.atleast_1d(np.asarray(shift, dtype=float))
+        G = np.repeat(self._base_grid[None, :], len(shift), axis=0)
+        G[:, self._pos_step] = self.data.step_time[None, :] + shift[:, None]
+        G[:, self._pos_step + 1] = G[:, self._pos_step] + RAMP
+        return G
+
+    def simulate(self, params):
+        """Simulate the run for a parameter mapping (arrays of shape ``(nd,)``).
+
+        ``params`` needs the five module parameters and :data:`SHIFT`; rig
+        parameters default to nominal and effect parameters to zero.
+
+        Returns
+        -------
+        dict
+            ``sensors`` ``(nd, 2, n_obs)`` (T2, T3) [K], ``voltage``
+            ``(nd, n_obs)`` [V], ``t_hot``/``t_cold`` ``(nd, n_obs)`` [K] and
+            ``steps`` (accepted integrator steps per draw).
+        """
+        params = dict(params)
+        if SHIFT not in params:
+            raise ModelError(f"the step-response model needs '{SHIFT}'")
+        shift = np.atleast_1d(np.asarray(params.pop(SHIFT), dtype=float))
+        if np.any(np.abs(shift) > self.shift_bound):
+            raise ModelError(f"{SHIFT} must lie within +-{self.shift_bound:.4f} s (half the sampling interval)")
+        m = build(params, self.rig)
+        nd = m["nd"]
+        shift = np.broadcast_to(shift, (nd,))
+        names = m["network"].nodes
+        rec = np.array([names.index(x) for x in self._sensor_nodes] + [names.index(self.rig.hot),
+                                                                        names.index(self.rig.cold)], dtype=np.int64)
+        G = self.grid(shift)
+        Ic = np.repeat(self._current[None, :], nd, axis=0)
+        TW = np.repeat(self._tw[None, :], nd, axis=0)
+        TA = np.repeat(self._ta[None, :], nd, axis=0)
+        Y0 = np.full((nd, len(names)), self._tw[0])
+        out, volt, stats = K.integrate_grids(G, Ic, TW, TA, m["A"], m["Bb"], m["Cinv"], m["tem"], m["P"], rec, Y0,
+                                             True, self.atol, self.hmax)
+        if np.any(stats[:, 3]) or not np.all(np.isfinite(volt)):
+            raise ModelError("the step-response simulation failed (no steady start or non-finite values)")
+        sensors = np.ascontiguousarray(out[:, :, :2].transpose(0, 2, 1))
+        if any(e.stage == "sensors" and any(np.any(m["params"].get(p.name, 0.0) != 0) for p in e.parameters)
+               for e in effects.CATALOGUE.values()):
+            effects.apply_sensors(G[0], sensors, m["params"])
+        o = self.obs_pos
+        return dict(sensors=sensors[:, :, o], voltage=volt[:, o], t_hot=out[:, o, 2], t_cold=out[:, o, 3],
+                    steps=stats[:, 0])
+
+    def predict(self, params):
+        """Predicted channels ``(nd, 3, n_obs)``: voltage [V], dT [K], Tmean [K]."""
+        s = self.simulate(params)
+        T2, T3 = s["sensors"][:, 0], s["sensors"][:, 1]
+        return np.stack([s["voltage"], T2 - T3, 0.5 * (T2 + T3)], axis=1)
+
+
+class LinearisedModel:
+    """Second-order expansion of a :class:`StepResponseModel` around a point.
+
+    ``predict(x) = f(x0) + J d + C d^2 / 2 + sum_(i,j) H_ij d_i d_j`` with
+    ``d = x - x0`` in the sampler's coordinates (see
+    :class:`~tembayes.calibrate.parameters.ParameterSpace`).  Slopes ``J`` and
+    the diagonal curvature ``C`` come from the ``2 p`` points ``x0 +- h_j``;
+    with ``h_j`` about one posterior sd the three points per axis span the
+    posterior, so the expansion interpolates over it rather than being a
+    tangent at one point.  Mixed terms ``H_ij`` come from the points
+    ``x0 + h_i + h_j``; only the pairs whose term moves the prediction by
+    more than ``cross_threshold`` noise units (root-sum-square over the samples,
+    at one step each) are kept.  All points are one batched simulation.
+
+    Parameters
+    ----------
+    model : StepResponseModel
+    space : ParameterSpace
+        Maps coordinate vectors to parameter mappings.
+    x0 : ndarray, shape (p,)
+        Expansion point.
+    steps : ndarray, shape (p,)
+        Finite-difference steps in coordinate units.
+    noise : ndarray, shape (nc,), optional
+        Noise sd of each channel, to rank the mixed terms; no mixed terms
+        without it.
+    cross_threshold : float
+    max_cross : int
+        At most this many mixed terms (the largest).
+    """
+
+    def __init__(self, model, space, x0, steps, *, noise=None, cross_threshold=0.5, max_cross=24):
+        self.model = model
+        self.space = space
+        self.x0 = np.asarray(x0, dtype=float)
+        h = np.asarray(steps, dtype=float)
+        p = len(self.x0)
+        pairs = [(i, j) for i in range(p) for j in range(i + 1, p)] if noise is not None else []
+        X = np.repeat(self.x0[None, :], 1 + 2 * p + len(pairs), axis=0)
+        for j in range(p):
+            X[1 + 2 * j, j] += h[j]
+            X[2 + 2 * j, j] -= h[j]
+        for k, (i, j) in enumerate(pairs):
+            X[1 + 2 * p + k, i] += h[i]
+            X[1 + 2 * p + k, j] += h[j]
+        X = space.clip(X)
+        Y = model.predict(space.params(X))
+        self.f0 = Y[0]
+        jj = np.arange(p)
+        Xp, Xm = X[1:1 + 2 * p:2], X[2:2 + 2 * p:2]
+        hp = (Xp[jj, jj] - self.x0)[:, None, None]
+        hm = (self.x0 - Xm[jj, jj])[:, None, None]
+        Yp, Ym = Y[1:1 + 2 * p:2], Y[2:2 + 2 * p:2]
+        dp, dm = Yp - Y[0], Y[0] - Ym
+        # the parabola through the three points (uneven if clipped at a bound)
+        self.C = 2.0 * (dp / hp - dm / hm) / (hp + hm)  # (p, nc, n)
+        self.J = dp / hp - 0.5 * self.C * hp
+        kept, H = [], []
+        if pairs:
+            D = X[1 + 2 * p:] - self.x0
+            hi = D[np.arange(len(pairs)), [i for i, _ in pairs]]
+            hj = D[np.arange(len(pairs)), [j for _, j in pairs]]
+            Yij = Y[1 + 2 * p:]
+            ii = np.array([i for i, _ in pairs])
+            jx = np.array([j for _, j in pairs])
+            # what the diagonal expansion predicts at x0 + h_i + h_j; the rest is the mixed term
+            diag = (Y[0] + self.J[ii] * hi[:, None, None] + 0.5 * self.C[ii] * hi[:, None, None] ** 2
+                    + self.J[jx] * hj[:, None, None] + 0.5 * self.C[jx] * hj[:, None, None] ** 2)
+            Hall = (Yij - diag) / (hi * hj)[:, None, None]
+            size = np.sqrt(np.sum((Hall * (hi * hj)[:, None, None] / np.asarray(noise)[None, :, None]) ** 2,
+                                  axis=(1, 2)))
+            order = np.argsort(size)[::-1]
+            for k in order[:max_cross]:
+                if size[k] > cross_threshold:
+                    kept.append(pairs[k])
+                    H.append(Hall[k])
+        self.pairs = np.array(kept, dtype=int).reshape(-1, 2)
+        self.H = np.array(H).reshape((len(kept),) + self.f0.shape)
+
+    def predict(self, X):
+        """Predicted channels ``(nw, 3, n)`` for coordinate vectors ``X`` ``(nw, p)``."""
+        D = np.atleast_2d(X) - self.x0
+        out = self.f0[None] + np.tensordot(D, self.J, axes=(1, 0)) + 0.5 * np.tensordot(D * D, self.C, axes=(1, 0))
+        if len(self.pairs):
+            out += np.tensordot(D[:, self.pairs[:, 0]] * D[:, self.pairs[:, 1]], self.H, axes=(1, 0))
+        return out
+
+
+def module_params_of(params):
+    """The five module parameters of a mapping."""
+    return {k: params[k] for k in MODULE_PARAMETERS}

@@ -1,0 +1,508 @@
+"""Calibrate one module: its posterior from the identification run.
+
+The pipeline, each step a plain function of the previous one's result:
+
+1. :func:`~tembayes.calibrate.stepdata.step_data` cuts the run into step
+   windows;
+2. :func:`fit_map` finds the posterior mode with the exact step-response
+   model (Levenberg-Marquardt, batched finite-difference Jacobians) and its
+   Laplace covariance;
+3. the exact model is expanded around the mode
+   (:class:`~tembayes.calibrate.model.LinearisedModel`) -- the posterior is
+   ~0.1 % wide, where the response is linear to far below the noise;
+4. a short pilot run of emcee on that expansion finds the posterior's centre
+   and width, the expansion is rebuilt there, and emcee samples the full
+   posterior (laws, K, rig nuisances, step shift, noise) on it until
+   converged (:func:`~tembayes.calibrate.sampler.sample`);
+5. the expansion is *checked* against the exact model on posterior draws by
+   Pareto-smoothed importance sampling: ``k_hat`` < 0.7 means the exact
+   posterior is what was sampled (to importance-sampling accuracy); above
+   that the expansion is rebuilt at the posterior mean and the sampling
+   repeated.
+
+A module's random streams come from the run seed and the module id, so a
+module's result does not depend on which other modules are in the batch or
+on the order they run in.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+import warnings
+import zlib
+from dataclasses import dataclass, field
+
+import arviz as az
+import numpy as np
+from scipy.optimize import least_squares
+from threadpoolctl import threadpool_limits
+
+from tembayes.calibrate import sampler as smp
+from tembayes.calibrate.likelihood import OFFSET_SD, StepLikelihood, noise_priors
+from tembayes.calibrate.model import SHIFT, LinearisedModel, StepResponseModel
+from tembayes.calibrate.parameters import ParameterSpace
+from tembayes.calibrate.priors import ParameterPrior, law_priors, rig_prior
+from tembayes.calibrate.stepdata import step_data
+from tembayes.constants import MODULE_PARAMETERS
+from tembayes.data.write import atomic_write_text
+from tembayes.errors import ModelError
+from tembayes.physics.rig import rig_from_config
+
+#: Resolution of the calibration model: legs in 4 cells, blocks in 6.  The
+#: paper-sized model (lumped module, 2 cells per block) misses the first
+#: minute after a step by up to 0.1 K in dT (heat takes ~25 s through a
+#: block, the legs' Joule heat is released along them), which biases K and S
+#: by percents; 4 x 6 is within the sensor noise of a 14 x 8 model.
+LEG_CELLS = 4
+BLOCK_CELLS = 6
+
+#: Rig parameters whose documented range is narrower than this ratio
+#: (high/low) are fixed at nominal (the steel: known material and size).
+NUISANCE_MIN_RANGE = 1.2
+
+
+@dataclass(frozen=True)
+class CalibrationOptions:
+    """Settings of a module calibration (defaults meet the issue's targets).
+
+    Attributes
+    ----------
+    leg_cells, block_cells : int
+        Resolution of the calibration model.
+    nwalkers : int or None
+        emcee walkers (>= 2 x parameters); None: 2 x parameters + 2.
+    max_steps : int
+        Sampler budget per module [steps].
+    thin_by : int
+        Steps per stored iteration (checkpoint interval).
+    pilot : int
+        Steps of the pilot run that recentres the expansion on the posterior
+        (the mode found with white noise is not its centre once the noise
+        and the window offsets are inferred).
+    keep : int
+        Draws kept per walker in ``posterior.nc``.
+    psis_draws : int
+        Posterior draws checked against the exact model.
+    max_relinearise : int
+        Last expansion stage (the pilot is stage 0); reported, not fatal.
+    """
+
+    leg_cells: int = LEG_CELLS
+    block_cells: int = BLOCK_CELLS
+    nwalkers: int | None = None
+    max_steps: int = 60000
+    thin_by: int = 10
+    pilot: int = 3000
+    keep: int = 100
+    psis_draws: int = 400
+    max_relinearise: int = 3
+
+
+@dataclass(frozen=True)
+class ModuleCalibration:
+    """The posterior of one module (a plain result object; plots read it).
+
+    Attributes
+    ----------
+    module_id : str
+    names : tuple of str
+        Sampled parameters, coordinate order.
+    draws : dict
+        ``name -> ndarray (nwalkers, keep)`` posterior draws in SI.
+    log_prob : ndarray, shape (nwalkers, keep)
+    step_loglike : ndarray, shape (nwalkers, keep, n_steps)
+        Log-likelihood of every step window at every kept draw.
+    priors : dict
+        ``name -> ParameterPrior.to_dict()``.
+    map : dict
+        Posterior mode (SI).
+    diagnostics : dict
+        Per-parameter ``rhat``, ``ess_bulk``, ``ess_tail``, ``tau``, and
+        ``rhat_max``, ``ess_bulk_min`` (module parameters), ``converged``,
+        ``steps``, ``psis_k``, timings.
+    steps : dict
+        Per step: ``t_s``, ``dI_A``, ``direction``, ``Tavg_K`` (model's junction
+        mean at the step, at the mode).
+    observed : dict
+        ``time_s``, ``step``, ``since_s``, ``obs`` (3, n), ``noise`` (3,).
+    hysteresis : dict
+        Up- minus down-step differences of R and S with their sd.
+    seed : dict
+        The module's seeds.
+    rig : str
+        Calibration rig name.
+    """
+
+    module_id: str
+    names: tuple
+    draws: dict
+    log_prob: np.ndarray
+    step_loglike: np.ndarray
+    priors: dict
+    map: dict
+    diagnostics: dict
+    steps: dict
+    observed: dict
+    hysteresis: dict
+    seed: dict
+    rig: str
+    options: dict = field(default_factory=dict)
+
+    def law_draws(self):
+        """``(n, 5)`` draws of the module parameters (contract order, SI)."""
+        return np.column_stack([self.draws[k].ravel() for k in MODULE_PARAMETERS])
+
+
+def module_seed(seed, module_id):
+    """Seeds of a module derived from the run seed and the module id.
+
+    Returns
+    -------
+    (int, numpy.random.Generator)
+        emcee's seed and a Generator for everything else.
+    """
+    key = zlib.crc32(str(module_id).encode())
+    ss = np.random.SeedSequence(entropy=int(seed), spawn_key=(key,))
+    a, b = ss.generate_state(2)
+    return int(a), np.random.default_rng(int(b))
+
+
+def calibration_rig(rig_config, options):
+    return rig_from_config(rig_config or {}, leg_cells=options.leg_cells, block_cells=options.block_cells)
+
+
+def parameter_space(rig, datasheet, data, shift_bound):
+    """The sampled coordinates: laws and K, rig nuisances, step shift, noise."""
+    nuis = [p for p in rig.parameters if p.high / p.low > NUISANCE_MIN_RANGE]
+    fixed = {p.name: p.nominal for p in rig.parameters if p.high / p.low <= NUISANCE_MIN_RANGE}
+    pri = list(law_priors(datasheet)) + [rig_prior(p) for p in nuis]
+    pri.append(ParameterPrior(SHIFT, "uniform", 0.0, shift_bound))
+    model_space = ParameterSpace(tuple(pri), fixed)
+    return model_space, ParameterSpace(tuple(pri) + noise_priors(data), fixed)
+
+
+def _prior_residuals(space, X):
+    cols = []
+    for j, p in enumerate(space.priors):
+        if p.kind == "uniform":
+            continue
+        m = np.log(p.center) if p.kind == "lognormal" else p.center
+        cols.append((X[:, j] - m) / p.scale)
+    return np.column_stack(cols)
+
+
+def fd_steps(space):
+    """Finite-difference steps per coordinate (~0.1-1 % of a prior width)."""
+    h = []
+    for p in space.priors:
+        if p.kind == "lognormal":
+            h.append(1e-3)
+        elif p.kind == "uniform":
+            h.append(0.02 * p.scale)
+        else:
+            h.append(1e-3 * p.scale)
+    return np.array(h)
+
+
+def fit_map(model, space, data, x0, *, max_nfev=60):
+    """Posterior mode of the model coordinates with white noise at the
+    measured level, and its Laplace covariance.
+
+    Returns
+    -------
+    (ndarray, ndarray, OptimizeResult)
+        Mode ``(p,)``, covariance ``(p, p)``, the optimiser's result.
+    """
+    h = fd_steps(space)
+    noise = data.noise[None, :, None]
+
+    def resid(X):
+        Y = model.predict(space.params(X))
+        r = ((data.obs[None] - Y) / noise).reshape(len(X), -1)
+        return np.hstack([r, _prior_residuals(space, X)])
+
+    def jac(x):
+        X = np.repeat(x[None], 2 * len(x), axis=0)
+        for j in range(len(x)):
+            X[2 * j, j] += h[j]
+            X[2 * j + 1, j] -= h[j]
+        X = space.clip(X)
+        R = resid(X)
+        dx = X[0::2, :][np.arange(len(x)), np.arange(len(x))] - X[1::2, :][np.arange(len(x)), np.arange(len(x))]
+        return ((R[0::2] - R[1::2]) / dx[:, None]).T
+
+    lo = np.full(len(x0), -np.inf)
+    hi = np.full(len(x0), np.inf)
+    scale = np.ones(len(x0))
+    for j, p in enumerate(space.priors):
+        if p.kind == "uniform":
+            lo[j], hi[j] = p.center - 0.98 * p.scale, p.center + 0.98 * p.scale
+            scale[j] = 0.5 * p.scale
+        elif p.kind == "lognormal":
+            scale[j] = 0.01
+        else:
+            scale[j] = 0.1 * p.scale
+    x0 = np.clip(x0, lo + 1e-12, hi - 1e-12)
+    sol = least_squares(lambda x: resid(x[None])[0], x0, jac=jac, bounds=(lo, hi), x_scale=scale,
+                        method="trf", max_nfev=max_nfev)
+    J = sol.jac
+    cov = np.linalg.pinv(J.T @ J)
+    return sol.x, cov, sol
+
+
+def _initial_walkers(rng, space, model_space, x_map, cov, data, nw):
+    """Walkers from the Laplace approximation (model) and near-prior noise."""
+    p = model_space.ndim
+    Z = rng.multivariate_normal(np.zeros(p), cov, size=nw, method="eigh")
+    X = np.empty((nw, space.ndim))
+    X[:, :p] = x_map + Z
+    for j in range(p, space.ndim):
+        name = space.names[j]
+        if name in OFFSET_SD:
+            c = OFFSET_SD.index(name)
+            X[:, j] = np.log(0.2 * data.noise[c]) + 0.5 * rng.standard_normal(nw)
+        else:
+            X[:, j] = 0.05 * rng.standard_normal(nw)
+    return space.clip(X)
+
+
+def psis_check(like_exact, like_lin, X, rng, n):
+    """Pareto-k of importance weights exact/linearised on ``n`` posterior draws."""
+    idx = rng.choice(len(X), size=min(n, len(X)), replace=False)
+    Xs = X[idx]
+    lw = like_exact.log_likelihood_x(Xs) - like_lin.log_likelihood_x(Xs)
+    _, k = az.psislw(lw - lw.max())
+    w = np.exp(lw - lw.max())
+    ess = float(w.sum() ** 2 / np.sum(w * w))
+    return float(k), ess / len(Xs), float(np.max(np.abs(lw - np.median(lw))))
+
+
+def hysteresis(lin, like, x_mean, data, space):
+    """Up- minus down-step difference of R and S (GLS on the expansion).
+
+    The model gets two extra terms: R and S raised by ``h/2`` in the windows
+    after up-steps and lowered by ``h/2`` after down-steps (their effect taken
+    from the expansion's R0 and S0 columns, window by window).  Fitted with
+    the other coordinates free at the posterior mean's noise.
+
+    Returns
+    -------
+    dict
+        ``R_ohm`` and ``S_V_per_K``: ``{"estimate", "sd", "z"}`` of up - down.
+    """
+    mi = like._mi
+    J = lin.J  # (p, 3, n)
+    sgn = data.direction[data.step].astype(float)
+    iR, iS = space.index("R0_ohm"), space.index("S0_V_per_K")
+    R0 = float(np.exp(x_mean[iR]))
+    S0 = float(np.exp(x_mean[iS]))
+    # columns in units of ohm and V/K (J's R0/S0 columns are per log unit)
+    hR = 0.5 * sgn[None, :] * J[mi.index(iR)] / R0
+    hS = 0.5 * sgn[None, :] * J[mi.index(iS)] / S0
+    A = np.concatenate([J, hR[None], hS[None]], axis=0).reshape(J.shape[0] + 2, -1).T
+    sigma, beta = like._noise(x_mean[None])
+    r = (data.obs - lin.predict(x_mean[mi][None])[0]).ravel()
+    # whiten by the noise only (the window offsets are second order here)
+    w = np.repeat(1.0 / sigma[0], data.obs.shape[1])
+    Aw = A * w[:, None]
+    rw = r * w
+    coef, *_ = np.linalg.lstsq(Aw, rw, rcond=None)
+    cov = np.linalg.pinv(Aw.T @ Aw)
+    out = {}
+    for name, k in (("R_ohm", -2), ("S_V_per_K", -1)):
+        est, sd = float(coef[k]), float(np.sqrt(cov[k, k]))
+        out[name] = {"estimate": est, "sd": sd, "z": est / sd if sd > 0 else float("nan")}
+    return out
+
+
+def calibrate_module(module, datasheet, **kw):
+    """Posterior of one module's parameters from its identification run.
+
+    Parameters
+    ----------
+    module : tembayes.data.Module
+    datasheet : tembayes.data.Datasheet
+        Scales the priors.
+    rig_config : dict, optional
+        The batch's ``[rig]`` table.
+    seed : int
+        Run seed; the module's streams derive from it and the module id.
+    options : CalibrationOptions, optional
+    checkpoint : str or Path, optional
+        Checkpoint file prefix (``.h5`` sampler backend, ``.json`` state).
+    resume : bool
+        Continue from the checkpoint if there is one.
+    progress : callable, optional
+        ``progress(message)`` for stage messages.
+    progress_bar : bool
+        Show the sampler's progress bar.
+
+    Returns
+    -------
+    ModuleCalibration
+    """
+    # one BLAS thread throughout: OpenBLAS picks other kernels (other
+    # rounding) with more threads, and the same seed must give the same bits
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _calibrate_module(module, datasheet, **kw)
+
+
+def _calibrate_module(module, datasheet, *, rig_config=None, seed=0, options=None, checkpoint=None, resume=False,
+                      progress=None, progress_bar=False):
+    opt = options or CalibrationOptions()
+    say = progress or (lambda msg: None)
+    timings = {}
+    t_start = time.perf_counter()
+    emcee_seed, rng = module_seed(seed, module.id)
+    base_seed = int(rng.integers(2 ** 63))
+    data = step_data(module.identification)
+    rig = calibration_rig(rig_config, opt)
+    model = StepResponseModel(data, rig)
+    model_space, space = parameter_space(rig, datasheet, data, model.shift_bound)
+    nwalkers = 2 * space.ndim + 2 if opt.nwalkers is None else int(opt.nwalkers)
+    if nwalkers < 2 * space.ndim:
+        raise ModelError(f"nwalkers must be at least 2 x {space.ndim} parameters, got {nwalkers}")
+    p = model_space.ndim
+    state_file = None if checkpoint is None else f"{checkpoint}.json"
+    state = None
+    if resume and state_file and os.path.exists(state_file):
+        state = json.loads(open(state_file).read())
+    if state is None:
+        say(f"{module.id}: posterior mode")
+        x0 = np.array([pr.to_unconstrained(pr.center) for pr in model_space.priors])
+        x0[model_space.index(SHIFT)] = 0.0
+        x_map, cov, sol = fit_map(model, model_space, data, x0)
+        state = {"x_map": x_map.tolist(), "cov": cov.tolist(), "x_lin": x_map.tolist(), "stage": 0,
+                 "map_nfev": int(sol.nfev)}
+        if state_file:
+            atomic_write_text(state_file, json.dumps(state))
+    x_map = np.array(state["x_map"])
+    cov = np.array(state["cov"])
+    timings["map_s"] = time.perf_counter() - t_start
+    exact_like = StepLikelihood(data, model, space)
+    psis = []
+    resumed = False
+    while True:
+        t0 = time.perf_counter()
+        stage = state["stage"]
+        pilot = stage == 0
+        x_lin = np.array(state["x_lin"])
+        # steps of one posterior sd: the expansion interpolates over the posterior
+        h = np.maximum(np.sqrt(np.diag(cov)), fd_steps(model_space))
+        lin = LinearisedModel(model, model_space, x_lin, h, noise=data.noise)
+        like = StepLikelihood(data, lin, space)
+        # a stream per stage: a resumed run draws exactly what a straight one does
+        rng = np.random.default_rng([base_seed, stage])
+        p0 = _initial_walkers(rng, space, model_space, x_map, cov, data, nwalkers)
+        if state.get("walkers") is not None:
+            p0 = space.clip(np.array(state["walkers"]))
+        say(f"{module.id}: {'pilot' if pilot else 'sampling'} (expansion {stage})")
+        backend = None if checkpoint is None else f"{checkpoint}.stage{stage}.h5"
+        with warnings.catch_warnings():
+            if pilot:  # a pilot is not meant to converge
+                warnings.simplefilter("ignore", RuntimeWarning)
+            run = smp.sample(like.log_prob, p0, seed=emcee_seed + stage, monitor=range(len(MODULE_PARAMETERS)),
+                             backend=backend, resume=resume, thin_by=opt.thin_by,
+                             max_steps=opt.pilot if pilot else opt.max_steps, progress=progress_bar,
+                             label=f"{module.id}" + (" pilot" if pilot else ""))
+        timings[f"sample_s_{stage}"] = time.perf_counter() - t0
+        resumed = resumed or run.resumed
+        flat = run.chain.reshape(-1, space.ndim)
+        if not pilot:
+            k, ess_frac, maxdev = psis_check(exact_like, like, flat, rng, opt.psis_draws)
+            psis.append({"stage": stage, "k_hat": k, "weight_ess_fraction": ess_frac, "max_logw_dev": maxdev})
+            if k < 0.7 or stage >= opt.max_relinearise:
+                break
+            say(f"{module.id}: expansion off (k_hat {k:.2f}); rebuilding it at the posterior mean")
+        # recentre the expansion on this run's posterior and start the next
+        # run from its walkers (already in the typical set)
+        half = run.chain[len(run.chain) // 2:].reshape(-1, space.ndim)
+        x_map = half[:, :p].mean(axis=0)
+        cov = np.cov(half[:, :p].T)
+        state = {**state, "x_lin": x_map.tolist(), "stage": stage + 1, "x_map": x_map.tolist(),
+                 "cov": cov.tolist(), "walkers": run.chain[-1].tolist()}
+        if state_file:
+            atomic_write_text(state_file, json.dumps(state))
+    # keep `keep` draws per walker, evenly spread over the converged chain
+    n = run.chain.shape[0]
+    sel = np.unique(np.linspace(0, n - 1, min(opt.keep, n)).round().astype(int))
+    kept = run.chain[sel].transpose(1, 0, 2)  # (nw, keep, p)
+    nw, nk = kept.shape[:2]
+    flat_kept = kept.reshape(-1, space.ndim)
+    vals = space.values(flat_kept)
+    draws = {k: v.reshape(nw, nk) for k, v in vals.items()}
+    step_ll = like.pointwise(flat_kept).reshape(nw, nk, -1)
+    # the junction mean temperature at every step (exact model, at the centre)
+    sim = model.simulate(model_space.params(x_map[None]))
+    tavg = 0.5 * (sim["t_hot"][0] + sim["t_cold"][0])
+    at_step = np.array([tavg[np.flatnonzero(data.step == k)[np.argmin(np.abs(data.since[data.step == k]))]]
+                        for k in range(data.n_steps)])
+    full_mean = flat.mean(axis=0)
+    hyst = hysteresis(lin, like, full_mean, data, space)
+    mon = list(range(len(MODULE_PARAMETERS)))
+    diag = {
+        "rhat": dict(zip(space.names, map(float, run.rhat))),
+        "ess_bulk": dict(zip(space.names, map(float, run.ess_bulk))),
+        "ess_tail": dict(zip(space.names, map(float, run.ess_tail))),
+        "tau_steps": dict(zip(space.names, map(float, run.tau))),
+        "rhat_max": float(np.max(run.rhat[mon])),
+        "ess_bulk_min": float(np.min(run.ess_bulk[mon])),
+        "tau_max_steps": float(np.max(run.tau)),
+        "chain_over_tau": float(run.chain.shape[0] * run.thin_by / np.max(run.tau)),
+        "steps": run.steps,
+        "burn_in_steps": run.burn * run.thin_by,
+        "nwalkers": nw,
+        "acceptance_mean": float(np.mean(run.acceptance)),
+        "acceptance_min": float(np.min(run.acceptance)),
+        "converged": bool(run.converged and psis[-1]["k_hat"] < 0.7),
+        "sampler_converged": bool(run.converged),
+        "psis": psis,
+        "resumed": bool(resumed),
+        "map_nfev": state.get("map_nfev"),
+    }
+    timings["total_s"] = time.perf_counter() - t_start
+    diag["timings"] = timings
+    return ModuleCalibration(
+        module_id=module.id,
+        names=space.names,
+        draws=draws,
+        log_prob=run.log_prob[sel].T.copy(),
+        step_loglike=step_ll,
+        priors={pr.name: pr.to_dict() for pr in space.priors},
+        map=dict(zip(model_space.names, (float(v[0]) for v in model_space.values(x_map[None]).values()))),
+        diagnostics=diag,
+        steps={"t_s": data.step_time, "dI_A": data.dI, "direction": data.direction, "Tavg_K": at_step},
+        observed={"time_s": data.time, "step": data.step, "since_s": data.since, "obs": data.obs,
+                  "noise": data.noise},
+        hysteresis=hyst,
+        seed={"run": int(seed), "emcee": emcee_seed},
+        rig=rig.name,
+        options=dict(opt.__dict__),
+    )
+
+
+def sample_prior_only(module, datasheet, *, rig_config=None, seed=0, options=None):
+    """Negative control: the same sampler on the prior alone (no likelihood).
+
+    Everything but the data is the calibration's own path (parameter space,
+    coordinates and their Jacobians, initial walkers, emcee, convergence
+    rules), so draws that do not reproduce the prior point at a bug there.
+
+    Returns
+    -------
+    (dict, ParameterSpace, SamplerRun)
+        ``name -> ndarray`` of draws (SI), the space (its priors), the run.
+    """
+    opt = options or CalibrationOptions()
+    emcee_seed, rng = module_seed(seed, module.id)
+    data = step_data(module.identification)
+    rig = calibration_rig(rig_config, opt)
+    model = StepResponseModel(data, rig)
+    _, space = parameter_space(rig, datasheet, data, model.shift_bound)
+    nwalkers = 2 * space.ndim + 2 if opt.nwalkers is None else int(opt.nwalkers)
+    p0 = space.sample_prior(rng, nwalkers)
+    run = smp.sample(space.log_prior, p0, seed=emcee_seed, monitor=range(space.ndim), thin_by=opt.thin_by,
+                     max_steps=opt.max_steps)
+    return space.values(run.chain.reshape(-1, space.ndim)), space, run

@@ -1,0 +1,99 @@
+"""The sampled parameters of a module calibration and their coordinates.
+
+The sampler works in unconstrained-ish coordinates ``x``: the log of every
+positive parameter (R0, S0, K and the rig's conductances and capacitances),
+the slopes and the step shift as they are.  :class:`ParameterSpace` maps a
+batch of coordinate vectors ``X`` of shape ``(nw, p)`` to the parameter
+mapping the models take and gives the prior's log density (Jacobian
+included, so a posterior over ``x`` is the posterior over the parameters).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+
+from tembayes.calibrate.priors import ParameterPrior
+
+
+@dataclass(frozen=True)
+class ParameterSpace:
+    """Sampled parameters, their priors and the fixed rest.
+
+    Attributes
+    ----------
+    priors : tuple of ParameterPrior
+        One per coordinate, in coordinate order.
+    fixed : dict
+        Model parameters held at a value (SI), e.g. the rig's steel.
+    """
+
+    priors: tuple
+    fixed: dict = field(default_factory=dict)
+
+    @property
+    def names(self):
+        return tuple(p.name for p in self.priors)
+
+    @property
+    def ndim(self):
+        return len(self.priors)
+
+    def index(self, name):
+        return self.names.index(name)
+
+    def to_x(self, values):
+        """Coordinate vector of a mapping ``name -> value`` (SI)."""
+        return np.array([p.to_unconstrained(values[p.name]) for p in self.priors], dtype=float)
+
+    def values(self, X):
+        """``name -> ndarray (nw,)`` of every coordinate, in SI."""
+        X = np.atleast_2d(X)
+        return {p.name: p.from_unconstrained(X[:, j]) for j, p in enumerate(self.priors)}
+
+    def params(self, X, names=None):
+        """Model parameter mapping for coordinate vectors ``X`` ``(nw, p)``.
+
+        ``names`` restricts the sampled parameters passed on (e.g. to leave
+        out noise parameters); the fixed ones are always included.
+        """
+        vals = self.values(X)
+        if names is not None:
+            vals = {k: v for k, v in vals.items() if k in names}
+        return {**self.fixed, **vals}
+
+    @cached_property
+    def _prior_arrays(self):
+        gauss = np.array([p.kind != "uniform" for p in self.priors])
+        centre = np.array([np.log(p.center) if p.kind == "lognormal" else p.center for p in self.priors])
+        return gauss, centre, np.array([p.scale for p in self.priors])
+
+    def log_prior(self, X):
+        """Log prior density of coordinate vectors ``(nw, p)`` -> ``(nw,)``."""
+        X = np.atleast_2d(X)
+        gauss, centre, scale = self._prior_arrays
+        z = (X[:, gauss] - centre[gauss]) / scale[gauss]
+        out = (-0.5 * z * z).sum(axis=1) - np.sum(np.log(scale[gauss]) + 0.5 * np.log(2.0 * np.pi))
+        if np.any(~gauss):
+            inside = np.all(np.abs(X[:, ~gauss] - centre[~gauss]) < scale[~gauss], axis=1)
+            out = np.where(inside, out - np.sum(np.log(2.0 * scale[~gauss])), -np.inf)
+        return out
+
+    def clip(self, X):
+        """Pull coordinates of bounded (uniform) parameters inside their bounds."""
+        X = np.array(X, dtype=float)
+        for j, p in enumerate(self.priors):
+            if p.kind == "uniform":
+                lim = p.scale * (1 - 1e-9)
+                X[..., j] = np.clip(X[..., j], p.center - lim, p.center + lim)
+        return X
+
+    def sample_prior(self, rng, n):
+        """``(n, p)`` coordinate draws from the prior."""
+        return np.column_stack([p.to_unconstrained(p.sample(rng, n)) for p in self.priors])
+
+    def with_prior(self, prior: ParameterPrior):
+        """A copy with one coordinate's prior replaced (same name)."""
+        return ParameterSpace(tuple(prior if p.name == prior.name else p for p in self.priors), dict(self.fixed))

@@ -1,0 +1,132 @@
+"""Priors of a module calibration, scaled by the module type's datasheet.
+
+Contract section 1: the datasheet gives the *scale* of the priors through the
+standard conversions (``Datasheet.resistance/seebeck/conductance``).  Nothing
+here knows the TEC1-12706 numbers, so another module type needs no code
+change.
+
+Law parameters and K (weakly informative, documented in the README):
+
+- ``R0_ohm``, ``S0_V_per_K``, ``K_W_per_K``: log-normal around the datasheet
+  value with a log-sd of 0.3.  The conversions assume ideal material and
+  miss contact and tab losses; real modules sit within ~20 % of them, so the
+  data, not the prior, decide.
+- ``R1_ohm_per_K``, ``S1_V_per_K2``: normal around zero with a sd of 1 %/K of
+  the datasheet value.  Bi2Te3 modules have slopes of +0.1 to +0.6 %/K; the
+  prior does not presume the sign.
+
+Rig nuisance parameters: log-normal around the rig's nominal value whose
++-2 sd span the documented plausible range (``RigParameter.low/high``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from tembayes.constants import MODULE_PARAMETERS
+
+#: Log-sd of the log-normal priors of R0, S0 and K around the datasheet values.
+LEVEL_LOG_SD = 0.3
+#: Sd of the slope priors relative to the datasheet level [1/K].
+SLOPE_REL_SD = 0.01
+
+
+@dataclass(frozen=True)
+class ParameterPrior:
+    """A one-dimensional prior.
+
+    Attributes
+    ----------
+    name : str
+    kind : str
+        ``"lognormal"`` (``log x ~ N(log center, scale)``), ``"normal"``
+        (``x ~ N(center, scale)``) or ``"uniform"`` (``center +- scale``).
+    center, scale : float
+        SI units (``scale`` is a log-sd for ``lognormal``, the half-width for
+        ``uniform``).
+    """
+
+    name: str
+    kind: str
+    center: float
+    scale: float
+
+    def to_unconstrained(self, x):
+        """Map a value to the sampler's coordinate (log for log-normal)."""
+        x = np.asarray(x, dtype=float)
+        return np.log(x) if self.kind == "lognormal" else x
+
+    def from_unconstrained(self, u):
+        u = np.asarray(u, dtype=float)
+        return np.exp(u) if self.kind == "lognormal" else u
+
+    def logpdf_unconstrained(self, u):
+        """Log density in the sampler's coordinate (Jacobian included)."""
+        u = np.asarray(u, dtype=float)
+        if self.kind == "uniform":
+            inside = np.abs(u - self.center) < self.scale
+            return np.where(inside, -np.log(2.0 * self.scale), -np.inf)
+        m = np.log(self.center) if self.kind == "lognormal" else self.center
+        z = (u - m) / self.scale
+        return -0.5 * z * z - np.log(self.scale) - 0.5 * np.log(2.0 * np.pi)
+
+    def logpdf(self, x):
+        """Log density of the value ``x`` (SI)."""
+        x = np.asarray(x, dtype=float)
+        if self.kind == "lognormal":
+            with np.errstate(divide="ignore", invalid="ignore"):
+                out = self.logpdf_unconstrained(np.log(np.where(x > 0, x, np.nan))) - np.log(x)
+            return np.where(x > 0, out, -np.inf)
+        return self.logpdf_unconstrained(x)
+
+    def sample(self, rng, n):
+        if self.kind == "uniform":
+            return self.center + self.scale * rng.uniform(-1.0, 1.0, n)
+        m = np.log(self.center) if self.kind == "lognormal" else self.center
+        return self.from_unconstrained(m + self.scale * rng.standard_normal(n))
+
+    def to_dict(self):
+        return {"kind": self.kind, "center": self.center, "scale": self.scale}
+
+
+def law_priors(datasheet):
+    """Priors of ``R0, R1, S0, S1, K`` (contract order) from a datasheet.
+
+    Parameters
+    ----------
+    datasheet : tembayes.data.Datasheet
+
+    Returns
+    -------
+    tuple of ParameterPrior
+    """
+    R, S, K = datasheet.resistance(), datasheet.seebeck(), datasheet.conductance()
+    return (
+        ParameterPrior("R0_ohm", "lognormal", R, LEVEL_LOG_SD),
+        ParameterPrior("R1_ohm_per_K", "normal", 0.0, SLOPE_REL_SD * R),
+        ParameterPrior("S0_V_per_K", "lognormal", S, LEVEL_LOG_SD),
+        ParameterPrior("S1_V_per_K2", "normal", 0.0, SLOPE_REL_SD * S),
+        ParameterPrior("K_W_per_K", "lognormal", K, LEVEL_LOG_SD),
+    )
+
+
+def law_log_prior(datasheet):
+    """Callable ``f(theta) -> log prior`` for ``theta`` of shape ``(n, 5)`` in
+    :data:`~tembayes.constants.MODULE_PARAMETERS` order (SI)."""
+    priors = law_priors(datasheet)
+    assert tuple(p.name for p in priors) == MODULE_PARAMETERS
+
+    def log_prior(theta):
+        theta = np.atleast_2d(np.asarray(theta, dtype=float))
+        return sum(p.logpdf(theta[:, j]) for j, p in enumerate(priors))
+
+    return log_prior
+
+
+def rig_prior(parameter):
+    """Log-normal prior of a :class:`~tembayes.physics.rig.RigParameter`:
+    centred on the nominal value, its documented range spanning +-2 sd."""
+    return ParameterPrior(parameter.name, "lognormal", parameter.nominal,
+                          np.log(parameter.high / parameter.low) / 4.0)

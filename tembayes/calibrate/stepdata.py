@@ -1,0 +1,208 @@
+"""What the step likelihood looks at: the identification run cut into step responses.
+
+Every current step of the staircase starts a response: the voltage jumps by
+``R(T) dI`` at once, then drifts as the plates, legs and blocks heat or cool
+(the Seebeck back-EMF ``S(T) dT(t)`` building up) until ``dT`` settles at the
+end of the hold.  A step's *window* is the hold that follows it plus a few
+samples just before it (the level the jump starts from).
+
+The windows keep every sample of the first seconds after the step (the jump
+and the fast plate transient, where the voltage carries ``R``) and
+log-spaced samples after that (the slow block response and the steady state,
+where ``dT`` and the voltage carry ``S`` and ``K``).  Log spacing keeps the
+information of each time scale at ~50 points per step, so a simulation of all
+windows costs ~1/50 of the whole run.
+
+The channels compared are the voltage, the sensor temperature difference
+``dT = T2 - T3`` across the module and the sensors' mean ``(T2 + T3)/2``
+(which fixes the temperature the laws are evaluated at).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from tembayes.data.quality import noise_estimate
+from tembayes.errors import DataError
+from tembayes.identify.steps import detect_steps
+
+#: Channels of the step likelihood, in the order of every channel axis.
+CHANNELS = ("voltage_V", "dT_K", "Tmean_K")
+
+#: Duration of the current ramp of a step in the model [s] (an amplifier
+#: slews in about a millisecond; the exact value does not matter below 10 ms).
+RAMP = 1e-3
+
+
+@dataclass(frozen=True)
+class StepData:
+    """The selected samples of every step response of one experiment (SI).
+
+    Attributes
+    ----------
+    source : str
+        File the data came from.
+    t0 : float
+        Start of the simulation [s] (steady state assumed there).
+    step_time : ndarray, shape (ns,)
+        Nominal step instants [s]: midway between the last sample at the old
+        level and the first at the new one.
+    step_window : ndarray, shape (ns,)
+        Half the sampling interval around each step [s]: the true instant is
+        within ``step_time +- step_window``.
+    levels : ndarray, shape (ns + 1,)
+        Current of every hold [A] (median of the measured current), the hold
+        before the first step first.
+    time : ndarray, shape (n,)
+        Times of the selected samples [s].
+    step : ndarray of int, shape (n,)
+        Window (step number) of each selected sample.
+    since : ndarray, shape (n,)
+        Time since the nominal step [s] (negative just before it).
+    obs : ndarray, shape (3, n)
+        Observed ``voltage [V], dT [K], Tmean [K]`` (:data:`CHANNELS`).
+    noise : ndarray, shape (3,)
+        Measurement noise sd of each channel, estimated from the whole run.
+    t_water, t_amb : ndarray, shape (n,)
+        Boundary temperatures at the selected samples [K], smoothed.
+    boundary_time, boundary_water, boundary_amb : ndarray
+        The smoothed boundaries on a regular grid, for inputs at other times.
+    """
+
+    source: str
+    t0: float
+    step_time: np.ndarray
+    step_window: np.ndarray
+    levels: np.ndarray
+    time: np.ndarray
+    step: np.ndarray
+    since: np.ndarray
+    obs: np.ndarray
+    noise: np.ndarray
+    t_water: np.ndarray
+    t_amb: np.ndarray
+    boundary_time: np.ndarray
+    boundary_water: np.ndarray
+    boundary_amb: np.ndarray
+
+    @property
+    def n_steps(self):
+        return len(self.step_time)
+
+    @property
+    def dI(self):
+        """Current change of every step [A]."""
+        return np.diff(self.levels)
+
+    @property
+    def direction(self):
+        """+1 for an up-step, -1 for a down-step."""
+        return np.sign(self.dI).astype(int)
+
+    def boundaries(self, t):
+        """Smoothed water and ambient temperatures [K] at times ``t`` [s]."""
+        return (np.interp(t, self.boundary_time, self.boundary_water),
+                np.interp(t, self.boundary_time, self.boundary_amb))
+
+
+def _smooth(time, x, width):
+    """Moving average over ``width`` seconds (noise off the boundary inputs)."""
+    dt = float(np.median(np.diff(time)))
+    n = max(1, int(round(width / dt)))
+    if n == 1:
+        return x.copy()
+    k = np.ones(n) / n
+    pad = np.concatenate([np.full(n // 2, x[0]), x, np.full(n - 1 - n // 2, x[-1])])
+    return np.convolve(pad, k, mode="valid")
+
+
+def step_data(exp, *, dense=2.0, per_decade=16, pre=1.0, lead=30.0, min_steps=4, smooth=10.0):
+    """Cut an identification experiment into step-response windows.
+
+    Parameters
+    ----------
+    exp : tembayes.data.Experiment
+    dense : float, optional
+        Keep every sample in the first ``dense`` seconds after a step.
+    per_decade : int, optional
+        Log-spaced samples per decade of time-since-step after that.
+    pre : float, optional
+        Keep the samples in the last ``pre`` seconds before each step.
+    lead : float, optional
+        The run must rest at least this long before the first step [s].
+        The simulation starts at the first sample, from the steady state
+        there: the rest before the first step lets the model settle into
+        the slow drifts of the water and the room.
+    min_steps : int, optional
+        Refuse a run with fewer steps (the laws need several temperatures).
+    smooth : float, optional
+        Width of the moving average on the water and ambient inputs [s].
+
+    Returns
+    -------
+    StepData
+
+    Raises
+    ------
+    DataError
+        Too few steps, or a step too close to the start of the run.
+    """
+    t = exp.time
+    steps = detect_steps(t, exp.current)
+    src = str(exp.path)
+    if len(steps) < min_steps:
+        raise DataError(src, f"found {len(steps)} current step(s); the calibration needs at least {min_steps}",
+                        "run the identification staircase (steps held until the temperatures settle)")
+    first = steps[0]
+    if t[first.index] - t[0] < lead:
+        raise DataError(src, f"the first current step comes {t[first.index] - t[0]:.1f} s after the start",
+                        f"record at least {lead:.0f} s at rest before the first step", line=first.index + 2)
+    levels = np.array([steps[0].i_before] + [s.i_after for s in steps])
+    idx, win = [], []
+    for k, s in enumerate(steps):
+        start, stop = s.index, s.hold_end
+        ts = t[start:stop] - s.t
+        sel = set(np.flatnonzero(ts <= dense).tolist())
+        if ts[-1] > dense:
+            targets = np.geomspace(dense, ts[-1], max(2, int(np.ceil(per_decade * np.log10(ts[-1] / dense)))))
+            sel.update(np.clip(np.searchsorted(ts, targets), 0, len(ts) - 1).tolist())
+        sel.add(len(ts) - 1)
+        before = np.flatnonzero((t[:start] >= s.t - pre))
+        chosen = sorted(set(before.tolist()) | {start + j for j in sel})
+        idx.extend(chosen)
+        win.extend([k] * len(chosen))
+    idx = np.asarray(idx)
+    win = np.asarray(win)
+    # a sample picked twice (end of one hold, pre-step of the next) belongs to the later step
+    _, last = np.unique(idx[::-1], return_index=True)
+    keep = np.sort(len(idx) - 1 - last)
+    idx, win = idx[keep], win[keep]
+    order = np.argsort(idx, kind="stable")
+    idx, win = idx[order], win[order]
+    T2 = exp.sensors[1]
+    T3 = exp.sensors[2]
+    obs = np.vstack([exp.voltage[idx], (T2 - T3)[idx], 0.5 * (T2 + T3)[idx]])
+    sT = np.nanmean([noise_estimate(T2), noise_estimate(T3)])
+    noise = np.array([noise_estimate(exp.voltage), np.sqrt(2.0) * sT, sT / np.sqrt(2.0)])
+    tw = _smooth(t, exp.t_water, smooth)
+    ta = _smooth(t, exp.t_amb, smooth)
+    step_time = np.array([s.t for s in steps])
+    return StepData(
+        source=src,
+        t0=float(t[0]),
+        step_time=step_time,
+        step_window=np.array([s.t_window for s in steps]),
+        levels=levels,
+        time=t[idx].copy(),
+        step=win,
+        since=t[idx] - step_time[win],
+        obs=obs,
+        noise=noise,
+        t_water=tw[idx],
+        t_amb=ta[idx],
+        boundary_time=t.copy(),
+        boundary_water=tw,
+        boundary_amb=ta,
+    )

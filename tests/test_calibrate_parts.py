@@ -1,0 +1,174 @@
+"""Unit checks of the calibration's parts against known answers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from tembayes.calibrate import sampler as smp
+from tembayes.calibrate.likelihood import _ExpansionSums, _window_terms, window_loglike
+from tembayes.calibrate.parameters import ParameterSpace
+from tembayes.calibrate.priors import ParameterPrior, law_priors, rig_prior
+from tembayes.bench.bench import TEC1_12706
+from tembayes.physics.rig import REFERENCE
+
+
+def test_window_loglike_matches_multivariate_normal():
+    # residuals of 3 windows x 2 channels with offsets: closed form vs the
+    # dense covariance sigma^2 I + beta^2 1 1^T
+    rng = np.random.default_rng(1)
+    starts = np.array([0, 4, 11])
+    n = 15
+    R = rng.normal(size=(2, 2, n))
+    sigma = np.array([[0.7, 1.3], [1.1, 0.4]])
+    beta = np.array([[0.5, 0.01], [2.0, 0.3]])
+    got = window_loglike(R, starts, sigma, beta)
+    bounds = list(starts) + [n]
+    for w in range(2):
+        for k in range(3):
+            a, b = bounds[k], bounds[k + 1]
+            want = 0.0
+            for c in range(2):
+                cov = sigma[w, c] ** 2 * np.eye(b - a) + beta[w, c] ** 2
+                want += stats.multivariate_normal(np.zeros(b - a), cov).logpdf(R[w, c, a:b])
+            assert got[w, k] == pytest.approx(want, rel=1e-10)
+
+
+class _Quadratic:
+    """A stand-in expansion: f0 + J d + C d^2 / 2 with random coefficients."""
+
+    def __init__(self, rng, p, nc, n):
+        self.x0 = rng.normal(size=p)
+        self.f0 = rng.normal(size=(nc, n))
+        self.J = rng.normal(size=(p, nc, n))
+        self.C = rng.normal(size=(p, nc, n))
+        self.pairs = np.array([[0, 2], [1, 3]])
+        self.H = rng.normal(size=(2, nc, n))
+
+    def predict(self, X):
+        D = X - self.x0
+        return (self.f0[None] + np.tensordot(D, self.J, axes=(1, 0)) + 0.5 * np.tensordot(D * D, self.C, axes=(1, 0))
+                + np.tensordot(D[:, [0, 1]] * D[:, [2, 3]], self.H, axes=(1, 0)))
+
+
+def test_expansion_sums_equal_the_direct_residual_sums():
+    rng = np.random.default_rng(2)
+    p, nc, n = 4, 3, 40
+    lin = _Quadratic(rng, p, nc, n)
+    obs = rng.normal(size=(nc, n))
+    starts = np.array([0, 7, 19, 33])
+    sums = _ExpansionSums(obs, lin, starts)
+    X = lin.x0 + 0.3 * rng.normal(size=(6, p))
+    S1, S2 = sums.sums(X - lin.x0)
+    R = obs[None] - lin.predict(X)
+    assert np.allclose(S1, np.add.reduceat(R, starts, axis=2), rtol=1e-10, atol=1e-10)
+    assert np.allclose(S2, np.add.reduceat(R * R, starts, axis=2), rtol=1e-10, atol=1e-10)
+    sigma = np.full((6, nc), 0.8)
+    beta = np.full((6, nc), 0.2)
+    assert np.allclose(_window_terms(S1, S2, np.diff(np.append(starts, n)).astype(float), sigma, beta),
+                       window_loglike(R, starts, sigma, beta))
+
+
+def test_priors_are_normalised_densities_with_the_jacobian():
+    pri = law_priors(TEC1_12706)
+    assert [p.name for p in pri] == ["R0_ohm", "R1_ohm_per_K", "S0_V_per_K", "S1_V_per_K2", "K_W_per_K"]
+    # centred on the datasheet conversions (contract section 1), whatever the type
+    assert pri[0].center == pytest.approx(TEC1_12706.resistance())
+    assert pri[2].center == pytest.approx(TEC1_12706.seebeck())
+    assert pri[4].center == pytest.approx(TEC1_12706.conductance())
+    x = np.array([1.5, 1.7, 2.0])
+    want = stats.lognorm(s=0.3, scale=TEC1_12706.resistance()).logpdf(x)
+    assert np.allclose(pri[0].logpdf(x), want)
+    # in log coordinates: a normal density
+    assert np.allclose(pri[0].logpdf_unconstrained(np.log(x)),
+                       stats.norm(np.log(TEC1_12706.resistance()), 0.3).logpdf(np.log(x)))
+    u = ParameterPrior("s", "uniform", 0.0, 0.1)
+    assert u.logpdf_unconstrained(np.array([0.05]))[0] == pytest.approx(-np.log(0.2))
+    assert u.logpdf_unconstrained(np.array([0.11]))[0] == -np.inf
+
+
+def test_rig_prior_spans_the_documented_range():
+    p = next(q for q in REFERENCE.parameters if q.name == "g_paste_hot")
+    pr = rig_prior(p)
+    # +-2 sd in log space is the documented range
+    assert np.exp(np.log(pr.center) - 2 * pr.scale) == pytest.approx(p.low * p.nominal / np.sqrt(p.low * p.high),
+                                                                      rel=1e-9)
+    assert 2 * 2 * pr.scale == pytest.approx(np.log(p.high / p.low))
+
+
+def test_parameter_space_round_trip_and_clip():
+    sp = ParameterSpace(tuple(law_priors(TEC1_12706)) + (ParameterPrior("shift", "uniform", 0.0, 0.1),))
+    vals = {"R0_ohm": 1.7, "R1_ohm_per_K": 0.01, "S0_V_per_K": 0.048, "S1_V_per_K2": 9e-5, "K_W_per_K": 0.53,
+            "shift": 0.02}
+    x = sp.to_x(vals)
+    back = sp.values(x[None])
+    for k, v in vals.items():
+        assert back[k][0] == pytest.approx(v)
+    X = np.repeat(x[None], 2, axis=0)
+    X[0, -1] = 0.5
+    assert sp.clip(X)[0, -1] < 0.1
+    assert np.isfinite(sp.log_prior(sp.clip(X))).all()
+    assert sp.log_prior(X)[0] == -np.inf
+
+
+def _gauss_target(mean, cov):
+    P = np.linalg.inv(cov)
+
+    def log_prob(X):
+        D = X - mean
+        return -0.5 * np.einsum("wi,ij,wj->w", D, P, D)
+
+    return log_prob
+
+
+def test_sampler_recovers_a_correlated_gaussian_and_converges():
+    rng = np.random.default_rng(3)
+    p = 5
+    A = rng.normal(size=(p, p))
+    cov = A @ A.T + 0.1 * np.eye(p)
+    mean = rng.normal(size=p)
+    p0 = mean + 0.1 * rng.normal(size=(16, p))
+    run = smp.sample(_gauss_target(mean, cov), p0, seed=5, monitor=range(p), thin_by=5, check_every=100,
+                     max_steps=40000)
+    assert run.converged
+    flat = run.chain.reshape(-1, p)
+    ess = np.min(run.ess_bulk)
+    assert ess >= smp.ESS_MIN and np.max(run.rhat) <= smp.RHAT_MAX
+    assert run.chain.shape[0] * run.thin_by >= smp.MIN_TAU_MULTIPLE * np.max(run.tau)
+    sd = np.sqrt(np.diag(cov))
+    # the mean within 4 Monte Carlo standard errors, the sds within 10 %
+    assert np.all(np.abs(flat.mean(0) - mean) < 4 * sd / np.sqrt(ess))
+    assert np.allclose(flat.std(0), sd, rtol=0.1)
+
+
+def test_sampler_reports_a_budget_that_runs_out():
+    p = 3
+    p0 = np.random.default_rng(0).normal(size=(8, p))
+    with pytest.warns(RuntimeWarning, match="not converged"):
+        run = smp.sample(_gauss_target(np.zeros(p), np.eye(p)), p0, seed=1, monitor=range(p), thin_by=1,
+                         check_every=50, max_steps=50)
+    assert not run.converged
+    assert run.steps == 50
+
+
+def test_sampler_is_reproducible_and_resumes_bit_identically(tmp_path):
+    p = 3
+    log_prob = _gauss_target(np.zeros(p), np.eye(p))
+    p0 = np.random.default_rng(0).normal(size=(8, p))
+    kw = dict(seed=11, monitor=range(p), thin_by=2, check_every=40)
+    with pytest.warns(RuntimeWarning):
+        a = smp.sample(log_prob, p0, max_steps=160, backend=tmp_path / "a.h5", **kw)
+    with pytest.warns(RuntimeWarning):
+        b = smp.sample(log_prob, p0, max_steps=160, **kw)
+    assert np.array_equal(a.chain, b.chain)
+    # an interrupted run (80 steps) continued to 160 equals the straight run
+    with pytest.warns(RuntimeWarning):
+        smp.sample(log_prob, p0, max_steps=80, backend=tmp_path / "c.h5", **kw)
+    with pytest.warns(RuntimeWarning):
+        c = smp.sample(log_prob, p0, max_steps=160, backend=tmp_path / "c.h5", resume=True, **kw)
+    assert c.resumed
+    assert np.array_equal(a.chain, c.chain)
+    with pytest.warns(RuntimeWarning):
+        d = smp.sample(log_prob, p0, max_steps=160, **{**kw, "seed": 12})
+    assert not np.array_equal(a.chain, d.chain)

@@ -1,0 +1,202 @@
+"""The calibration end to end on small bench batches: recovery, outputs,
+determinism, resume after ``kill -9``, negative control, CLI behaviour.
+
+The bench batches use 300 s holds (half the reference rig's) to keep the
+suite fast; the full-size statistics are in ``analyses/calibration_study.py``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import arviz as az
+import numpy as np
+import pytest
+from scipy import stats
+
+from tembayes.bench import BenchConfig, simulate_batch
+from tembayes.calibrate import CalibrationOptions, calibrate_batch
+from tembayes.calibrate import results as res
+from tembayes.calibrate.module import sample_prior_only
+from tembayes.cli import main
+from tembayes.constants import MODULE_PARAMETERS
+from tembayes.data import load_batch
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _bench(path, n, seed, outlier=None):
+    simulate_batch(path, BenchConfig(n_modules=n, seed=seed, outlier=outlier, hold=300.0, n_validations=0),
+                   progress=lambda msg: None)
+    return path
+
+
+@pytest.fixture(scope="module")
+def batch3(tmp_path_factory):
+    return _bench(tmp_path_factory.mktemp("b3") / "batch", 3, seed=21, outlier="TEM2")
+
+
+@pytest.fixture(scope="module")
+def batch1(tmp_path_factory):
+    return _bench(tmp_path_factory.mktemp("b1") / "batch", 1, seed=22)
+
+
+@pytest.fixture(scope="module")
+def run3(batch3, tmp_path_factory):
+    out = tmp_path_factory.mktemp("r3") / "run"
+    summ = calibrate_batch(load_batch(batch3), out, seed=0, figures=True)
+    return out, summ, json.loads((batch3 / "truth.json").read_text())
+
+
+def test_recovers_the_bench_truth_and_converges(run3):
+    out, summ, truth = run3
+    for mid, m in summ["modules"].items():
+        assert m["diagnostics"]["converged"], mid
+        assert m["diagnostics"]["rhat_max"] <= 1.01 and m["diagnostics"]["ess_bulk_min"] >= 1000
+        assert m["diagnostics"]["chain_over_tau"] >= 50
+        assert m["diagnostics"]["psis_k"] < 0.7
+        for k in MODULE_PARAMETERS:
+            z = (m[k]["mean"] - truth["modules"][mid][k]) / m[k]["sd"]
+            # the coverage study puts the standardised error at ~N(0, 1);
+            # |z| < 3.5 fails by chance once in ~2000 parameters
+            assert abs(z) < 3.5, (mid, k, z)
+            assert m[k]["q05"] < m[k]["mean"] < m[k]["q95"]
+        # the posterior is far narrower than the datasheet prior
+        assert m["R0_ohm"]["sd"] / m["R0_ohm"]["mean"] < 0.01
+
+
+def test_flags_the_outlier_of_three(run3):
+    out, summ, truth = run3
+    probs = {mid: m["outlier_prob"] for mid, m in summ["modules"].items()}
+    assert max(probs, key=probs.get) == truth["outlier"]
+    assert probs[truth["outlier"]] > 0.5
+    assert all(p < 0.3 for mid, p in probs.items() if mid != truth["outlier"])
+
+
+def test_contract_outputs(run3):
+    out, summ, truth = run3
+    disk = json.loads((out / "summary.json").read_text())
+    assert disk["tref_C"] == 25.0
+    assert set(disk["modules"]) == {"TEM1", "TEM2", "TEM3"}
+    for m in disk["modules"].values():
+        for k in MODULE_PARAMETERS:
+            assert set(m[k]) == {"mean", "sd", "q05", "q95"}
+        assert 0.0 <= m["outlier_prob"] <= 1.0
+        assert {"rhat_max", "ess_bulk_min", "converged"} <= set(m["diagnostics"])
+        assert {"R_ohm", "S_V_per_K"} <= set(m["hysteresis"])
+    for k in MODULE_PARAMETERS:
+        assert set(disk["population"][k]) == {"mean", "sd", "q05", "q95"}
+    # the population describes a new unit: wider than any calibrated module
+    assert disk["population"]["S0_V_per_K"]["sd"] > max(m["S0_V_per_K"]["sd"] for m in disk["modules"].values())
+    idata = az.from_netcdf(out / "posterior.nc")
+    for g in ("posterior", "log_likelihood", "sample_stats", "observed_data"):
+        assert g in idata.groups()
+    assert list(idata.posterior["R0_ohm"].dims) == ["chain", "draw", "module"]
+    assert list(idata.posterior.module.values) == ["TEM1", "TEM2", "TEM3"]
+    assert "step" in idata.log_likelihood["step_response"].dims
+    assert idata.log_likelihood["step_response"].sizes["step"] == 24
+    assert np.isfinite(idata.log_likelihood["step_response"].values).all()
+    # summary and posterior.nc agree
+    assert float(idata.posterior["K_W_per_K"].sel(module="TEM3").mean()) == pytest.approx(
+        disk["modules"]["TEM3"]["K_W_per_K"]["mean"], rel=1e-12)
+    figs = sorted(p.name for p in (out / "figures").iterdir())
+    assert "corner_TEM1.png" in figs and "corner_population.png" in figs
+
+
+def test_same_seed_same_module_result(run3, batch3, tmp_path):
+    out, summ, truth = run3
+    from tembayes.calibrate.module import calibrate_module
+
+    b = load_batch(batch3)
+    again = calibrate_module(b.modules["TEM3"], b.datasheet, rig_config=b.rig_config, seed=0)
+    first = res.read_module(out / "modules" / "TEM3.nc")
+    for k in MODULE_PARAMETERS:
+        assert np.array_equal(again.draws[k], first.draws[k])
+    other = calibrate_module(b.modules["TEM3"], b.datasheet, rig_config=b.rig_config, seed=1,
+                             options=CalibrationOptions(max_steps=3000))
+    assert not np.array_equal(other.draws["R0_ohm"][:, :10], first.draws["R0_ohm"][:, :10])
+
+
+def test_negative_control_prior_only_returns_the_prior(batch1):
+    b = load_batch(batch1)
+    draws, space, run = sample_prior_only(b.modules["TEM1"], b.datasheet, rig_config=b.rig_config, seed=3)
+    assert run.converged
+    for pr in space.priors:
+        x = pr.to_unconstrained(draws[pr.name])
+        if pr.kind == "uniform":
+            ref = stats.uniform(pr.center - pr.scale, 2 * pr.scale)
+        else:
+            ref = stats.norm(np.log(pr.center) if pr.kind == "lognormal" else pr.center, pr.scale)
+        # thinned to ~independent draws for the KS test
+        xs = x[:: max(1, len(x) // 1000)]
+        assert stats.kstest(xs, ref.cdf).pvalue > 1e-3, pr.name
+
+
+def _cli(*args, **kw):
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    return subprocess.Popen([sys.executable, "-m", "tembayes", *args], env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, **kw)
+
+
+def test_resume_after_kill_9_gives_the_uninterrupted_result(batch1, tmp_path):
+    straight = tmp_path / "a"
+    p = _cli("calibrate", str(batch1), "--out", str(straight), "--seed", "4", "--quiet", "--no-figures")
+    out, err = p.communicate(timeout=600)
+    assert p.returncode == 0, err
+    killed = tmp_path / "b"
+    p = _cli("calibrate", str(batch1), "--out", str(killed), "--seed", "4", "--quiet", "--no-figures")
+    ck = killed / "checkpoints" / "TEM1.stage1.h5"
+    t0 = time.time()
+    while not ck.exists() and time.time() - t0 < 300:
+        time.sleep(0.2)
+    time.sleep(3.0)  # into the main run
+    p.send_signal(signal.SIGKILL)
+    p.wait()
+    assert not (killed / "summary.json").exists()
+    import emcee
+
+    stored = emcee.backends.HDFBackend(str(ck), read_only=True).iteration
+    assert stored > 0
+    p = _cli("calibrate", str(batch1), "--out", str(killed), "--seed", "4", "--quiet", "--no-figures", "--resume")
+    out, err = p.communicate(timeout=600)
+    assert p.returncode == 0, err
+    a = res.read_module(straight / "modules" / "TEM1.nc")
+    b = res.read_module(killed / "modules" / "TEM1.nc")
+    assert b.diagnostics["resumed"]
+    for k in a.names:
+        assert np.array_equal(a.draws[k], b.draws[k]), k
+    sa = json.loads((straight / "summary.json").read_text())
+    sb = json.loads((killed / "summary.json").read_text())
+    assert sa["modules"]["TEM1"]["R0_ohm"] == sb["modules"]["TEM1"]["R0_ohm"]
+
+
+def test_cli_refuses_bad_input_and_writes_nothing(tmp_path, capsys):
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "batch.toml").write_text("[module_type]\nname = 'x'\n")
+    out = tmp_path / "run"
+    assert main(["calibrate", str(bad), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "batch.toml" in err and err.count("\n") == 1
+    assert not out.exists()
+
+
+def test_cli_refuses_an_existing_run_without_resume(batch1, tmp_path, capsys):
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "keep.txt").write_text("x")
+    assert main(["calibrate", str(batch1), "--out", str(out)]) == 2
+    assert "exists" in capsys.readouterr().err
+    assert (out / "keep.txt").exists()
+
+
+def test_calibrate_help_has_an_example(capsys):
+    with pytest.raises(SystemExit):
+        main(["calibrate", "--help"])
+    assert "tembayes calibrate data/example --out runs/example --seed 0" in capsys.readouterr().out

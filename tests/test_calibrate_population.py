@@ -1,0 +1,350 @@
+"""The population (batch) stage on synthetic batches with a known population.
+
+The generator here is the test's own: truths drawn from a known population
+(type values near TEC1-12706's, unit spread ``UNIT_SPREAD``), each module's
+likelihood Gaussian in the population coordinates (log R0, R1/R, log S0, S1/S,
+log K) with posterior sds in the middle of the brief's ranges and correlated
+errors, and exact posterior draws (likelihood x interim prior, which is
+Gaussian in those coordinates).
+
+The samplers run with looser convergence targets than the defaults
+(``FAST``) to keep the suite quick; ``analyses/population_checks.py`` runs the
+defaults.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+from scipy.special import logsumexp
+from scipy.stats import multivariate_normal
+
+from tembayes.bench.bench import TEC1_12706, UNIT_SPREAD
+from tembayes.calibrate import population as P
+from tembayes.calibrate.population import (
+    HYPER_NAMES,
+    PopulationConvergenceWarning,
+    PopulationResult,
+    fit_population,
+    joint_fit,
+)
+from tembayes.calibrate.priors import LEVEL_LOG_SD, SLOPE_REL_SD
+from tembayes.constants import MODULE_PARAMETERS
+from tembayes.errors import ModelError
+
+DS = TEC1_12706
+LEVEL = np.array([True, False, True, False, True])
+REF = np.array([DS.resistance(), DS.resistance(), DS.seebeck(), DS.seebeck(), DS.conductance()])
+PRIOR_SD = np.where(LEVEL, LEVEL_LOG_SD, SLOPE_REL_SD)
+TYPE = np.array([1.7, 0.0085, 0.048, 9.0e-5, 0.53])
+SPREAD = np.array([UNIT_SPREAD[p] for p in MODULE_PARAMETERS])
+#: Posterior sd relative to the value: the middle of the brief's ranges.
+POST_SD = np.array([0.001, 0.02, 0.002, 0.06, 0.006])
+#: The population's spreads in PopulationResult.hyper units (levels relative, slopes SI).
+TRUE_TAU = {name: (SPREAD[j] if LEVEL[j] else SPREAD[j] * TYPE[j]) for j, name in enumerate(P._TAU_NAMES)}
+#: Spreads "known from earlier batches" to +-30 %.
+KNOWN_SPREADS = {k: (v, 0.3) for k, v in TRUE_TAU.items()}
+FAST = {"tau_factor": 20, "rhat_max": 1.05, "ess_min": 300}
+
+
+def to_x(theta):
+    return np.where(LEVEL, np.log(np.abs(theta) / REF), theta / REF)
+
+
+def to_theta(x):
+    return np.where(LEVEL, REF * np.exp(x), REF * x)
+
+
+def make_batch(seed, n, *, outlier=None, param=2, shift=0.04, at_centre=False, clip=None, corr=0.3,
+               n_draws=600):
+    """Draws, Gaussian likelihoods (in x) and truths of one synthetic batch.
+
+    ``outlier``: index of a module whose parameter ``param`` is multiplied by
+    ``1 + shift`` (the bench's mechanism); with ``at_centre`` its own unit
+    draw of that parameter is the type value, so it sits exactly ``shift``
+    off the population centre.  ``clip``: unit draws limited to +-clip
+    spreads (members that are unambiguously members).
+    """
+    rng = np.random.default_rng(seed)
+    z = rng.standard_normal((n, 5))
+    theta = TYPE * (1.0 + SPREAD * (z if clip is None else np.clip(z, -clip, clip)))
+    if outlier is not None:
+        base = TYPE[param] if at_centre else theta[outlier, param]
+        theta[outlier, param] = base * (1.0 + shift)
+    R = np.full((5, 5), corr) + (1.0 - corr) * np.eye(5)
+    draws, lik = {}, {}
+    for i in range(n):
+        sd = np.where(LEVEL, POST_SD, POST_SD * np.abs(theta[i]) / REF)
+        CL = R * np.outer(sd, sd)
+        mL = to_x(theta[i]) + np.linalg.cholesky(CL) @ rng.standard_normal(5)
+        prec = np.linalg.inv(CL)
+        Cp = np.linalg.inv(prec + np.diag(PRIOR_SD ** -2.0))
+        xd = Cp @ prec @ mL + rng.standard_normal((n_draws, 5)) @ np.linalg.cholesky(Cp).T
+        mid = f"U{i + 1}"
+        draws[mid] = to_theta(xd)
+        lik[mid] = (mL, prec)
+    return draws, lik, theta
+
+
+def loglikes(lik):
+    out = {}
+    for mid, (mL, prec) in lik.items():
+        def f(theta, mL=mL, prec=prec):
+            d = to_x(theta) - mL
+            return -0.5 * np.einsum("ni,ij,nj->n", d, prec, d)
+        out[mid] = f
+    return out
+
+
+def fit(draws, seed=0, **kw):
+    kw.setdefault("convergence", FAST)
+    return fit_population(draws, DS, rng=np.random.default_rng(seed), **kw)
+
+
+def probs(result):
+    return np.array([result.outlier_prob[m] for m in result.module_ids])
+
+
+# --------------------------------------------------------------------------- the likelihood terms
+
+
+def brute_force(pop, m, C, mu, tau, logeps, log1m):
+    """All 3^5 member/moderate/gross patterns of one Gaussian module likelihood, by scipy."""
+    lw = pop.component_log_weights(np.array([logeps]), np.array([log1m]))[0]
+    vals = []
+    for S in itertools.product([0, 1, 2], repeat=5):
+        S = np.array(S)
+        mean = np.where(S == 2, pop.gross_mean, mu)
+        sd = np.choose(S, [tau, pop.lam * tau, pop.gross_sd])
+        vals.append(lw[S].sum() + multivariate_normal.logpdf(m, mean, C + np.diag(sd ** 2)))
+    total = logsumexp(vals)
+    return total, vals[0] - total
+
+
+@pytest.mark.parametrize("corr", [0.0, 0.5])
+@pytest.mark.parametrize("offset", [0.0, 5.0, 50.0])
+def test_gaussian_terms_match_brute_force(corr, offset):
+    """One module, S0 0 / 5 / 50 spreads off: closed form == all 243 patterns.
+
+    Exact for diagonal C and for a module off in one parameter (any size);
+    here also with correlation 0.5 (the approximation only concerns modules
+    off in several parameters).
+    """
+    pop = P._Population(DS)
+    rng = np.random.default_rng(3)
+    mu = np.array([0.0, 0.005, 0.0, 0.002, 0.0])
+    tau = np.array([0.02, 2.5e-4, 0.01, 1.1e-4, 0.03])
+    sd = np.array([0.001, 1e-4, 0.002, 1.2e-4, 0.006])
+    C = (np.full((5, 5), corr) + (1 - corr) * np.eye(5)) * np.outer(sd, sd)
+    m = mu + tau * rng.standard_normal(5)
+    m[2] += offset * tau[2]
+    le, l1 = np.log(0.03), np.log(0.97)
+    want = brute_force(pop, m, C, mu, tau, le, l1)
+    ll, lmem = P._GaussianTerms(m[None], C[None])(pop, mu[None], tau[None], np.array([le]), np.array([l1]))
+    assert ll[0, 0] == pytest.approx(want[0], abs=1e-3)
+    assert np.exp(lmem[0, 0]) == pytest.approx(np.exp(want[1]), abs=1e-4)
+    # the importance sums converge to the same numbers
+    xd = m + rng.standard_normal((100000, 5)) @ np.linalg.cholesky(C).T
+    imp = P._ImportanceTerms([xd], [np.full(len(xd), -np.log(len(xd)))])
+    ll_i, lmem_i = imp(pop, mu[None], tau[None], np.array([le]), np.array([l1]))
+    assert ll_i[0, 0] == pytest.approx(want[0], abs=0.02)
+    assert np.exp(lmem_i[0, 0]) == pytest.approx(np.exp(want[1]), abs=0.01)
+
+
+def test_compiled_prior_matches_reference():
+    """The sampler's compiled prior + Jacobian equals the numpy reference."""
+    draws, _, _ = make_batch(1, 4)
+    pop = P._Population(DS)
+    from tembayes.calibrate.priors import law_log_prior
+    _, _, m, C, _ = P._module_summaries(tuple(draws), list(draws.values()), pop, law_log_prior(DS))
+    post = P._HyperPosterior(pop, P._GaussianTerms(m, C), m, C)
+    u = np.random.default_rng(0).normal(0, 1, (20, 11)) + np.r_[np.zeros(5), pop.logtau_mean, -2.0]
+    want = post.log_natural(post.natural(u)) + np.log(post._scale(u[:, 5:10])).sum(axis=1)
+    np.testing.assert_allclose(post(u), want, rtol=1e-10)
+    u[0, 6] = 50.0  # outside the box
+    assert post(u)[0] == -np.inf
+
+
+# --------------------------------------------------------------------------- inference
+
+
+@pytest.fixture(scope="module")
+def big_batch():
+    draws, _, theta = make_batch(7, 30)
+    return fit(draws, seed=1), theta
+
+
+def test_recovers_population_centre_and_spread(big_batch):
+    """30 modules, no outlier: every true centre and spread inside its 99 % interval."""
+    r, _ = big_batch
+    for j, p in enumerate(MODULE_PARAMETERS):
+        lo, hi = np.quantile(r.hyper[f"mu_{p}"], [0.005, 0.995])
+        assert lo < TYPE[j] < hi, (p, lo, TYPE[j], hi)
+    for name, true in TRUE_TAU.items():
+        lo, hi = np.quantile(r.hyper[name], [0.005, 0.995])
+        assert lo < true < hi, (name, lo, true, hi)
+    assert max(r.outlier_prob.values()) < 0.3
+    # the predictive of a new member: centred on the type, about one spread wide
+    s = r.summary()
+    for j, p in enumerate(MODULE_PARAMETERS):
+        assert s[p]["q05"] < TYPE[j] < s[p]["q95"]
+        assert s[p]["sd"] == pytest.approx(SPREAD[j] * abs(TYPE[j]), rel=0.5)
+    assert r.diagnostics["converged"]
+    assert r.diagnostics["check"]["passed"]
+
+
+@pytest.mark.parametrize("seed,sign", [(0, 1), (1, -1), (2, 1)])
+def test_three_modules_flag_a_clear_outlier_with_known_spreads(seed, sign):
+    """3 modules, spreads known to +-30 % (an earlier batch): an S0 outlier 10
+    spreads off is the top module, above 0.5, the others below 0.3.
+
+    At the bench's 4 % (4 spreads) three modules do not carry that much
+    evidence (analyses/population_checks.py: rates and the Bayes-optimal bound).
+    """
+    draws, _, _ = make_batch(seed, 3, outlier=0, shift=0.10 * sign, at_centre=True)
+    p = probs(fit(draws, spread_prior=KNOWN_SPREADS))
+    assert np.argmax(p) == 0 and p[0] > 0.5 and p[1:].max() < 0.3, p
+
+
+@pytest.mark.parametrize("seed,sign", [(3, 1), (4, -1)])
+def test_eight_modules_flag_the_outlier(seed, sign):
+    """8 modules (members within 2.5 spreads), default priors.
+
+    The bench's outlier (S0 +-4 % of its unit draw) is the top module; one 10
+    spreads off gets > 0.9 with every member below 0.3.
+    """
+    draws, _, _ = make_batch(seed, 8, outlier=5, shift=0.04 * sign, clip=2.5)
+    p = probs(fit(draws))
+    assert np.argmax(p) == 5, p
+    draws, _, _ = make_batch(seed, 8, outlier=5, shift=0.10 * sign, at_centre=True, clip=2.5)
+    p = probs(fit(draws))
+    assert np.argmax(p) == 5 and p[5] > 0.9 and np.delete(p, 5).max() < 0.3, p
+
+
+@pytest.mark.parametrize("n", [3, 8])
+def test_no_outlier_flags_nobody(n):
+    draws, _, _ = make_batch(10 + n, n)
+    assert max(fit(draws).outlier_prob.values()) < 0.3
+
+
+def test_gross_outlier_does_not_inflate_the_spread():
+    """A broken unit (S0 +50 %) is flagged and leaves tau_S0 where the members put it."""
+    draws, _, _ = make_batch(5, 8, outlier=2, shift=0.5)
+    clean = {k: v for k, v in draws.items() if k != "U3"}
+    r, r_clean = fit(draws), fit(clean)
+    assert r.outlier_prob["U3"] > 0.99
+    med, med_clean = np.median(r.hyper["tau_S0_rel"]), np.median(r_clean.hyper["tau_S0_rel"])
+    assert med == pytest.approx(med_clean, rel=0.15)
+
+
+def test_two_modules_degenerate_but_defined():
+    draws, _, _ = make_batch(6, 2)
+    r = fit(draws)
+    p = probs(r)
+    assert np.all((p > 0) & (p < 0.3))
+    assert abs(p[0] - p[1]) < 0.1  # the two units are exchangeable
+    assert r.predictive.shape == (4000, 5) and np.all(np.isfinite(r.predictive))
+
+
+def test_same_seed_same_numbers():
+    draws, _, _ = make_batch(8, 3)
+    a, b = fit(draws, seed=42), fit(draws, seed=42)
+    assert a.outlier_prob == b.outlier_prob
+    np.testing.assert_array_equal(a.predictive, b.predictive)
+    for k in HYPER_NAMES:
+        np.testing.assert_array_equal(a.hyper[k], b.hyper[k])
+    assert a.diagnostics["emcee_seed"] == b.diagnostics["emcee_seed"]
+    c = fit(draws, seed=43)
+    assert not np.array_equal(a.predictive, c.predictive)
+
+
+def test_two_stage_agrees_with_joint_fit():
+    """Gaussian likelihoods: two-stage and joint (exact) agree within Monte Carlo error."""
+    draws, lik, _ = make_batch(9, 3, outlier=0, shift=0.05)
+    two = fit(draws, seed=3)
+    joint = joint_fit(loglikes(lik), DS, rng=np.random.default_rng(3), convergence=FAST)
+    for mid in two.module_ids:
+        se = np.hypot(two.diagnostics["outlier_prob_mcse"][mid], joint.diagnostics["outlier_prob_mcse"][mid])
+        assert abs(two.outlier_prob[mid] - joint.outlier_prob[mid]) < 4 * se + 0.01, mid
+    az = P._arviz()
+    for k in HYPER_NAMES:
+        a, b = two.hyper[k], joint.hyper[k]
+        se = np.hypot(a.std() / np.sqrt(az.ess(a)), b.std() / np.sqrt(az.ess(b)))
+        assert abs(a.mean() - b.mean()) < 4 * se, k
+        assert a.std() == pytest.approx(b.std(), rel=0.15), k
+
+
+def test_importance_method_agrees_with_gaussian():
+    draws, _, _ = make_batch(11, 3, outlier=1, param=0, shift=0.1)
+    g, i = fit(draws, method="gaussian"), fit(draws, method="importance", max_draws_per_module=100)
+    assert i.diagnostics["method"] == "importance" and g.diagnostics["method"] == "gaussian"
+    for mid in g.module_ids:
+        se = np.hypot(g.diagnostics["outlier_prob_mcse"][mid], i.diagnostics["outlier_prob_mcse"][mid])
+        assert abs(g.outlier_prob[mid] - i.outlier_prob[mid]) < 4 * se + 0.03, mid
+
+
+def test_result_contents(big_batch):
+    r, _ = big_batch
+    assert isinstance(r, PopulationResult)
+    assert set(r.hyper) == set(HYPER_NAMES)
+    W = r.diagnostics["nwalkers"]
+    assert all(v.shape[0] == W and v.ndim == 2 for v in r.hyper.values())
+    assert set(r.summary()) == set(MODULE_PARAMETERS)
+    assert set(r.summary()["R0_ohm"]) == {"mean", "sd", "q05", "q95"}
+    assert r.predictive_with_outliers.shape == r.predictive.shape
+    d = r.diagnostics
+    for k in ("rhat_max", "ess_bulk_min", "tau_max", "n_steps", "converged", "weight_ess_min", "emcee_seed"):
+        assert k in d
+    assert d["weight_ess_min"] > 10
+    sp = r.spread_prior()
+    assert set(sp) == set(P._TAU_NAMES) and all(v[0] > 0 and v[1] > 0 for v in sp.values())
+
+
+def test_budget_exhausted_warns_and_says_so():
+    draws, _, _ = make_batch(12, 3)
+    with pytest.warns(PopulationConvergenceWarning, match="not converged"):
+        r = fit_population(draws, DS, rng=np.random.default_rng(0), max_steps=300)
+    assert r.diagnostics["converged"] is False and r.diagnostics["n_steps"] == 300
+
+
+# --------------------------------------------------------------------------- refusals
+
+
+def _good():
+    return make_batch(0, 3, n_draws=50)[0]
+
+
+@pytest.mark.parametrize("mutate,match", [
+    (lambda d: {"U1": d["U1"]}, "at least 2 modules"),
+    (lambda d: {**d, "U2": d["U2"][:, :4]}, "module 'U2'.*shape"),
+    (lambda d: {**d, "U2": d["U2"][None]}, "module 'U2'.*shape"),
+    (lambda d: {**d, "U3": np.where(np.arange(5) == 2, np.nan, d["U3"])}, "module 'U3'.*NaN.*S0_V_per_K"),
+    (lambda d: {**d, "U1": d["U1"] * np.array([-1, 1, 1, 1, 1])}, "module 'U1'.*R0_ohm.*positive"),
+    (lambda d: {**d, "U1": d["U1"][:5]}, "module 'U1'.*at least 20"),
+    (lambda d: {**d, "U1": np.tile(d["U1"][:1], (50, 1))}, "module 'U1'.*do not vary"),
+    (lambda d: {**d, "U1": "abc"}, "module 'U1'"),
+    (lambda d: list(d.values()), "dict"),
+])
+def test_refuses_bad_draws(mutate, match):
+    with pytest.raises(ModelError, match=match):
+        fit_population(mutate(_good()), DS, rng=np.random.default_rng(0))
+
+
+def test_refuses_bad_options():
+    d = _good()
+    with pytest.raises(ModelError, match="Generator"):
+        fit_population(d, DS, rng=0)
+    with pytest.raises(ModelError, match="unknown spread"):
+        fit_population(d, DS, rng=np.random.default_rng(0), spread_prior={"tau_R0": (0.02, 0.3)})
+    with pytest.raises(ModelError, match="method"):
+        fit_population(d, DS, rng=np.random.default_rng(0), method="laplace")
+    with pytest.raises(ModelError, match="unknown target"):
+        fit_population(d, DS, rng=np.random.default_rng(0), convergence={"rhat": 1.1})
+    with pytest.raises(ModelError, match="interim prior is not finite"):
+        fit_population(d, DS, rng=np.random.default_rng(0), log_interim_prior=lambda t: np.full(len(t), -np.inf))
+    with pytest.raises(ModelError, match="module 'U2'.*callable"):
+        joint_fit({"U1": lambda t: t[:, 0], "U2": 3}, DS, rng=np.random.default_rng(0))
+    with pytest.raises(ModelError, match="at least 2 modules"):
+        joint_fit({"U1": lambda t: t[:, 0]}, DS, rng=np.random.default_rng(0))
