@@ -22,6 +22,7 @@ reads):
     python analyses/calibration_study.py                 # full study (~30 min on 2 cores)
     python analyses/calibration_study.py --quick         # 4 batches, a smoke run
     python analyses/calibration_study.py --jobs 1        # one batch at a time
+    python analyses/calibration_study.py --repopulate    # refit only the population stage
 
 Bench batches and runs are cached under ``--work`` (default
 ``runs/calibration_study``) and reused; results go to
@@ -66,7 +67,7 @@ def design(quick=False):
 
 
 def run_one(args):
-    name, n, seed, outlier, work = args
+    name, n, seed, outlier, work, repopulate = args
     warnings.simplefilter("ignore")
     work = Path(work)
     bdir = work / "batches" / name
@@ -75,6 +76,8 @@ def run_one(args):
                        progress=lambda m: None)
     rdir = work / "runs" / name
     t0 = time.perf_counter()
+    if repopulate and (rdir / "summary.json").exists():
+        (rdir / "summary.json").unlink()  # modules are reused; the population is refitted
     if (rdir / "summary.json").exists():
         summ = json.loads((rdir / "summary.json").read_text())
     else:
@@ -150,9 +153,11 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="4 batches only")
     ap.add_argument("--jobs", type=int, default=2, help="batches calibrated in parallel (default 2)")
     ap.add_argument("--work", type=Path, default=Path("runs/calibration_study"), help="cache folder")
+    ap.add_argument("--repopulate", action="store_true",
+                    help="refit the population stage of cached runs (module posteriors are reused)")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
-    jobs = [(*d, str(args.work)) for d in design(args.quick)]
+    jobs = [(*d, str(args.work), args.repopulate) for d in design(args.quick)]
     batches, records, times = [], [], []
     with ProcessPoolExecutor(max_workers=args.jobs) as ex:
         for name, summ, truth, dt in ex.map(run_one, jobs):

@@ -124,14 +124,10 @@ def brute_force(pop, m, C, mu, tau, logeps, log1m):
 
 
 @pytest.mark.parametrize("corr", [0.0, 0.5])
-@pytest.mark.parametrize("offset", [0.0, 5.0, 50.0])
+@pytest.mark.parametrize("offset", [0.0, 5.0, 50.0, "two"])
 def test_gaussian_terms_match_brute_force(corr, offset):
-    """One module, S0 0 / 5 / 50 spreads off: closed form == all 243 patterns.
-
-    Exact for diagonal C and for a module off in one parameter (any size);
-    here also with correlation 0.5 (the approximation only concerns modules
-    off in several parameters).
-    """
+    """One module, S0 0 / 5 / 50 spreads off, or S0 and S1 both 6 spreads off:
+    the compiled pattern sum == all 243 patterns by scipy."""
     pop = P._Population(DS)
     rng = np.random.default_rng(3)
     mu = np.array([0.0, 0.005, 0.0, 0.002, 0.0])
@@ -139,7 +135,10 @@ def test_gaussian_terms_match_brute_force(corr, offset):
     sd = np.array([0.001, 1e-4, 0.002, 1.2e-4, 0.006])
     C = (np.full((5, 5), corr) + (1 - corr) * np.eye(5)) * np.outer(sd, sd)
     m = mu + tau * rng.standard_normal(5)
-    m[2] += offset * tau[2]
+    if offset == "two":
+        m[2:4] += 6.0 * tau[2:4]
+    else:
+        m[2] += offset * tau[2]
     le, l1 = np.log(0.03), np.log(0.97)
     want = brute_force(pop, m, C, mu, tau, le, l1)
     ll, lmem = P._GaussianTerms(m[None], C[None])(pop, mu[None], tau[None], np.array([le]), np.array([l1]))
@@ -283,6 +282,21 @@ def test_importance_method_agrees_with_gaussian():
     for mid in g.module_ids:
         se = np.hypot(g.diagnostics["outlier_prob_mcse"][mid], i.diagnostics["outlier_prob_mcse"][mid])
         assert abs(g.outlier_prob[mid] - i.outlier_prob[mid]) < 4 * se + 0.03, mid
+
+
+def test_non_gaussian_posterior_falls_back_to_importance_sums():
+    """A bimodal module posterior (S0 at -3 % or +3 %): the 'auto' check sees
+    that the Gaussian approximation changes the result and re-runs with the
+    importance sums, which keep the two modes."""
+    draws, _, _ = make_batch(13, 3)
+    a = draws["U1"].copy()
+    a[: len(a) // 2, 2] *= 0.97
+    a[len(a) // 2:, 2] *= 1.03
+    draws["U1"] = a
+    with pytest.warns(UserWarning, match="re-running with importance sums"):
+        r = fit(draws, max_draws_per_module=80)
+    assert r.diagnostics["method"] == "importance"
+    assert not r.diagnostics["check"]["passed"]
 
 
 def test_result_contents(big_batch):

@@ -154,6 +154,8 @@ TAU_FACTOR, RHAT_MAX, ESS_MIN = 50.0, 1.01, 1000.0
 #: The "auto" check: minimum ESS fraction of reweighting the hyper draws from
 #: the Gaussian to the importance likelihood, maximum outlier_prob difference.
 CHECK_ESS_FRACTION, CHECK_OUTLIER_DIFF = 0.8, 0.03
+#: ... using only modules whose importance sums have at least this weight ESS.
+CHECK_MIN_ESS = 50.0
 #: Importance sums in the sampler use at most this many draws over all modules.
 IMPORTANCE_BUDGET = 20000
 
@@ -651,6 +653,9 @@ def _importance_chunk(x, lw0, start, mu, tau, lam, lw, gm, gs, out_ll, out_lmem,
         i = t % N
         for j in range(D):
             logtau[j] = math.log(tau[w, j])
+        # the three components' weights over their density's normalisation (linear space)
+        k0 = math.exp(lw[w, 0] - c0)
+        k1 = math.exp(lw[w, 1] - c0 - loglam)
         bm, am = -np.inf, 0.0  # streaming log-sum-exp: mixture
         bq, aq = -np.inf, 0.0  # member
         for k in range(start[i], start[i + 1]):
@@ -658,13 +663,17 @@ def _importance_chunk(x, lw0, start, mu, tau, lam, lw, gm, gs, out_ll, out_lmem,
             smem = lw0[k]
             for j in range(D):
                 z = (x[k, j] - mu[w, j]) / tau[w, j]
-                a = lw[w, 0] - 0.5 * z * z - logtau[j] - c0
-                zo = z / lam
-                b = lw[w, 1] - 0.5 * zo * zo - logtau[j] - loglam - c0
                 zg = (x[k, j] - gm[j]) / gs[j]
-                g = lw[w, 2] - 0.5 * zg * zg + lgross[j]
-                smix += _logaddexp(_logaddexp(a, b), g)
+                a = lw[w, 0] - 0.5 * z * z - logtau[j] - c0
                 smem += a
+                if z * z < 1400.0 and zg * zg < 1400.0:  # no underflow: one log for the three terms
+                    smix += math.log((k0 * math.exp(-0.5 * z * z) + k1 * math.exp(-0.5 * z * z / (lam * lam)))
+                                     / tau[w, j] + math.exp(lw[w, 2] - 0.5 * zg * zg + lgross[j]))
+                else:
+                    zo = z / lam
+                    b = lw[w, 1] - 0.5 * zo * zo - logtau[j] - loglam - c0
+                    g = lw[w, 2] - 0.5 * zg * zg + lgross[j]
+                    smix += _logaddexp(_logaddexp(a, b), g)
             if smix > bm:
                 am = am * math.exp(bm - smix) + 1.0 if bm > -np.inf else 1.0
                 bm = smix
@@ -1138,7 +1147,11 @@ def _compare(pop, gauss, xs, lws, kept, n_check=64, draws_per_module=1000):
     Importance sums over up to ``draws_per_module`` draws per module, with
     their Monte Carlo variance (``1/ESS - 1/M`` for the log of a
     self-normalised sum; the delta-method se for the membership ratio), so
-    that noise of the sums is not mistaken for an approximation error.
+    that noise of the sums is not mistaken for an approximation error.  A
+    module enters at a hyper draw only if its sum has an importance-weight
+    ESS >= :data:`CHECK_MIN_ESS` there: a population much narrower than the
+    module's posterior leaves few draws where it matters, and then the sum,
+    not the Gaussian, is the unreliable one.
 
     * ``reweight_ess_fraction``: ``exp(-v)``, v the variance over hyper draws
       of the summed log-likelihood difference minus the sums' own variance --
@@ -1153,31 +1166,41 @@ def _compare(pop, gauss, xs, lws, kept, n_check=64, draws_per_module=1000):
     mu, tau, _, logeps, log1m = pop.unpack(h)
     llg, lmg = gauss(pop, mu, tau, logeps, log1m)
     N = len(xs)
-    lli = np.empty_like(llg)
-    pmi = np.empty_like(llg)
-    noise = np.zeros(len(h))
-    se = np.empty(N)
+    dll = np.zeros_like(llg)
+    noise = np.zeros_like(llg)
+    pmg = np.exp(lmg)
+    pmi = pmg.copy()
+    se = np.zeros_like(llg)
+    usable = np.zeros(llg.shape, dtype=bool)
     for i in range(N):
         k = _thin_rows(len(xs[i]), draws_per_module)
         x, lw = xs[i][k], lws[i][k] - special.logsumexp(lws[i][k])
         lmix, lmem = pop.log_density(np.broadcast_to(x, (len(h),) + x.shape), mu, tau, logeps, log1m)
         a = lw + lmix  # (S, M)
-        lli[:, i] = special.logsumexp(a, axis=1)
-        wn = np.exp(a - lli[:, i:i + 1])  # normalised weights of the mixture sum
-        noise += np.maximum((wn ** 2).sum(axis=1) - 1.0 / len(k), 0.0)
+        lli = special.logsumexp(a, axis=1)
+        wn = np.exp(a - lli[:, None])  # normalised weights of the mixture sum
+        ess = 1.0 / (wn ** 2).sum(axis=1)
+        # where the population is much narrower than a module's posterior the
+        # draws do not cover it: the sums, not the Gaussian, are unreliable there
+        ok = ess >= CHECK_MIN_ESS
+        usable[:, i] = ok
+        dll[ok, i] = lli[ok] - llg[ok, i]
+        noise[ok, i] = 1.0 / ess[ok] - 1.0 / len(k)
         r = np.exp(lmem)  # P(member | x_m, alpha) per draw
-        pmi[:, i] = (wn * r).sum(axis=1)
+        p = (wn * r).sum(axis=1)
+        pmi[ok, i] = p[ok]
         # self-normalised IS: var(ratio) ~ sum wn^2 (r - ratio)^2
-        se[i] = np.sqrt((wn ** 2 * (r - pmi[:, i:i + 1]) ** 2).sum(axis=1)).mean()
-    d = (lli - llg).sum(axis=1)
-    excess = max(float(d.var() - noise.mean()), 0.0)
+        se[ok, i] = np.sqrt((wn ** 2 * (r - p[:, None]) ** 2).sum(axis=1))[ok]
+    d = dll.sum(axis=1)
+    excess = max(float(d.var() - noise.sum(axis=1).mean()), 0.0)
     ess_frac = math.exp(-excess)
-    diff = np.abs(np.exp(lmg).mean(axis=0) - pmi.mean(axis=0))
-    over = diff - 3.0 * se
+    diff = np.abs(pmg.mean(axis=0) - pmi.mean(axis=0))
+    over = diff - 3.0 * se.mean(axis=0)
     ok = ess_frac >= CHECK_ESS_FRACTION and np.all(over <= CHECK_OUTLIER_DIFF)
     return {"reweight_ess_fraction": ess_frac, "loglike_diff_var": float(d.var()),
-            "importance_noise_var": float(noise.mean()), "outlier_prob_diff_max": float(diff.max()),
-            "outlier_prob_diff_minus_3se_max": float(over.max()), "passed": bool(ok)}
+            "importance_noise_var": float(noise.sum(axis=1).mean()), "usable_fraction": float(usable.mean()),
+            "outlier_prob_diff_max": float(diff.max()), "outlier_prob_diff_minus_3se_max": float(over.max()),
+            "passed": bool(ok)}
 
 
 def fit_population(draws, datasheet, *, rng, log_interim_prior=None, max_steps=40000, max_seconds=None,
@@ -1353,8 +1376,9 @@ class _JointPosterior:
         W = len(v)
         h = self.hyper.natural(v[:, :_Population.ndim])
         z = v[:, _Population.ndim:].reshape(W, self.N, N_PARAMS)
-        mu, tau = h[:, None, :N_PARAMS], np.exp(h[:, None, N_PARAMS:2 * N_PARAMS])
-        x = np.where(self.nc, mu + tau * z, self.m + self.s * z)
+        with np.errstate(over="ignore", invalid="ignore"):  # far proposals are refused by the prior box
+            mu, tau = h[:, None, :N_PARAMS], np.exp(h[:, None, N_PARAMS:2 * N_PARAMS])
+            x = np.where(self.nc, mu + tau * z, self.m + self.s * z)
         return h, x
 
     def join(self, h, x):
@@ -1373,6 +1397,10 @@ class _JointPosterior:
             return out
         h, x, lp = h[ok], x[ok], lp[ok]
         mu, tau, _, logeps, log1m = self.pop.unpack(h)
+        if not np.all(np.isfinite(x)):
+            bad = ~np.isfinite(x).all(axis=(1, 2))
+            lp[bad] = -np.inf
+            x[bad] = self.m
         lmix, _ = self.pop.log_density(x, mu, tau, logeps, log1m)
         # non-centred coordinates: the Jacobian dx/deta = tau cancels the density's 1/tau
         lmix = lmix + (np.log(tau)[:, None, :] * self.nc).sum(axis=2)

@@ -383,7 +383,7 @@ def _integrate_one(
     stats[1] = nrej
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True)
 def integrate(t, i_meas, tw, ta, A, Bb, Cinv, tem, P, rec, Y0, steady_start, atol, hmax):
     """Simulate ``nd`` parameter draws of one experiment.
 
@@ -426,17 +426,10 @@ def integrate(t, i_meas, tw, ta, A, Bb, Cinv, tem, P, rec, Y0, steady_start, ato
     """
     nd = P.shape[0]
     nt = t.shape[0]
-    nr = rec.shape[0]
-    out = np.empty((nd, nt, nr))
-    volt = np.empty((nd, nt))
-    stats = np.zeros((nd, 4))
-    for d in prange(nd):
-        y = Y0[d].copy()
-        _integrate_one(
-            t, i_meas, tw, ta, A[d], Bb[d], Cinv[d], tem, P[d], rec, y, steady_start, atol, hmax,
-            out[d], volt[d], stats[d],
-        )
-    return out, volt, stats
+    # one grid for every draw: stride-0 views, no copies
+    T = np.broadcast_to(t, (nd, nt))
+    return integrate_grids(T, np.broadcast_to(i_meas, (nd, nt)), np.broadcast_to(tw, (nd, nt)),
+                           np.broadcast_to(ta, (nd, nt)), A, Bb, Cinv, tem, P, rec, Y0, steady_start, atol, hmax)
 
 
 @njit(cache=True, parallel=True)
