@@ -74,14 +74,37 @@ numbers):
 
 What a batch can say
 --------------------
+``outlier_prob`` is a posterior probability under this model, so it is only
+as sharp as the evidence.  A unit 4 spreads off in one parameter is not, on
+its own, strong evidence against "the spread is larger than typical" when the
+spread has to be learned from the same few units, and the model does not know
+by how much an outlier is off.  Measured on the study of
+``analyses/population_checks.py`` (200 batches of 3 and 8 modules, half with
+an outlier 3-5 spreads off, or S0 +-4 %):
+
+* default priors: the brief's targets are not met for 3 modules (no outlier
+  gets > 0.5; from three units alone the spreads are the prior's) and met for
+  a minority of 8-module batches; batches without an outlier rarely flag
+  anybody (> 0.3 in 0 % of 3-module and ~8 % of 8-module batches);
+* with the spreads known from an earlier batch of the type
+  (``spread_prior=earlier.spread_prior(widen=1.5)``) the outlier is ranked
+  top in 72-92 % of batches, and clear deviations (~10 spreads, tests) meet
+  the targets;
+* the Bayes-optimal classifier that knows the true population *and* the
+  outlier mechanism meets them in 64-100 % of batches -- the ceiling for any
+  method on that design.
+
 With two modules the spreads are essentially the hyperprior's and the two
-units are exchangeable: each gets about the same ``outlier_prob`` (both well
-below the targets' thresholds unless they differ grossly), and the predictive
-is wide.  With three modules a unit is flagged only when the spreads are known
-from elsewhere (``spread_prior``): from three units alone a 4-spread deviation
-in one parameter is not distinguishable from a larger spread (see
-``analyses/population_checks.py`` for the measured rates and the Bayes-optimal
-bound).
+units are exchangeable: each gets about the same ``outlier_prob`` (low unless
+they differ grossly), and the predictive is wide.
+
+Importance sums vs Gaussian approximation: where a parameter's population
+spread is smaller than a module's posterior sd (typically S1), few posterior
+draws fall where the population density is, and the importance weights of a
+few hundred thinned draws have an effective sample size of only ~5-40
+(``diagnostics["weight_ess"]``): importance sums are noisy there, while the
+Gaussian approximation of the (near-Gaussian) module posteriors is exact in
+that limit.  Hence the default below.
 
 Computation
 -----------
@@ -96,14 +119,27 @@ Computation
   exact for uncorrelated module posteriors.  Checked against all 243
   patterns: < 1e-3 nat per module (tests).  About 1 us per module and walker,
   so it scales to hundreds of modules.
-* ``method="importance"``: the importance sums over (thinned) draws; exact for
-  any posterior shape, cost proportional to modules x draws.
+* ``method="importance"``: the importance sums over (evenly thinned) draws;
+  consistent for any posterior shape, cost proportional to modules x draws
+  (8 modules x 256 draws: ~10x the Gaussian method).
 * ``method="auto"`` (default): Gaussian, then checked against the importance
   sums at hyperparameter draws; if they disagree (log-likelihood differences
   that would reweight the hyper draws to < 80 % effective sample size, or any
   ``outlier_prob`` differing by more than 0.03 plus three Monte Carlo
-  standard errors of the sums) the run is repeated with importance sums
-  (warned).
+  standard errors of the sums; modules whose sums have a weight ESS < 50 at
+  a hyper draw are left out there, see above) the run is repeated with
+  importance sums (warned).
+
+Outputs
+-------
+``outlier_prob[i]`` is Rao-Blackwellised: ``1 - mean`` over hyper draws of
+``P(module i a member in all five parameters | its data, alpha)``, which the
+likelihood terms give in closed form (importance sums for that method), with
+a Monte Carlo se from the arviz ESS of those per-draw values.  The
+predictive describes a new module of the type that is a *member*:
+``x ~ N(mu, tau^2)`` per hyper draw, back in SI (``predictive``, what
+``summary()`` reports as the contract's ``population``); a new unit drawn
+from the whole mixture, outliers included, is ``predictive_with_outliers``.
 
 Sampling: emcee with differential-evolution moves (the posterior of a small
 batch can be bimodal: "tight spread plus one outlier" vs "wider spread"),
@@ -160,8 +196,10 @@ CHECK_MIN_ESS = 50.0
 IMPORTANCE_BUDGET = 20000
 
 _LOG2PI = math.log(2.0 * math.pi)
-#: Module x walker evaluations below which the compiled terms run on one thread.
-PARALLEL_MIN = 4096
+#: Module x walker evaluations below which the compiled terms run on one
+#: thread (on the 2-vCPU development machine threads did not pay off even for
+#: 500 modules x 16 walkers).
+PARALLEL_MIN = 65536
 
 
 class PopulationConvergenceWarning(UserWarning):
@@ -214,8 +252,9 @@ class PopulationResult:
         ``weight_ess`` (module -> importance-weight ESS at the posterior-median
         hyperparameters), ``weight_ess_min``, ``interim_weight_ess_min``,
         ``outlier_prob_mcse`` (module -> Monte Carlo se), ``method``,
-        ``check`` (Gaussian vs importance, if run), ``emcee_seed``,
-        ``elapsed_s``.
+        ``check`` (Gaussian vs importance, if run), ``emcee_seed`` (the
+        RandomState seed drawn from the caller's Generator), ``versions``,
+        ``targets`` (the convergence targets used), ``elapsed_s``.
     """
 
     module_ids: tuple
@@ -743,7 +782,7 @@ class _ImportanceTerms:
         lmem = np.empty((W, self.n))
         args = (self.x, self.lw0, self.start, np.ascontiguousarray(mu), np.ascontiguousarray(tau), pop.lam,
                 pop.component_log_weights(logeps, log1m), pop.gross_mean, pop.gross_sd, ll, lmem)
-        if len(self.x) * W < 64 * PARALLEL_MIN:
+        if len(self.x) * W < 16 * PARALLEL_MIN:
             _importance_terms_serial(*args)
         else:
             _importance_terms_parallel(*args, 4 * numba.get_num_threads())
@@ -926,6 +965,11 @@ def _emcee_seed(rng):
     return int(rng.integers(0, 2 ** 32 - 1))
 
 
+def _versions():
+    return {"numpy": np.__version__, "emcee": emcee.__version__, "arviz": _arviz().__version__,
+            "numba": numba.__version__}
+
+
 def _arviz():
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", FutureWarning)
@@ -951,7 +995,7 @@ def _targets(convergence):
     return t
 
 
-def _run_emcee(log_prob, p0, seed, *, max_steps, max_seconds, progress, label, convergence=None):
+def _run_emcee(log_prob, p0, seed, *, max_steps, max_seconds, progress, label, convergence=None, stacklevel=3):
     """Run emcee until converged or out of budget.
 
     Convergence, checked between chunks on the last three quarters of the run
@@ -1003,7 +1047,7 @@ def _run_emcee(log_prob, p0, seed, *, max_steps, max_seconds, progress, label, c
     if not converged:
         warnings.warn(f"{label}: not converged within the budget ({n} steps, tau_max {tau_max:.0f}, "
                       f"R-hat {rhat_max:.3f}, bulk ESS {ess_min:.0f}); raise max_steps/max_seconds",
-                      PopulationConvergenceWarning, stacklevel=3)
+                      PopulationConvergenceWarning, stacklevel=stacklevel)
     return keep, diag
 
 
@@ -1279,7 +1323,7 @@ def fit_population(draws, datasheet, *, rng, log_interim_prior=None, max_steps=4
         post = _HyperPosterior(pop, terms, m, C)
         p0 = _start_hyper(post, m, C, rng, nwalkers)
         kept, diag = _run_emcee(post, p0, seed, max_steps=max_steps, max_seconds=max_seconds,
-                                progress=progress, label=label, convergence=convergence)
+                                progress=progress, label=label, convergence=convergence, stacklevel=4)
         return post.natural(kept), diag
 
     check = None
@@ -1307,7 +1351,7 @@ def fit_population(draws, datasheet, *, rng, log_interim_prior=None, max_steps=4
                  "weight_ess_min": float(wess.min()),
                  "interim_weight_ess_min": float(interim_ess.min()),
                  "draws_per_module_importance": int(max(imp.draws_per_module)),
-                 "elapsed_s": float(time.perf_counter() - t0)})
+                 "versions": _versions(), "elapsed_s": float(time.perf_counter() - t0)})
     return _assemble(pop, ids, kept, p_out, mcse, rng, n_predictive, diag)
 
 
@@ -1492,5 +1536,5 @@ def joint_fit(loglikes, datasheet, *, rng, max_steps=200000, max_seconds=None, p
     _, lmem = pop.log_density(xs, mu, tau, logeps, log1m)
     p_out, mcse = _rao_blackwell(np.exp(lmem).reshape(len(idx), W, -1))
     diag.update({"method": "joint", "noncentred": {p: bool(b) for p, b in zip(MODULE_PARAMETERS, noncentred)},
-                 "elapsed_s": float(time.perf_counter() - t0)})
+                 "versions": _versions(), "elapsed_s": float(time.perf_counter() - t0)})
     return _assemble(pop, ids, h_nat, p_out, mcse, rng, n_predictive, diag)
