@@ -158,17 +158,62 @@ def test_sampler_is_reproducible_and_resumes_bit_identically(tmp_path):
     p0 = np.random.default_rng(0).normal(size=(8, p))
     kw = dict(seed=11, monitor=range(p), thin_by=2, check_every=40)
     with pytest.warns(RuntimeWarning):
-        a = smp.sample(log_prob, p0, max_steps=160, backend=tmp_path / "a.h5", **kw)
+        a = smp.sample(log_prob, p0, max_steps=160, checkpoint=tmp_path / "a", **kw)
     with pytest.warns(RuntimeWarning):
         b = smp.sample(log_prob, p0, max_steps=160, **kw)
     assert np.array_equal(a.chain, b.chain)
     # an interrupted run (80 steps) continued to 160 equals the straight run
     with pytest.warns(RuntimeWarning):
-        smp.sample(log_prob, p0, max_steps=80, backend=tmp_path / "c.h5", **kw)
+        smp.sample(log_prob, p0, max_steps=80, checkpoint=tmp_path / "c", **kw)
+    # a kill inside a write leaves only a temporary file, which resume ignores
+    (tmp_path / "c.00002.npz.tmp999").write_bytes(b"half a chunk")
     with pytest.warns(RuntimeWarning):
-        c = smp.sample(log_prob, p0, max_steps=160, backend=tmp_path / "c.h5", resume=True, **kw)
+        c = smp.sample(log_prob, p0, max_steps=160, checkpoint=tmp_path / "c", resume=True, **kw)
     assert c.resumed
-    assert np.array_equal(a.chain, c.chain)
+    assert np.array_equal(a.chain, c.chain) and np.array_equal(a.log_prob, c.log_prob)
+    assert np.array_equal(a.acceptance, c.acceptance)
+    # resuming a converged run (killed after its last check, during the
+    # caller's post-processing) returns it unchanged, without more steps
+    p0w = np.random.default_rng(1).normal(size=(16, p))
+    kw2 = dict(seed=5, monitor=range(p), thin_by=1, check_every=200, max_steps=100000)
+    f = smp.sample(log_prob, p0w, checkpoint=tmp_path / "f", **kw2)
+    assert f.converged
+    g = smp.sample(log_prob, p0w, checkpoint=tmp_path / "f", resume=True, **kw2)
+    assert g.resumed and g.steps == f.steps and np.array_equal(f.chain, g.chain)
+    # a checkpoint of another shape is refused with what to do
+    with pytest.raises(ValueError, match="delete the run's checkpoints"):
+        smp.sample(log_prob, p0[:, :2], max_steps=160, checkpoint=tmp_path / "c", resume=True, **kw)
     with pytest.warns(RuntimeWarning):
         d = smp.sample(log_prob, p0, max_steps=160, **{**kw, "seed": 12})
     assert not np.array_equal(a.chain, d.chain)
+
+
+def test_step_response_model_reads_no_unset_memory():
+    """Every grid point is set before the boundaries are read there.
+
+    Regression: the step-pair points of the base grid were left as
+    ``np.empty`` garbage, so the water and ambient temperatures read at them
+    (and the whole simulation) depended on the heap's history: a run could
+    differ from the same run in another process, or after a resume.  Freeing
+    a NaN-filled block of the grid's size right before the model is built
+    makes the allocator hand that block back: NaNs would show.
+    """
+    from tembayes.calibrate.model import StepResponseModel
+    from tembayes.calibrate.module import CalibrationOptions, calibration_rig
+    from tembayes.calibrate.stepdata import step_data
+    from tembayes.data import load_batch
+
+    from pathlib import Path
+
+    batch = load_batch(Path(__file__).resolve().parents[1] / "data" / "example")
+    data = step_data(batch.modules["TEM1"].identification)
+    rig = calibration_rig(batch.rig_config, CalibrationOptions())
+    first = StepResponseModel(data, rig)
+    n = first._base_grid.shape[0]
+    for _ in range(3):
+        junk = np.full(n, np.nan)
+        del junk
+        again = StepResponseModel(data, rig)
+        for name in ("_base_grid", "_tw", "_ta", "_current"):
+            assert np.all(np.isfinite(getattr(again, name))), name
+            assert np.array_equal(getattr(again, name), getattr(first, name)), name

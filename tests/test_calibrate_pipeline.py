@@ -111,8 +111,6 @@ def test_contract_outputs(run3):
     assert "corner_TEM1.png" in figs and "corner_population.png" in figs
 
 
-@pytest.mark.xfail(strict=False, reason="issue 4 open: the first calibration in a process can differ in the last bits "
-                                       "from later ones (separate processes resume bit-identically); under study")
 def test_same_seed_same_module_result(run3, batch3, tmp_path):
     out, summ, truth = run3
     from tembayes.calibrate.module import calibrate_module
@@ -122,8 +120,9 @@ def test_same_seed_same_module_result(run3, batch3, tmp_path):
     first = res.read_module(out / "modules" / "TEM3.nc")
     for k in MODULE_PARAMETERS:
         assert np.array_equal(again.draws[k], first.draws[k])
-    other = calibrate_module(b.modules["TEM3"], b.datasheet, rig_config=b.rig_config, seed=1,
-                             options=CalibrationOptions(max_steps=3000))
+    with pytest.warns(RuntimeWarning, match="not converged"):
+        other = calibrate_module(b.modules["TEM3"], b.datasheet, rig_config=b.rig_config, seed=1,
+                                 options=CalibrationOptions(max_steps=3000))
     assert not np.array_equal(other.draws["R0_ohm"][:, :10], first.draws["R0_ohm"][:, :10])
 
 
@@ -148,31 +147,38 @@ def _cli(*args, **kw):
                             stderr=subprocess.PIPE, text=True, **kw)
 
 
-def test_resume_after_kill_9_gives_the_uninterrupted_result(batch1, tmp_path):
+def test_resume_after_kill_9_continues_the_stored_chain(batch1, tmp_path):
     straight = tmp_path / "a"
     p = _cli("calibrate", str(batch1), "--out", str(straight), "--seed", "4", "--quiet", "--no-figures")
     out, err = p.communicate(timeout=600)
     assert p.returncode == 0, err
+    a = res.read_module(straight / "modules" / "TEM1.nc")
     killed = tmp_path / "b"
     p = _cli("calibrate", str(batch1), "--out", str(killed), "--seed", "4", "--quiet", "--no-figures")
-    ck = killed / "checkpoints" / "TEM1.stage1.h5"
+    ck = killed / "checkpoints"
     t0 = time.time()
-    while not ck.exists() and time.time() - t0 < 300:
-        time.sleep(0.2)
-    time.sleep(3.0)  # into the main run
+    while not (ck / "TEM1.stage1.00001.npz").exists() and time.time() - t0 < 300:
+        time.sleep(0.1)
+    time.sleep(0.7)  # inside the next check interval
     p.send_signal(signal.SIGKILL)
-    p.wait()
+    p.communicate()
     assert not (killed / "summary.json").exists()
-    import emcee
+    # only whole chunks: every stored one is readable and continues the last
+    stored = {f.name: f.read_bytes() for f in ck.glob("TEM1.stage1.*.npz")}
+    assert len(stored) >= 2
+    from tembayes.calibrate.sampler import ChunkCheckpoint
 
-    stored = emcee.backends.HDFBackend(str(ck), read_only=True).iteration
-    assert stored > 0
+    assert ChunkCheckpoint(ck / "TEM1.stage1").load(a.diagnostics["nwalkers"], len(a.names)).iteration == 100 * len(stored)
     p = _cli("calibrate", str(batch1), "--out", str(killed), "--seed", "4", "--quiet", "--no-figures", "--resume")
     out, err = p.communicate(timeout=600)
     assert p.returncode == 0, err
-    a = res.read_module(straight / "modules" / "TEM1.nc")
     b = res.read_module(killed / "modules" / "TEM1.nc")
-    assert b.diagnostics["resumed"]
+    assert b.diagnostics["resumed"] and b.diagnostics["converged"]
+    # the resumed run continued from the stored iterations (nothing redone,
+    # nothing rewritten): at most one check interval (1000 steps) was lost
+    assert all((ck / name).read_bytes() == data for name, data in stored.items())
+    assert len(list(ck.glob("TEM1.stage1.*.npz"))) > len(stored)
+    # and it ends exactly where the uninterrupted run does
     for k in a.names:
         assert np.array_equal(a.draws[k], b.draws[k]), k
     sa = json.loads((straight / "summary.json").read_text())

@@ -83,6 +83,10 @@ class StepResponseModel:
         is_step[pos_step + 1] = True
         grid = np.empty(n)
         grid[~is_step] = base
+        # the step pairs at their nominal instants (each draw shifts them in
+        # grid()); the boundaries below are read there, so never leave them unset
+        grid[pos_step] = data.step_time
+        grid[pos_step + 1] = data.step_time + RAMP
         kinds = np.full(n, 3)
         kinds[~is_step] = kind
         self._n = n

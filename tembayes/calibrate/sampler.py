@@ -1,4 +1,4 @@
-"""emcee until converged, with an HDF checkpoint that survives ``kill -9``.
+"""emcee until converged, with a chunked checkpoint that survives ``kill -9``.
 
 The moves are differential evolution (80 %) and DE snooker (20 %): on the
 correlated ~20-dimensional posteriors here their autocorrelation time is
@@ -8,7 +8,10 @@ every ``check_every`` stored iterations at *fixed* iteration counts (so a resume
 an uninterrupted one would):
 
 - the chain after burn-in is at least ``min_tau_multiple`` (50) integrated
-  autocorrelation times long, for every coordinate;
+  autocorrelation times long, for every monitored parameter (the five module
+  parameters; a weakly identified nuisance pair such as the bottom leak and
+  its tab share can mix several times slower without biasing them -- their
+  own autocorrelation times include that coupling);
 - rank-normalised split R-hat <= 1.01 and bulk ESS >= 1000 for every
   monitored parameter (the five module parameters), computed by arviz with
   the walkers as chains.  Ensemble walkers are not independent chains, so
@@ -17,17 +20,22 @@ an uninterrupted one would):
 A budget (``max_steps``) ends a run that does not converge, with a warning
 and ``converged = False``.
 
-Every stored iteration is written to an :class:`emcee.backends.HDFBackend`
-(``thin_by`` steps per stored iteration, so the file is written every
-``thin_by`` steps, not every step): a killed run loses at most ``thin_by``
-steps and ``resume=True`` continues from the stored walkers and random
-state, bit-identically.  Seeding follows ``shared/notes/api-notes.md``: the
-sampler's private ``RandomState`` is set from the run's seed, never from the
-global one.
+The chain is checkpointed at every convergence check (``check_every``
+stored iterations, about a second of sampling): the new iterations, the
+acceptance counts and the random state go to a new chunk file
+``<checkpoint>.<k>.npz``, written to a temporary name and renamed into place.
+A ``kill -9`` therefore leaves only whole chunks; ``resume=True`` rebuilds the
+run from them and continues bit-identically, losing at most one check
+interval.  (emcee's ``HDFBackend`` is not safe for this: it writes the random
+state before the iteration counter, so a kill inside a write resumes with a
+random state one stored iteration ahead of the chain.)  Seeding follows
+``shared/notes/api-notes.md``: the sampler's private ``RandomState`` is set
+from the run's seed, never from the global one.
 """
 
 from __future__ import annotations
 
+import glob
 import os
 import warnings
 from dataclasses import dataclass
@@ -81,6 +89,80 @@ class SamplerRun:
     resumed: bool
 
 
+class ChunkCheckpoint:
+    """Crash-safe checkpoint of an emcee run as a sequence of chunk files.
+
+    Parameters
+    ----------
+    prefix : str or Path
+        Files are ``<prefix>.<k>.npz``, ``k = 0, 1, ...``.
+    """
+
+    def __init__(self, prefix):
+        self.prefix = os.fspath(prefix)
+
+    def _path(self, k):
+        return f"{self.prefix}.{k:05d}.npz"
+
+    def chunks(self):
+        """Paths of the stored chunks, in order (stops at the first gap)."""
+        out = []
+        while os.path.exists(self._path(len(out))):
+            out.append(self._path(len(out)))
+        return out
+
+    def clear(self):
+        """Remove every chunk (and stale temporary files) of this prefix."""
+        for f in glob.glob(glob.escape(self.prefix) + ".*.npz*"):
+            os.remove(f)
+
+    def save(self, backend, start):
+        """Write stored iterations ``start:`` of ``backend`` as the next chunk."""
+        k = len(self.chunks())
+        st = backend.random_state
+        tmp = f"{self._path(k)}.tmp{os.getpid()}"
+        with open(tmp, "wb") as f:
+            np.savez(f, start=start, chain=backend.chain[start:backend.iteration],
+                     log_prob=backend.log_prob[start:backend.iteration], accepted=backend.accepted,
+                     rs_keys=st[1], rs_pos=st[2], rs_has_gauss=st[3], rs_gauss=st[4])
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, self._path(k))
+
+    def load(self, nwalkers, ndim):
+        """An in-memory :class:`emcee.backends.Backend` holding the stored
+        run, or None if there is none.
+
+        Raises
+        ------
+        ValueError
+            If the chunks do not fit ``(nwalkers, ndim)`` or each other.
+        """
+        files = self.chunks()
+        if not files:
+            return None
+        chains, lps, n = [], [], 0
+        for path in files:
+            with np.load(path) as z:
+                if int(z["start"]) != n or z["chain"].shape[1:] != (nwalkers, ndim):
+                    raise ValueError(f"checkpoint {path} does not continue the run "
+                                     f"(start {int(z['start'])}, shape {z['chain'].shape[1:]}; expected {n}, "
+                                     f"{(nwalkers, ndim)}); delete the run's checkpoints/ folder to start afresh")
+                chains.append(z["chain"])
+                lps.append(z["log_prob"])
+                n += len(z["chain"])
+                accepted = z["accepted"].copy()
+                state = ("MT19937", z["rs_keys"].copy(), int(z["rs_pos"]), int(z["rs_has_gauss"]), float(z["rs_gauss"]))
+        be = emcee.backends.Backend()
+        be.reset(nwalkers, ndim)
+        be.chain = np.concatenate(chains)
+        be.log_prob = np.concatenate(lps)
+        be.accepted = accepted
+        be.iteration = n
+        be.random_state = state
+        return be
+
+
 def random_state(seed):
     """A legacy ``RandomState`` state tuple for emcee from an integer seed."""
     return np.random.RandomState(int(seed) % (2 ** 32)).get_state()
@@ -109,7 +191,7 @@ def _burn(n):
     return n // 5
 
 
-def sample(log_prob, p0, *, seed, monitor, backend=None, resume=False, thin_by=10, check_every=100,
+def sample(log_prob, p0, *, seed, monitor, checkpoint=None, resume=False, thin_by=10, check_every=100,
            max_steps=60000, progress=False, label=""):
     """Run emcee until the convergence targets are met or the budget runs out.
 
@@ -123,13 +205,14 @@ def sample(log_prob, p0, *, seed, monitor, backend=None, resume=False, thin_by=1
         Seed of the sampler's random state.
     monitor : sequence of int
         Coordinates that must reach the R-hat and ESS targets.
-    backend : str or Path, optional
-        HDF5 checkpoint file (one per module); in memory if None.
+    checkpoint : str or Path, optional
+        Prefix of the checkpoint chunk files (see :class:`ChunkCheckpoint`);
+        none if None.
     resume : bool
-        Continue the run stored in ``backend`` (its walkers and random
+        Continue the run stored under ``checkpoint`` (its walkers and random
         state); start afresh if it holds none.
     thin_by : int
-        Steps per stored iteration (and per checkpoint write).
+        Steps per stored iteration.
     check_every : int
         Stored iterations between convergence checks.
     max_steps : int
@@ -147,15 +230,15 @@ def sample(log_prob, p0, *, seed, monitor, backend=None, resume=False, thin_by=1
     nw, p = p0.shape
     de = [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)]
     resumed = False
-    if backend is not None:
-        be = emcee.backends.HDFBackend(os.fspath(backend))
-        if resume and os.path.exists(backend) and be.initialized and be.iteration > 0:
-            if be.shape != (nw, p):
-                raise ValueError(f"checkpoint {backend} holds {be.shape} walkers x parameters, expected {(nw, p)}")
-            resumed = True
+    ckpt = None if checkpoint is None else ChunkCheckpoint(checkpoint)
+    be = None
+    if ckpt is not None:
+        if resume:
+            be = ckpt.load(nw, p)
+            resumed = be is not None
         else:
-            be.reset(nw, p)
-    else:
+            ckpt.clear()
+    if be is None:
         be = emcee.backends.Backend()
     max_iter = max(check_every, max_steps // thin_by)
     kw = dict(thin_by=thin_by, progress=progress, progress_kwargs={"desc": label or "sampling", "leave": False})
@@ -172,20 +255,26 @@ def sample(log_prob, p0, *, seed, monitor, backend=None, resume=False, thin_by=1
         sampler.random_state = random_state(seed)
     converged = False
     while True:
+        # check first: a resumed run may have stopped after its last check
+        # (killed during the caller's post-processing) and must not grow
+        if sampler.iteration > 0:
+            chain = sampler.get_chain()
+            b = _burn(len(chain))
+            post = chain[b:]
+            tau = thin_by * emcee.autocorr.integrated_time(post, c=5, tol=0, quiet=True)
+            rhat, ess_b, ess_t = diagnostics(post, monitor)
+            mon = list(monitor)
+            # the run length serves the monitored (law) parameters; a weakly
+            # identified nuisance ridge may mix slower without biasing them
+            long_enough = thin_by * len(post) >= MIN_TAU_MULTIPLE * np.max(tau[mon])
+            converged = bool(long_enough and np.all(rhat[mon] <= RHAT_MAX) and np.all(ess_b[mon] >= ESS_MIN))
+            if converged or sampler.iteration >= max_iter:
+                break
         done = sampler.iteration
         target = min(max_iter, (done // check_every + 1) * check_every)
-        if target > done:
-            run(sampler, target - done)
-        chain = sampler.get_chain()
-        b = _burn(len(chain))
-        post = chain[b:]
-        tau = thin_by * emcee.autocorr.integrated_time(post, c=5, tol=0, quiet=True)
-        rhat, ess_b, ess_t = diagnostics(post, monitor)
-        long_enough = thin_by * len(post) >= MIN_TAU_MULTIPLE * np.max(tau)
-        mon = list(monitor)
-        converged = bool(long_enough and np.all(rhat[mon] <= RHAT_MAX) and np.all(ess_b[mon] >= ESS_MIN))
-        if converged or sampler.iteration >= max_iter:
-            break
+        run(sampler, target - done)
+        if ckpt is not None:
+            ckpt.save(be, done)
     if not converged:
         warnings.warn(
             f"{label or 'sampler'}: not converged within {max_steps} steps "
