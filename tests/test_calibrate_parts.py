@@ -217,3 +217,33 @@ def test_step_response_model_reads_no_unset_memory():
         for name in ("_base_grid", "_tw", "_ta", "_current"):
             assert np.all(np.isfinite(getattr(again, name))), name
             assert np.array_equal(getattr(again, name), getattr(first, name)), name
+
+
+def test_a_wild_parameter_draw_fails_fast_instead_of_hanging():
+    """A draw far outside the priors (S1 = 0.01 V/K^2, a hundred times a real one) made
+    the adaptive integrator crawl for 29 million steps; now it gives up at
+    its step budget: NaN with ``strict=False``, a ModelError otherwise."""
+    from pathlib import Path
+
+    from tembayes.calibrate.model import SHIFT, StepResponseModel
+    from tembayes.calibrate.module import CalibrationOptions, calibration_rig, parameter_space
+    from tembayes.calibrate.stepdata import step_data
+    from tembayes.data import load_batch
+    from tembayes.errors import ModelError
+    from tembayes.physics import kernel as K
+
+    batch = load_batch(Path(__file__).resolve().parents[1] / "data" / "example")
+    data = step_data(batch.modules["TEM1"].identification)
+    rig = calibration_rig(batch.rig_config, CalibrationOptions())
+    model = StepResponseModel(data, rig)
+    ms, _ = parameter_space(rig, batch.datasheet, data, model.shift_bound)
+    x = np.array([pr.to_unconstrained(pr.center) for pr in ms.priors]) + 0.01
+    x[ms.index(SHIFT)] = 0.01
+    X = np.stack([np.array([pr.to_unconstrained(pr.center) for pr in ms.priors]), x])
+    X[0, ms.index(SHIFT)] = 0.0
+    sim = model.simulate(ms.params(X), strict=False)
+    n = model._base_grid.shape[0] + 2 * data.n_steps
+    assert np.isfinite(sim["voltage"][0]).all() and np.isnan(sim["voltage"][1]).any()
+    assert sim["steps"][1] <= K.MAX_STEPS_PER_POINT * n + K.MIN_STEP_BUDGET + 1
+    with pytest.raises(ModelError, match="step budget"):
+        model.simulate(ms.params(X))

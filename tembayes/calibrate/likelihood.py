@@ -155,7 +155,8 @@ class StepLikelihood:
         """Model channels ``(nw, 3, n)`` for coordinate vectors ``X``."""
         if hasattr(self.model, "x0"):
             return self.model.predict(X[:, self._mi])
-        return self.model.predict(self.space.params(X, self.model_names))
+        # a draw whose simulation fails is NaN here and impossible below
+        return self.model.predict(self.space.params(X, self.model_names), strict=False)
 
     def pointwise(self, X, Y=None):
         """Log-likelihood of every step window, ``(nw, ns)``.
@@ -170,7 +171,9 @@ class StepLikelihood:
         if Y is None:
             Y = self.predict(X)
         R = self.data.obs[None] - Y
-        return window_loglike(R, self.starts, sigma, beta)
+        ll = window_loglike(R, self.starts, sigma, beta)
+        ll[np.isnan(ll)] = -np.inf
+        return ll
 
     def log_likelihood_x(self, X):
         """Total log-likelihood ``(nw,)`` of coordinate vectors ``(nw, p)``."""

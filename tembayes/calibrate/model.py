@@ -112,7 +112,7 @@ class StepResponseModel:
         G[:, self._pos_step + 1] = G[:, self._pos_step] + RAMP
         return G
 
-    def simulate(self, params):
+    def simulate(self, params, strict=True):
         """Simulate the run for a parameter mapping (arrays of shape ``(nd,)``).
 
         ``params`` needs the five module parameters and :data:`SHIFT`; rig
@@ -144,8 +144,12 @@ class StepResponseModel:
         Y0 = np.full((nd, len(names)), self._tw[0])
         out, volt, stats = K.integrate_grids(G, Ic, TW, TA, m["A"], m["Bb"], m["Cinv"], m["tem"], m["P"], rec, Y0,
                                              True, self.atol, self.hmax)
-        if np.any(stats[:, 3]) or not np.all(np.isfinite(volt)):
-            raise ModelError("the step-response simulation failed (no steady start or non-finite values)")
+        failed = (stats[:, 3] != 0) | ~np.all(np.isfinite(volt), axis=1)
+        if strict and np.any(failed):
+            raise ModelError("the step-response simulation failed (no steady start, step budget exceeded or "
+                             "non-finite values)")
+        out[failed] = np.nan
+        volt[failed] = np.nan
         sensors = np.ascontiguousarray(out[:, :, :2].transpose(0, 2, 1))
         if any(e.stage == "sensors" and any(np.any(m["params"].get(p.name, 0.0) != 0) for p in e.parameters)
                for e in effects.CATALOGUE.values()):
@@ -154,9 +158,13 @@ class StepResponseModel:
         return dict(sensors=sensors[:, :, o], voltage=volt[:, o], t_hot=out[:, o, 2], t_cold=out[:, o, 3],
                     steps=stats[:, 0])
 
-    def predict(self, params):
-        """Predicted channels ``(nd, 3, n_obs)``: voltage [V], dT [K], Tmean [K]."""
-        s = self.simulate(params)
+    def predict(self, params, strict=True):
+        """Predicted channels ``(nd, 3, n_obs)``: voltage [V], dT [K], Tmean [K].
+
+        With ``strict=False`` a draw whose simulation fails comes back as NaN
+        instead of raising :class:`~tembayes.errors.ModelError`.
+        """
+        s = self.simulate(params, strict=strict)
         T2, T3 = s["sensors"][:, 0], s["sensors"][:, 1]
         return np.stack([s["voltage"], T2 - T3, 0.5 * (T2 + T3)], axis=1)
 

@@ -232,8 +232,11 @@ def fit_map(model, space, data, x0, *, max_nfev=60):
     noise = data.noise[None, :, None]
 
     def resid(X):
-        Y = model.predict(space.params(X))
+        Y = model.predict(space.params(X), strict=False)
         r = ((data.obs[None] - Y) / noise).reshape(len(X), -1)
+        # a trial point whose simulation fails (the optimiser probing far
+        # out) gets a large finite misfit, so the trust region shrinks
+        r[~np.all(np.isfinite(r), axis=1)] = 1e3
         return np.hstack([r, _prior_residuals(space, X)])
 
     def jac(x):

@@ -43,6 +43,13 @@ _SQRT2 = np.sqrt(2.0)
 _D = 1.0 / (2.0 + _SQRT2)
 _E32 = 6.0 + _SQRT2
 _HC = 1e-20  # complex-step size: derivative exact to rounding, no cancellation
+#: Step budget: a parameter set so stiff or unstable that the integrator needs
+#: more than ``MAX_STEPS_PER_POINT`` steps per output point on average (plus
+#: ``MIN_STEP_BUDGET``; typical runs take 1-3 per point) is given up, not ground
+#: through for hours (``stats[3] = 2``, outputs NaN from there on).  Seen when an
+#: optimiser probes far outside the priors: 29 million steps, 109 s, before.
+MAX_STEPS_PER_POINT = 20
+MIN_STEP_BUDGET = 10000
 
 
 @njit(cache=True)
@@ -316,6 +323,9 @@ def _integrate_one(
         s = 0.0  # time into the interval
         h = min(h, hmax)
         while s < dt:
+            if nsteps + nrej > (MAX_STEPS_PER_POINT * (n + 1) + MIN_STEP_BUDGET):
+                stats[3] = 2.0
+                break
             last = False
             # stretch the step up to 1 % to land on the sample rather than
             # leave a sliver (float sample times are rarely exact multiples)
@@ -362,6 +372,11 @@ def _integrate_one(
                 nrej += 1
                 h = h * max(0.2, 0.8 * err ** (-1.0 / 3.0))
                 last = False
+                if nrej > (MAX_STEPS_PER_POINT * (n + 1) + MIN_STEP_BUDGET) or not (h > 0.0):
+                    stats[3] = 2.0
+                    break
+            if stats[3] == 2.0:
+                break
             nsteps += 1
             for i in range(N):
                 y[i] = yn[i]
@@ -374,6 +389,12 @@ def _integrate_one(
             else:
                 # keep the step that the error allowed for the next interval
                 h = max(h, min(hnew, hmax))
+        if stats[3] == 2.0:
+            for j in range(n + 1, nt):
+                vout[j] = np.nan
+                for r in range(nr):
+                    out[j, r] = np.nan
+            break
         for r in range(nr):
             out[n + 1, r] = y[rec[r]]
         for k in range(m):

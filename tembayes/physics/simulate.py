@@ -213,6 +213,9 @@ def simulate(inputs, params, *, rig=REFERENCE, y0=None, steady_start=True, atol=
         inputs.time, inputs.current, inputs.t_water, inputs.t_amb,
         m["A"], m["Bb"], m["Cinv"], m["tem"], m["P"], rec, Y0, bool(steady_start), float(atol), float(hmax),
     )
+    if np.any(stats[:, 3] == 2):
+        raise ModelError(f"the integrator gave up (more than {K.MAX_STEPS_PER_POINT} steps per sample: the "
+                         "parameters make the network too stiff or unstable); check the parameters")
     if np.any(stats[:, 3]):
         raise ModelError("the steady-state start did not converge; check the parameters")
     if not np.all(np.isfinite(volt)):
