@@ -188,6 +188,21 @@ def test_sampler_is_reproducible_and_resumes_bit_identically(tmp_path):
     assert not np.array_equal(a.chain, d.chain)
 
 
+def _example_model(module="TEM1"):
+    """The calibration's step-response model of an example module."""
+    from pathlib import Path
+
+    from tembayes.calibrate.model import StepResponseModel
+    from tembayes.calibrate.module import CalibrationOptions, calibration_rig
+    from tembayes.calibrate.stepdata import step_data
+    from tembayes.data import load_batch
+
+    batch = load_batch(Path(__file__).resolve().parents[1] / "data" / "example")
+    data = step_data(batch.modules[module].identification)
+    rig = calibration_rig(batch.rig_config, CalibrationOptions())
+    return batch, data, rig, StepResponseModel(data, rig)
+
+
 def test_step_response_model_reads_no_unset_memory():
     """Every grid point is set before the boundaries are read there.
 
@@ -199,16 +214,8 @@ def test_step_response_model_reads_no_unset_memory():
     makes the allocator hand that block back: NaNs would show.
     """
     from tembayes.calibrate.model import StepResponseModel
-    from tembayes.calibrate.module import CalibrationOptions, calibration_rig
-    from tembayes.calibrate.stepdata import step_data
-    from tembayes.data import load_batch
 
-    from pathlib import Path
-
-    batch = load_batch(Path(__file__).resolve().parents[1] / "data" / "example")
-    data = step_data(batch.modules["TEM1"].identification)
-    rig = calibration_rig(batch.rig_config, CalibrationOptions())
-    first = StepResponseModel(data, rig)
+    _, data, rig, first = _example_model()
     n = first._base_grid.shape[0]
     for _ in range(3):
         junk = np.full(n, np.nan)
@@ -223,19 +230,12 @@ def test_a_wild_parameter_draw_fails_fast_instead_of_hanging():
     """A draw far outside the priors (S1 = 0.01 V/K^2, a hundred times a real one) made
     the adaptive integrator crawl for 29 million steps; now it gives up at
     its step budget: NaN with ``strict=False``, a ModelError otherwise."""
-    from pathlib import Path
-
-    from tembayes.calibrate.model import SHIFT, StepResponseModel
-    from tembayes.calibrate.module import CalibrationOptions, calibration_rig, parameter_space
-    from tembayes.calibrate.stepdata import step_data
-    from tembayes.data import load_batch
+    from tembayes.calibrate.model import SHIFT
+    from tembayes.calibrate.module import parameter_space
     from tembayes.errors import ModelError
     from tembayes.physics import kernel as K
 
-    batch = load_batch(Path(__file__).resolve().parents[1] / "data" / "example")
-    data = step_data(batch.modules["TEM1"].identification)
-    rig = calibration_rig(batch.rig_config, CalibrationOptions())
-    model = StepResponseModel(data, rig)
+    batch, data, rig, model = _example_model()
     ms, _ = parameter_space(rig, batch.datasheet, data, model.shift_bound)
     x = np.array([pr.to_unconstrained(pr.center) for pr in ms.priors]) + 0.01
     x[ms.index(SHIFT)] = 0.01

@@ -322,8 +322,9 @@ def _integrate_one(
         ma = (ta[n + 1] - ta[n]) / dt
         s = 0.0  # time into the interval
         h = min(h, hmax)
+        budget = MAX_STEPS_PER_POINT * (n + 1) + MIN_STEP_BUDGET
         while s < dt:
-            if nsteps + nrej > (MAX_STEPS_PER_POINT * (n + 1) + MIN_STEP_BUDGET):
+            if nsteps + nrej > budget:
                 stats[3] = 2.0
                 break
             last = False
@@ -372,7 +373,7 @@ def _integrate_one(
                 nrej += 1
                 h = h * max(0.2, 0.8 * err ** (-1.0 / 3.0))
                 last = False
-                if nrej > (MAX_STEPS_PER_POINT * (n + 1) + MIN_STEP_BUDGET) or not (h > 0.0):
+                if nrej > budget or not (h > 0.0):
                     stats[3] = 2.0
                     break
             if stats[3] == 2.0:
