@@ -19,7 +19,7 @@ reads):
   prior (KS tests per coordinate);
 - timings per module.
 
-    python analyses/calibration_study.py                 # full study (~30 min on 2 cores)
+    python analyses/calibration_study.py                 # full study (~40 min on 2 cores)
     python analyses/calibration_study.py --quick         # 4 batches, a smoke run
     python analyses/calibration_study.py --jobs 1        # one batch at a time
     python analyses/calibration_study.py --repopulate    # refit only the population stage

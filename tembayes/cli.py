@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -165,6 +166,9 @@ def _cmd_calibrate(args):
     from tembayes.data import load_batch
     from tembayes.data.write import _refuse_existing
 
+    if args.jobs < 1:  # before anything is touched
+        print(f"tembayes calibrate: --jobs must be at least 1, got {args.jobs}", file=sys.stderr)
+        return 2
     opt = CalibrationOptions(max_steps=args.max_steps, nwalkers=args.walkers)
     batch = load_batch(args.batch)  # refused input: nothing is written
     if not args.resume:
@@ -178,7 +182,7 @@ def _cmd_calibrate(args):
         print(msg, file=sys.stderr, flush=True)
 
     summ = calibrate_batch(batch, args.out, seed=args.seed, options=opt, resume=args.resume, progress=progress,
-                           progress_bar=not args.quiet, argv=args.argv, figures=not args.no_figures)
+                           progress_bar=not args.quiet, argv=args.argv, figures=not args.no_figures, jobs=args.jobs)
     for mid, m in summ["modules"].items():
         op = m["outlier_prob"]
         print(f"{mid}: R0 {m['R0_ohm']['mean']:.4f}+-{m['R0_ohm']['sd']:.4f} ohm  "
@@ -272,6 +276,9 @@ def build_parser():
                    help="emcee walkers (default 2 x parameters + 2)")
     p.add_argument("--no-figures", action="store_true", help="skip the corner plots")
     p.add_argument("--quiet", action="store_true", help="no progress bars (stage messages only)")
+    p.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), metavar="N",
+                   help="modules calibrated at once in worker processes (default: %(default)s, at most the "
+                        "cores); the results do not depend on it")
     p.set_defaults(func=_cmd_calibrate)
 
     p = sub.add_parser(

@@ -50,7 +50,9 @@ def batch1(tmp_path_factory):
 @pytest.fixture(scope="module")
 def run3(batch3, tmp_path_factory):
     out = tmp_path_factory.mktemp("r3") / "run"
-    summ = calibrate_batch(load_batch(batch3), out, seed=0, figures=True)
+    # two worker processes: test_same_seed_same_module_result then also checks
+    # that a module calibrated in a worker equals one calibrated in-process
+    summ = calibrate_batch(load_batch(batch3), out, seed=0, figures=True, jobs=2)
     return out, summ, json.loads((batch3 / "truth.json").read_text())
 
 
@@ -203,6 +205,10 @@ def test_cli_refuses_an_existing_run_without_resume(batch1, tmp_path, capsys):
     (out / "keep.txt").write_text("x")
     assert main(["calibrate", str(batch1), "--out", str(out)]) == 2
     assert "exists" in capsys.readouterr().err
+    assert (out / "keep.txt").exists()
+    # a bad option is refused before the existing run is touched, even with --overwrite
+    assert main(["calibrate", str(batch1), "--out", str(out), "--overwrite", "--jobs", "0"]) == 2
+    assert "--jobs must be at least 1" in capsys.readouterr().err
     assert (out / "keep.txt").exists()
 
 

@@ -1,9 +1,10 @@
 """Calibrate a batch: every module, then the population (``tembayes calibrate``).
 
 Modules are independent (each has its own random stream from the run seed
-and its id), so the batch is a loop over :func:`calibrate_module` whose
-results are written to ``RUN/modules/<id>.nc`` as they finish; a resumed run
-reuses finished modules and continues interrupted ones from their sampler
+and its id), so the batch is a loop over :func:`calibrate_module` -- over
+``jobs`` worker processes at once, with identical results -- whose results
+are written to ``RUN/modules/<id>.nc`` as they finish; a resumed run reuses
+finished modules and continues interrupted ones from their sampler
 checkpoints.  The population stage
 (:func:`tembayes.calibrate.population.fit_population`) reuses the modules'
 posterior draws.
@@ -11,9 +12,12 @@ posterior draws.
 
 from __future__ import annotations
 
+import multiprocessing
 import shlex
 import sys
 import time
+import warnings
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
@@ -42,8 +46,25 @@ def prior_draws(datasheet, seed, n=4000):
     return {p.name: p.sample(rng, n) for p in law_priors(datasheet)}
 
 
+def _calibrate_to_file(module, datasheet, rig_config, seed, options, checkpoint, resume, done):
+    """One module in a worker process: calibrate, write ``done``, return the
+    diagnostics and the warnings raised (re-issued by the parent)."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", RuntimeWarning)
+        r = calibrate_module(module, datasheet, rig_config=rig_config, seed=seed, options=options,
+                             checkpoint=checkpoint, resume=resume)
+    res.write_netcdf(res.to_inference_data([r]), done)
+    return r.diagnostics, [str(w.message) for w in caught if issubclass(w.category, RuntimeWarning)]
+
+
+def _module_line(mid, d):
+    return (f"    {mid}: {'converged' if d['converged'] else 'NOT converged'} in {d['steps']} steps "
+            f"(R-hat {d['rhat_max']:.4f}, ESS {d['ess_bulk_min']:.0f}, k_hat {d['psis'][-1]['k_hat']:.2f}, "
+            f"{d['timings']['total_s']:.0f} s)")
+
+
 def calibrate_batch(batch, out, *, seed=0, options=None, resume=False, population=True, progress=None,
-                    progress_bar=False, argv=None, figures=True):
+                    progress_bar=False, argv=None, figures=True, jobs=1):
     """Calibrate every module of a batch and the batch population.
 
     Parameters
@@ -67,6 +88,9 @@ def calibrate_batch(batch, out, *, seed=0, options=None, resume=False, populatio
         The command line, recorded in the outputs.
     figures : bool
         Write the corner plots to ``RUN/figures``.
+    jobs : int
+        Modules calibrated at once, in worker processes (stage messages and
+        progress bars only with 1); the results do not depend on it.
 
     Returns
     -------
@@ -78,24 +102,39 @@ def calibrate_batch(batch, out, *, seed=0, options=None, resume=False, populatio
     out = Path(out)
     (out / "modules").mkdir(parents=True, exist_ok=True)
     (out / "checkpoints").mkdir(parents=True, exist_ok=True)
-    results = []
     t0 = time.perf_counter()
+    n = len(batch.modules)
+    todo = []
     for i, (mid, module) in enumerate(batch.modules.items()):
-        done = out / "modules" / f"{mid}.nc"
-        if resume and done.exists():
-            say(f"[{i + 1}/{len(batch.modules)}] {mid}: finished earlier, reused")
-            results.append(res.read_module(done))
-            continue
-        say(f"[{i + 1}/{len(batch.modules)}] {mid}")
-        r = calibrate_module(module, batch.datasheet, rig_config=batch.rig_config, seed=seed, options=opt,
-                             checkpoint=out / "checkpoints" / mid, resume=resume, progress=say,
-                             progress_bar=progress_bar)
-        res.write_netcdf(res.to_inference_data([r]), done)
-        d = r.diagnostics
-        say(f"    {mid}: {'converged' if d['converged'] else 'NOT converged'} in {d['steps']} steps "
-            f"(R-hat {d['rhat_max']:.4f}, ESS {d['ess_bulk_min']:.0f}, k_hat {d['psis'][-1]['k_hat']:.2f}, "
-            f"{d['timings']['total_s']:.0f} s)")
-        results.append(r)
+        if resume and (out / "modules" / f"{mid}.nc").exists():
+            say(f"[{i + 1}/{n}] {mid}: finished earlier, reused")
+        else:
+            todo.append((i, mid, module))
+    if jobs > 1 and len(todo) > 1:
+        # spawn, not fork: the compiled kernels' OpenMP runtime is not fork-safe
+        ctx = multiprocessing.get_context("spawn")
+        workers = min(jobs, len(todo))
+        say(f"{len(todo)} modules in {workers} worker processes (per-module stage messages and bars off)")
+        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as ex:
+            futures = {ex.submit(_calibrate_to_file, module, batch.datasheet, batch.rig_config, seed, opt,
+                                 out / "checkpoints" / mid, resume, out / "modules" / f"{mid}.nc"): (i, mid)
+                       for i, mid, module in todo}
+            for fut in as_completed(futures):
+                i, mid = futures[fut]
+                d, caught = fut.result()
+                for msg in caught:
+                    warnings.warn(msg, RuntimeWarning, stacklevel=2)
+                say(f"[{i + 1}/{n}] {mid} done")
+                say(_module_line(mid, d))
+    else:
+        for i, mid, module in todo:
+            say(f"[{i + 1}/{n}] {mid}")
+            r = calibrate_module(module, batch.datasheet, rig_config=batch.rig_config, seed=seed, options=opt,
+                                 checkpoint=out / "checkpoints" / mid, resume=resume, progress=say,
+                                 progress_bar=progress_bar)
+            res.write_netcdf(res.to_inference_data([r]), out / "modules" / f"{mid}.nc")
+            say(_module_line(mid, r.diagnostics))
+    results = [res.read_module(out / "modules" / f"{mid}.nc") for mid in batch.modules]
     pop = None
     if population and len(results) >= 2:
         from tembayes.calibrate.population import fit_population

@@ -22,6 +22,20 @@ The offsets are integrated out analytically: within a window the residuals
 are jointly normal with covariance ``sigma^2 I + beta^2 1 1^T``, whose
 inverse and determinant are closed-form.
 
+The model is driven by the hold currents, which are *measured*: each level
+is the mean of a hold's samples, uncertain by ``level_sd`` (~0.02 mA).  That
+is tiny, but dT responds at ~30 K/A, so a level error moves a hold's steady
+dT by ~0.7 mK -- as much as the sensors resolve a level -- and left out it
+made the slopes' posteriors ~20 % too narrow.  The errors ``dI_h`` are
+integrated out too (:class:`LevelErrors`): the prediction is linear in them
+(``G_h = d prediction / d level_h``, computed once at the posterior mode), so
+with ``dI ~ N(0, diag(level_sd^2))`` the residuals are jointly normal with
+covariance ``Sigma + G S G^T`` and the Woodbury identity and the matrix
+determinant lemma give its log density from ``Sigma``'s.  A hold's level
+reaches the window of the step into it and the next one (its pre-step
+samples, then the decay) -- further on it has decayed below 2 % of the noise
+-- so the ``dI`` precision matrix is tridiagonal and costs ``O(holds)``.
+
 :meth:`StepLikelihood.log_likelihood` takes a parameter mapping (the pure
 function of the style guide); :meth:`StepLikelihood.pointwise` the sampler's
 coordinate vectors, vectorised over walkers, and returns one log-likelihood
@@ -31,6 +45,7 @@ term per step window (the ``log_likelihood`` group of ``posterior.nc``).
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 from tembayes.calibrate.priors import ParameterPrior
 from tembayes.calibrate.stepdata import CHANNELS
@@ -87,6 +102,102 @@ def window_loglike(R, starts, sigma, beta):
     return _window_terms(S1, S2, n, sigma, beta)
 
 
+@njit(cache=True)
+def _tridiagonal_terms(u, d, off):
+    """Per hold ``y_h^2 / (2 D_h) - log(D_h) / 2`` of the LDL^T factorisation
+    of the tridiagonal ``P`` (diagonal ``d``, off-diagonal ``off``) and the
+    forward solve ``L y = u``: summed, ``u^T P^-1 u / 2 - log det P / 2``."""
+    nw, nh = u.shape
+    out = np.empty((nw, nh))
+    for w in range(nw):
+        D = d[w, 0]
+        y = u[w, 0]
+        out[w, 0] = 0.5 * y * y / D - 0.5 * np.log(D)
+        for h in range(1, nh):
+            lo = off[w, h - 1] / D
+            D = d[w, h] - lo * off[w, h - 1]
+            y = u[w, h] - lo * y
+            out[w, h] = 0.5 * y * y / D - 0.5 * np.log(D)
+    return out
+
+
+class LevelErrors:
+    """The hold-current errors, integrated out of the likelihood.
+
+    Parameters
+    ----------
+    response : ndarray, shape (nh, nc, n)
+        ``d prediction / d level_h`` of every channel at every sample
+        (:meth:`~tembayes.calibrate.model.StepResponseModel.level_jacobian`).
+    level_sd : ndarray, shape (nh,)
+        Standard error of each level [A].
+    starts : ndarray of int, shape (ns,)
+        First sample of every window; ``nh = ns + 1`` (window ``s`` follows
+        the step from hold ``s`` into hold ``s + 1``).
+
+    Window ``s`` keeps the responses to holds ``s`` and ``s + 1`` only
+    (``self.band``, shape ``(2, nc, n)``); :attr:`neglected` is the largest
+    dropped response, in units of ``level_sd`` over the noise, if ``noise``
+    is given.
+    """
+
+    def __init__(self, response, level_sd, starts, noise=None):
+        nh, nc, n = response.shape
+        ns = len(starts)
+        if nh != ns + 1:
+            raise ValueError(f"{nh} level responses for {ns} step windows (need windows + 1)")
+        win = np.repeat(np.arange(ns), np.diff(np.append(starts, n)))
+        i = np.arange(n)
+        band = np.stack([response[win, :, i].T, response[win + 1, :, i].T])  # (2, nc, n)
+        self.band = np.ascontiguousarray(band)
+        self.starts = starts
+        self.s2inv = 1.0 / np.asarray(level_sd, dtype=float) ** 2
+        self.g1 = np.add.reduceat(band, starts, axis=2)  # (2, nc, ns)
+        self.GG = np.stack([np.add.reduceat(band[0] * band[0], starts, axis=1),
+                            np.add.reduceat(band[0] * band[1], starts, axis=1),
+                            np.add.reduceat(band[1] * band[1], starts, axis=1)])  # (3, nc, ns)
+        self.neglected = 0.0
+        if noise is not None:
+            rest = response.copy()
+            rest[win, :, i] = 0.0
+            rest[win + 1, :, i] = 0.0
+            self.neglected = float(np.max(np.abs(rest) * np.asarray(level_sd)[:, None, None]
+                                          / np.asarray(noise)[None, :, None]))
+
+    def projections(self, R):
+        """``sum_window r G`` of residuals ``R`` ``(nw, nc, n)`` -> ``(nw, 2, nc, ns)``."""
+        return np.add.reduceat(R[:, None] * self.band[None], self.starts, axis=3)
+
+    def terms(self, GR, S1, n, sigma, beta):
+        """Log-likelihood correction of every window ``(nw, ns)``.
+
+        ``GR``: :meth:`projections` of the residuals; ``S1`` their window sums
+        ``(nw, nc, ns)``; ``n`` window sizes; ``sigma``, ``beta`` ``(nw, nc)``.
+        A hold's term goes to the window of the step into it (hold 0 to the
+        first window), so the windows' terms still sum to the total.
+        """
+        iv = (1.0 / (sigma * sigma))[:, :, None]
+        b2 = (beta * beta)[:, :, None]
+        k = b2 / (sigma[:, :, None] ** 2 + n * b2)  # (nw, nc, ns)
+        g0, g1 = self.g1
+        u0 = np.sum(iv * (GR[:, 0] - k * g0 * S1), axis=1)  # (nw, ns)
+        u1 = np.sum(iv * (GR[:, 1] - k * g1 * S1), axis=1)
+        d0 = np.sum(iv * (self.GG[0] - k * g0 * g0), axis=1)
+        d1 = np.sum(iv * (self.GG[2] - k * g1 * g1), axis=1)
+        off = np.sum(iv * (self.GG[1] - k * g0 * g1), axis=1)
+        nw, ns = u0.shape
+        u = np.zeros((nw, ns + 1))
+        u[:, :ns] += u0
+        u[:, 1:] += u1
+        d = np.repeat(self.s2inv[None, :], nw, axis=0)
+        d[:, :ns] += d0
+        d[:, 1:] += d1
+        per_hold = _tridiagonal_terms(u, d, np.ascontiguousarray(off)) + 0.5 * np.log(self.s2inv)[None, :]
+        out = per_hold[:, 1:].copy()
+        out[:, 0] += per_hold[:, 0]
+        return out
+
+
 class _ExpansionSums:
     """Window sums of an expansion's residual, exactly, without the samples.
 
@@ -97,7 +208,7 @@ class _ExpansionSums:
     ``O(samples x m)``.
     """
 
-    def __init__(self, obs, lin, starts):
+    def __init__(self, obs, lin, starts, levels=None):
         p = lin.J.shape[0]
         e = obs - lin.f0  # (nc, n)
         H = getattr(lin, "H", np.zeros((0,) + e.shape))
@@ -109,6 +220,8 @@ class _ExpansionSums:
         G = np.add.reduceat(outer, starts, axis=3)  # (m, m, nc, ns)
         self.G = np.ascontiguousarray(G.reshape(m, m * nc * len(starts)))
         self.m, self.nc, self.ns, self.p = m, nc, len(starts), p
+        # the residual's projections on the level responses: linear in z too
+        self.GQ = None if levels is None else np.add.reduceat(Q[:, None] * levels.band[None], starts, axis=3)
 
     def sums(self, D):
         nw = D.shape[0]
@@ -117,7 +230,8 @@ class _ExpansionSums:
         S1 = np.einsum("wm,mcs->wcs", z, self.M1)
         T = (z @ self.G).reshape(nw, self.m, self.nc, self.ns)
         S2 = np.einsum("wm,wmcs->wcs", z, T)
-        return S1, S2
+        GR = None if self.GQ is None else np.einsum("wm,macs->wacs", z, self.GQ)
+        return S1, S2, GR
 
 
 class StepLikelihood:
@@ -131,9 +245,11 @@ class StepLikelihood:
         the linearised one coordinate vectors.
     space : ParameterSpace
         The sampled coordinates, including :data:`NOISE_PARAMETERS`.
+    levels : LevelErrors, optional
+        The hold-current errors to integrate out (none if not given).
     """
 
-    def __init__(self, data, model, space):
+    def __init__(self, data, model, space, levels=None):
         self.data = data
         self.model = model
         self.space = space
@@ -145,7 +261,8 @@ class StepLikelihood:
         self.model_names = tuple(n for n in space.names if n not in NOISE_PARAMETERS)
         self._mi = [space.index(n) for n in self.model_names]
         self._n = np.diff(np.append(self.starts, data.obs.shape[1])).astype(float)
-        self._sums = _ExpansionSums(data.obs, model, self.starts) if hasattr(model, "C") else None
+        self.levels = levels
+        self._sums = _ExpansionSums(data.obs, model, self.starts, levels) if hasattr(model, "C") else None
 
     def _noise(self, X):
         vals = np.exp(X[:, self._ni]) * self.data.noise[None, :], np.exp(X[:, self._bi])
@@ -166,12 +283,17 @@ class StepLikelihood:
         X = np.atleast_2d(X)
         sigma, beta = self._noise(X)
         if Y is None and self._sums is not None:
-            S1, S2 = self._sums.sums(X[:, self._mi] - self.model.x0)
-            return _window_terms(S1, S2, self._n, sigma, beta)
-        if Y is None:
-            Y = self.predict(X)
-        R = self.data.obs[None] - Y
-        ll = window_loglike(R, self.starts, sigma, beta)
+            S1, S2, GR = self._sums.sums(X[:, self._mi] - self.model.x0)
+            ll = _window_terms(S1, S2, self._n, sigma, beta)
+        else:
+            if Y is None:
+                Y = self.predict(X)
+            R = self.data.obs[None] - Y
+            ll = window_loglike(R, self.starts, sigma, beta)
+            if self.levels is not None:
+                S1, GR = np.add.reduceat(R, self.starts, axis=2), self.levels.projections(R)
+        if self.levels is not None:
+            ll = ll + self.levels.terms(GR, S1, self._n, sigma, beta)
         ll[np.isnan(ll)] = -np.inf
         return ll
 

@@ -95,28 +95,38 @@ class StepResponseModel:
         self._base_grid = grid
         # hold index of every non-step point, and the step points' levels
         hold = np.searchsorted(data.step_time, grid, side="right")
-        cur = data.levels[hold]
-        cur[pos_step] = data.levels[:-1]
-        cur[pos_step + 1] = data.levels[1:]
-        self._current = cur
+        hold[pos_step] = np.arange(ns)
+        hold[pos_step + 1] = np.arange(ns) + 1
+        self._hold = hold
+        self._current = data.levels[hold]
         tw, ta = data.boundaries(grid)
         self._tw, self._ta = tw, ta
-        # the shift keeps both step points strictly inside every sampling interval
-        self.shift_bound = float(np.min(data.step_window)) - 2 * RAMP
+        # the step may fall anywhere in its sampling interval: the common
+        # shift ranges over the widest interval and each step's instant is
+        # clipped into its own (the intervals differ by the DAQ's jitter).  A
+        # bound at the narrowest one excluded the true instant of ~5 % of the
+        # bench's runs and pulled R, S and K with the shift.
+        eps = 1e-4
+        self._shift_lo = -data.step_window + eps
+        self._shift_hi = data.step_window - RAMP - eps
+        self.shift_bound = float(np.max(data.step_window)) - eps
 
     def grid(self, shift):
         """Per-draw time grids ``(nd, n)`` for step shifts ``shift`` [s]."""
         shift = np.atleast_1d(np.asarray(shift, dtype=float))
         G = np.repeat(self._base_grid[None, :], len(shift), axis=0)
-        G[:, self._pos_step] = self.data.step_time[None, :] + shift[:, None]
+        G[:, self._pos_step] = self.data.step_time[None, :] + np.clip(shift[:, None], self._shift_lo[None, :],
+                                                                       self._shift_hi[None, :])
         G[:, self._pos_step + 1] = G[:, self._pos_step] + RAMP
         return G
 
-    def simulate(self, params, strict=True):
+    def simulate(self, params, strict=True, levels=None):
         """Simulate the run for a parameter mapping (arrays of shape ``(nd,)``).
 
         ``params`` needs the five module parameters and :data:`SHIFT`; rig
         parameters default to nominal and effect parameters to zero.
+        ``levels`` ``(nd, ns + 1)``: hold currents per draw [A] (default the
+        measured ones).
 
         Returns
         -------
@@ -130,7 +140,7 @@ class StepResponseModel:
             raise ModelError(f"the step-response model needs '{SHIFT}'")
         shift = np.atleast_1d(np.asarray(params.pop(SHIFT), dtype=float))
         if np.any(np.abs(shift) > self.shift_bound):
-            raise ModelError(f"{SHIFT} must lie within +-{self.shift_bound:.4f} s (half the sampling interval)")
+            raise ModelError(f"{SHIFT} must lie within +-{self.shift_bound:.4f} s (half the widest sampling interval)")
         m = build(params, self.rig)
         nd = m["nd"]
         shift = np.broadcast_to(shift, (nd,))
@@ -138,7 +148,10 @@ class StepResponseModel:
         rec = np.array([names.index(x) for x in self._sensor_nodes] + [names.index(self.rig.hot),
                                                                         names.index(self.rig.cold)], dtype=np.int64)
         G = self.grid(shift)
-        Ic = np.repeat(self._current[None, :], nd, axis=0)
+        if levels is None:
+            Ic = np.repeat(self._current[None, :], nd, axis=0)
+        else:
+            Ic = np.ascontiguousarray(np.broadcast_to(levels, (nd, len(self.data.levels)))[:, self._hold])
         TW = np.repeat(self._tw[None, :], nd, axis=0)
         TA = np.repeat(self._ta[None, :], nd, axis=0)
         Y0 = np.full((nd, len(names)), self._tw[0])
@@ -158,15 +171,38 @@ class StepResponseModel:
         return dict(sensors=sensors[:, :, o], voltage=volt[:, o], t_hot=out[:, o, 2], t_cold=out[:, o, 3],
                     steps=stats[:, 0])
 
-    def predict(self, params, strict=True):
+    def predict(self, params, strict=True, levels=None):
         """Predicted channels ``(nd, 3, n_obs)``: voltage [V], dT [K], Tmean [K].
 
         With ``strict=False`` a draw whose simulation fails comes back as NaN
         instead of raising :class:`~tembayes.errors.ModelError`.
         """
-        s = self.simulate(params, strict=strict)
+        s = self.simulate(params, strict=strict, levels=levels)
         T2, T3 = s["sensors"][:, 0], s["sensors"][:, 1]
         return np.stack([s["voltage"], T2 - T3, 0.5 * (T2 + T3)], axis=1)
+
+    def level_jacobian(self, params, dI=1e-3):
+        """Response of the channels to each hold's current level, at one point.
+
+        Parameters
+        ----------
+        params : dict
+            One parameter point (scalars or shape ``(1,)``).
+        dI : float
+            Finite-difference step [A]; the response is linear far beyond
+            the levels' uncertainty (~0.02 mA).
+
+        Returns
+        -------
+        ndarray, shape (ns + 1, 3, n_obs)
+            ``d prediction / d level_h`` [V/A, K/A, K/A].
+        """
+        nh = len(self.data.levels)
+        L = np.repeat(self.data.levels[None, :], nh + 1, axis=0)
+        L[1 + np.arange(nh), np.arange(nh)] += dI
+        P = {k: np.repeat(np.ravel(v)[:1], nh + 1) for k, v in params.items()}
+        Y = self.predict(P, levels=L)
+        return (Y[1:] - Y[0]) / dI
 
 
 class LinearisedModel:

@@ -40,7 +40,7 @@ from scipy.optimize import least_squares
 from threadpoolctl import threadpool_limits
 
 from tembayes.calibrate import sampler as smp
-from tembayes.calibrate.likelihood import OFFSET_SD, StepLikelihood, noise_priors
+from tembayes.calibrate.likelihood import OFFSET_SD, LevelErrors, StepLikelihood, noise_priors
 from tembayes.calibrate.model import SHIFT, LinearisedModel, StepResponseModel
 from tembayes.calibrate.parameters import ParameterSpace
 from tembayes.calibrate.priors import ParameterPrior, law_priors, rig_prior
@@ -94,11 +94,14 @@ class CalibrationOptions:
     max_relinearise : int
         Last expansion stage (the pilot is stage 0); reported, not fatal.
     stage_steps : int
-        Budget of a sampling run whose expansion may still be rebuilt.  A run
-        that needs more mixes badly on a poor expansion (TEC1-07103 bench
-        module: autocorrelation time 1100 steps on the first expansion, 200
-        after rebuilding it), so it is cut and the expansion rebuilt from its
-        walkers; the last stage gets ``max_steps``.
+        Budget of a sampling run whose expansion may still be rebuilt (the
+        run is cut there and the expansion rebuilt from its walkers).
+        Default: the whole budget -- with differential evolution alone the
+        laws' autocorrelation times are 200-350 steps, R-hat <= 1.01 needs
+        ~100 of them, and cutting a run whose expansion passed the PSIS check
+        only threw its steps away (measured: 45 000 steps in three runs
+        instead of one).  A lower value suits module types whose first
+        expansion mixes badly.
     """
 
     leg_cells: int = LEG_CELLS
@@ -110,7 +113,7 @@ class CalibrationOptions:
     keep: int = 100
     psis_draws: int = 400
     max_relinearise: int = 3
-    stage_steps: int = 24000
+    stage_steps: int = 60000
 
 
 @dataclass(frozen=True)
@@ -295,13 +298,15 @@ def psis_check(like_exact, like_lin, X, rng, n):
     return float(k), ess / len(Xs), float(np.max(np.abs(lw - np.median(lw))))
 
 
-def hysteresis(lin, like, x_mean, data, space):
+def hysteresis(lin, like, x_mean, data, space, level_response=None):
     """Up- minus down-step difference of R and S (GLS on the expansion).
 
     The model gets two extra terms: R and S raised by ``h/2`` in the windows
     after up-steps and lowered by ``h/2`` after down-steps (their effect taken
     from the expansion's R0 and S0 columns, window by window).  Fitted with
-    the other coordinates free at the posterior mean's noise.
+    the other coordinates free at the posterior mean's noise, and the hold
+    currents' errors (``level_response``, ``(nh, 3, n)``) as further
+    columns under their ``N(0, level_sd^2)`` prior.
 
     Returns
     -------
@@ -324,10 +329,16 @@ def hysteresis(lin, like, x_mean, data, space):
     w = np.repeat(1.0 / sigma[0], data.obs.shape[1])
     Aw = A * w[:, None]
     rw = r * w
+    if level_response is not None:
+        nh = len(data.level_sd)
+        Gw = level_response.reshape(nh, -1).T * w[:, None]
+        Aw = np.vstack([np.hstack([Aw, Gw]), np.hstack([np.zeros((nh, A.shape[1])), np.diag(1.0 / data.level_sd)])])
+        rw = np.concatenate([rw, np.zeros(nh)])
     coef, *_ = np.linalg.lstsq(Aw, rw, rcond=None)
     cov = np.linalg.pinv(Aw.T @ Aw)
     out = {}
-    for name, k in (("R_ohm", -2), ("S_V_per_K", -1)):
+    k0 = A.shape[1]
+    for name, k in (("R_ohm", k0 - 2), ("S_V_per_K", k0 - 1)):
         est, sd = float(coef[k]), float(np.sqrt(cov[k, k]))
         out[name] = {"estimate": est, "sd": sd, "z": est / sd if sd > 0 else float("nan")}
     return out
@@ -390,14 +401,18 @@ def _calibrate_module(module, datasheet, *, rig_config=None, seed=0, options=Non
         x0 = np.array([pr.to_unconstrained(pr.center) for pr in model_space.priors])
         x0[model_space.index(SHIFT)] = 0.0
         x_map, cov, sol = fit_map(model, model_space, data, x0)
-        state = {"x_map": x_map.tolist(), "cov": cov.tolist(), "x_lin": x_map.tolist(), "stage": 0,
+        state = {"x_map": x_map.tolist(), "cov": cov.tolist(), "x_lin": x_map.tolist(), "x_level": x_map.tolist(),
+                 "stage": 0,
                  "map_nfev": int(sol.nfev)}
         if state_file:
             atomic_write_text(state_file, json.dumps(state))
     x_map = np.array(state["x_map"])
     cov = np.array(state["cov"])
     timings["map_s"] = time.perf_counter() - t_start
-    exact_like = StepLikelihood(data, model, space)
+    # the hold currents' errors: their effect on the channels, at the mode
+    # (linear in the ~0.02 mA errors, and it varies by < 1 % over the posterior)
+    G = model.level_jacobian(model_space.params(np.array(state.get("x_level", state["x_map"]))[None]))
+    levels = LevelErrors(G, data.level_sd, np.flatnonzero(np.diff(np.concatenate([[-1], data.step]))), data.noise)
     psis = list(state.get("psis", []))
     resumed = False
     while True:
@@ -408,7 +423,8 @@ def _calibrate_module(module, datasheet, *, rig_config=None, seed=0, options=Non
         # steps of sqrt(3) posterior sds: the expansion interpolates over the posterior
         h = np.maximum(EXPANSION_STEP_SD * np.sqrt(np.diag(cov)), fd_steps(model_space))
         lin = LinearisedModel(model, model_space, x_lin, h, noise=data.noise)
-        like = StepLikelihood(data, lin, space)
+        like = StepLikelihood(data, lin, space, levels)
+        exact_like = StepLikelihood(data, model, space, levels)
         # a stream per stage: a resumed run draws exactly what a straight one does
         rng = np.random.default_rng([base_seed, stage])
         p0 = _initial_walkers(rng, space, model_space, x_map, cov, data, nwalkers)
@@ -421,9 +437,11 @@ def _calibrate_module(module, datasheet, *, rig_config=None, seed=0, options=Non
         with warnings.catch_warnings():
             # only the final run's convergence is reported (below)
             warnings.simplefilter("ignore", RuntimeWarning)
+            prop = state.get("proposal")
             run = smp.sample(like.log_prob, p0, seed=emcee_seed + stage, monitor=range(len(MODULE_PARAMETERS)),
                              checkpoint=chunks, resume=resume, thin_by=opt.thin_by, max_steps=budget,
-                             progress=progress_bar, label=f"{module.id}" + (" pilot" if pilot else ""))
+                             progress=progress_bar, label=f"{module.id}" + (" pilot" if pilot else ""),
+                             proposal=None if prop is None else (np.array(prop["mean"]), np.array(prop["cov"])))
         timings[f"sample_s_{stage}"] = time.perf_counter() - t0
         resumed = resumed or run.resumed
         flat = run.chain.reshape(-1, space.ndim)
@@ -439,8 +457,10 @@ def _calibrate_module(module, datasheet, *, rig_config=None, seed=0, options=Non
         half = run.chain[len(run.chain) // 2:].reshape(-1, space.ndim)
         x_map = half[:, :p].mean(axis=0)
         cov = np.cov(half[:, :p].T)
+        # the next run also proposes independently from this one's posterior
+        proposal = {"mean": half.mean(axis=0).tolist(), "cov": np.cov(half.T).tolist()}
         state = {**state, "x_lin": x_map.tolist(), "stage": stage + 1, "x_map": x_map.tolist(),
-                 "cov": cov.tolist(), "walkers": run.chain[-1].tolist(), "psis": psis}
+                 "cov": cov.tolist(), "walkers": run.chain[-1].tolist(), "psis": psis, "proposal": proposal}
         if state_file:
             atomic_write_text(state_file, json.dumps(state))
     if not (run.converged and psis[-1]["k_hat"] < 0.7):
@@ -463,7 +483,7 @@ def _calibrate_module(module, datasheet, *, rig_config=None, seed=0, options=Non
     at_step = np.array([tavg[np.flatnonzero(data.step == k)[np.argmin(np.abs(data.since[data.step == k]))]]
                         for k in range(data.n_steps)])
     full_mean = flat.mean(axis=0)
-    hyst = hysteresis(lin, like, full_mean, data, space)
+    hyst = hysteresis(lin, like, full_mean, data, space, G)
     mon = list(range(len(MODULE_PARAMETERS)))
     diag = {
         "rhat": dict(zip(space.names, map(float, run.rhat))),
@@ -485,6 +505,9 @@ def _calibrate_module(module, datasheet, *, rig_config=None, seed=0, options=Non
         "psis": psis,
         "resumed": bool(resumed),
         "map_nfev": state.get("map_nfev"),
+        # largest response to a hold level outside the two windows kept, in
+        # noise sds per level sd (the tridiagonal approximation's neglect)
+        "level_band_neglected": levels.neglected,
     }
     timings["total_s"] = time.perf_counter() - t_start
     diag["timings"] = timings
