@@ -17,6 +17,7 @@ from tembayes.data import (
     Module,
     load_batch,
     load_batch_toml,
+    load_population_table,
     natural_key,
 )
 from tembayes.errors import DataError, ModelError
@@ -119,6 +120,29 @@ def test_rig_table_kept_and_preset_defaulted(data_factory, fake_rig):
     _, rig = load_batch_toml(folder)
     assert rig == {"preset": "reference", "g_cooler": 11.0}
     assert fake_rig == [rig]
+
+
+def test_population_table_states_known_spreads(data_factory):
+    toml = data_factory.batch_toml() + "\n[population]\nspread_S0_rel = 0.01\nspread_R0_rel = 0.02\nspread_log_sd = 0.5\n"
+    folder = data_factory.batch(toml=toml)
+    assert load_population_table(folder) == {"spread_S0_rel": (0.01, 0.5), "spread_R0_rel": (0.02, 0.5)}
+    assert load_batch(folder).population == {"spread_S0_rel": (0.01, 0.5), "spread_R0_rel": (0.02, 0.5)}
+    # the default uncertainty of a stated spread, and no table at all
+    folder2 = data_factory.batch("b2", toml=data_factory.batch_toml() + "\n[population]\nspread_K_rel = 0.03\n")
+    assert load_population_table(folder2) == {"spread_K_rel": (0.03, 0.3)}
+    assert load_batch(data_factory.batch("b3")).population == {}
+
+
+@pytest.mark.parametrize("line, key, what", [
+    ("spread_S0 = 0.01", "spread_S0", "not a known key"),
+    ("spread_S0_rel = -0.01", "spread_S0_rel", "positive number"),
+    ("spread_S0_rel = 'one percent'", "spread_S0_rel", "positive number"),
+])
+def test_population_table_refuses_bad_keys_naming_them(data_factory, line, key, what):
+    folder = data_factory.batch(toml=data_factory.batch_toml() + f"\n[population]\n{line}\n")
+    with pytest.raises(DataError) as e:
+        load_batch(folder)
+    assert e.value.column == key and what in str(e.value) and "batch.toml" in str(e.value)
 
 
 @pytest.fixture

@@ -7,7 +7,9 @@ are written to ``RUN/modules/<id>.nc`` as they finish; a resumed run reuses
 finished modules and continues interrupted ones from their sampler
 checkpoints.  The population stage
 (:func:`tembayes.calibrate.population.fit_population`) reuses the modules'
-posterior draws.
+posterior draws, under the spreads ``batch.toml``'s optional ``[population]``
+table states; ``summary.json`` records them (``population_prior``) and the
+spreads this batch learned in that table's format (``population_spreads``).
 """
 
 from __future__ import annotations
@@ -44,6 +46,12 @@ def prior_draws(datasheet, seed, n=4000):
     """Draws of the module parameters from the datasheet prior (negative control, plots)."""
     rng = np.random.default_rng(np.random.SeedSequence(entropy=int(seed), spawn_key=(0x5052,)))
     return {p.name: p.sample(rng, n) for p in law_priors(datasheet)}
+
+
+def spread_prior(population_table):
+    """``batch.toml``'s ``[population]`` spreads -> ``fit_population(spread_prior=...)``
+    (``spread_S0_rel`` -> ``tau_S0_rel``); None if none are stated."""
+    return {"tau" + k[len("spread"):]: v for k, v in population_table.items()} or None
 
 
 def _calibrate_to_file(module, datasheet, rig_config, seed, options, checkpoint, resume, done):
@@ -142,12 +150,17 @@ def calibrate_batch(batch, out, *, seed=0, options=None, resume=False, populatio
         say("population")
         draws = {r.module_id: r.law_draws() for r in results}
         _, rng = module_seed(seed, "__population__")
-        pop = fit_population(draws, batch.datasheet, rng=rng)
+        pop = fit_population(draws, batch.datasheet, rng=rng, spread_prior=spread_prior(batch.population))
     elif population:
         say("population: skipped (a single module has no batch)")
     argv = list(argv) if argv is not None else None
     extra = {
         "batch": {"path": str(batch.path), "module_type": batch.datasheet.name, "n_modules": len(results)},
+        # the spreads stated in batch.toml, and those learned here, in the
+        # [population] table's format for the next batch of the type
+        "population_prior": {k: {"median": m, "log_sd": sd} for k, (m, sd) in batch.population.items()},
+        "population_spreads": None if pop is None else {
+            "spread" + k[3:]: {"median": m, "log_sd": sd} for k, (m, sd) in pop.spread_prior().items()},
         "calibration": {
             "seed": int(seed), "rig": results[0].rig, "options": dict(opt.__dict__), "versions": _versions(),
             "command": None if argv is None else "tembayes " + " ".join(shlex.quote(a) for a in argv),

@@ -13,7 +13,10 @@ The pipeline, each step a plain function of the previous one's result:
 4. a short pilot run of emcee on that expansion finds the posterior's centre
    and width, the expansion is rebuilt there, and emcee samples the full
    posterior (laws, K, rig nuisances, step shift, noise) on it until
-   converged (:func:`~tembayes.calibrate.sampler.sample`);
+   converged (:func:`~tembayes.calibrate.sampler.sample`), half its moves
+   independence proposals from a Student-t fitted to the pilot; the hold
+   currents' measurement errors are integrated out of the likelihood
+   (:class:`~tembayes.calibrate.likelihood.LevelErrors`);
 5. the expansion is *checked* against the exact model on posterior draws by
    Pareto-smoothed importance sampling: ``k_hat`` < 0.7 means the exact
    posterior is what was sampled (to importance-sampling accuracy); above

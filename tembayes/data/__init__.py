@@ -15,6 +15,7 @@ from .batch import (
     Module,
     load_batch,
     load_batch_toml,
+    load_population_table,
     natural_key,
 )
 from .experiment import TEMP_MAX_C, TEMP_MIN_C, Experiment, load_experiment
@@ -39,6 +40,7 @@ __all__ = [
     "Batch",
     "load_batch",
     "load_batch_toml",
+    "load_population_table",
     "natural_key",
     "summarize_experiment",
     "noise_estimate",

@@ -18,6 +18,7 @@ __all__ = [
     "Batch",
     "load_batch",
     "load_batch_toml",
+    "load_population_table",
     "natural_key",
     "BATCH_TOML",
     "IDENTIFICATION_CSV",
@@ -28,6 +29,13 @@ BATCH_TOML = "batch.toml"
 IDENTIFICATION_CSV = "identification.csv"
 #: The rig used when ``batch.toml`` has no ``[rig]`` table.
 DEFAULT_RIG_CONFIG = {"preset": "reference"}
+
+#: ``[population]`` keys: the unit-to-unit spread of each law parameter
+#: (levels relative, slopes in SI), as known for the module type.
+POPULATION_SPREAD_KEYS = ("spread_R0_rel", "spread_R1_ohm_per_K", "spread_S0_rel", "spread_S1_V_per_K2",
+                          "spread_K_rel")
+#: Log-sd of a stated spread when ``spread_log_sd`` is not given.
+DEFAULT_SPREAD_LOG_SD = 0.3
 
 # toml key -> (Datasheet attribute, unit for messages)
 _DATASHEET_KEYS = {
@@ -208,12 +216,16 @@ class Batch:
         missing ``preset`` defaults to ``"reference"``).
     modules : dict of str to Module
         In natural order of the ids (TEM1, TEM2, TEM10).
+    population : dict
+        The optional ``[population]`` table: known unit-to-unit spreads of the
+        type, ``spread_... -> (median, log_sd)`` (:func:`load_population_table`).
     """
 
     path: Path
     datasheet: Datasheet
     rig_config: dict = field(default_factory=lambda: dict(DEFAULT_RIG_CONFIG))
     modules: dict = field(default_factory=dict)
+    population: dict = field(default_factory=dict)
 
 
 def load_batch_toml(path) -> tuple[Datasheet, dict]:
@@ -275,6 +287,55 @@ def load_batch_toml(path) -> tuple[Datasheet, dict]:
                             'Quote it, e.g. preset = "reference"', column="preset")
     _check_rig(path, rig_config)
     return datasheet, rig_config
+
+
+def load_population_table(path) -> dict:
+    """The optional ``[population]`` table of ``batch.toml``: spreads known for the type.
+
+    With few modules the unit-to-unit spreads cannot be learned from the
+    batch itself; a spread known from earlier batches of the type (e.g. the
+    ``population_spreads`` of an earlier run's ``summary.json``) sharpens the
+    population and ``outlier_prob``.  Keys: any of
+    :data:`POPULATION_SPREAD_KEYS` (the spread's median: levels relative,
+    slopes in SI units) and ``spread_log_sd`` (its uncertainty, default 0.3)::
+
+        [population]
+        spread_S0_rel = 0.01
+        spread_R0_rel = 0.02
+        spread_log_sd = 0.3
+
+    Returns
+    -------
+    dict
+        ``spread key -> (median, log_sd)``; empty without the table.
+
+    Raises
+    ------
+    DataError
+        Naming the file and the key at fault.
+    """
+    path = Path(path)
+    if path.is_dir():
+        path = path / BATCH_TOML
+    doc = tomllib.loads(path.read_bytes().decode("utf-8-sig"))  # already validated by load_batch_toml
+    table = doc.get("population")
+    if table is None:
+        return {}
+    if not isinstance(table, dict):
+        raise DataError(path, "'population' must be a table", "Write it as a [population] section",
+                        column="population")
+    allowed = POPULATION_SPREAD_KEYS + ("spread_log_sd",)
+    values = {}
+    for key, v in table.items():
+        if key not in allowed:
+            raise DataError(path, f"population.{key} is not a known key",
+                            f"Use {', '.join(allowed)}", column=key)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+            raise DataError(path, f"population.{key} must be a positive number, found {v!r}",
+                            "Give the spread as a number, e.g. 0.01 for 1 %", column=key)
+        values[key] = float(v)
+    log_sd = values.pop("spread_log_sd", DEFAULT_SPREAD_LOG_SD)
+    return {k: (v, log_sd) for k, v in values.items()}
 
 
 def _check_rig(path: Path, rig_config: dict) -> None:
@@ -344,4 +405,5 @@ def load_batch(path) -> Batch:
             identification=load_experiment(ident, imax=datasheet.imax),
             validations=tuple(load_experiment(p, imax=datasheet.imax) for p in validation_files),
         )
-    return Batch(path=path, datasheet=datasheet, rig_config=rig_config, modules=modules)
+    return Batch(path=path, datasheet=datasheet, rig_config=rig_config, modules=modules,
+                 population=load_population_table(path / BATCH_TOML))
