@@ -43,6 +43,7 @@ examples:
   tembayes calibrate data/example --out runs/example --seed 0
   tembayes calibrate data/example --out runs/example --seed 0 --resume   # after an interruption
   tembayes calibrate runs/demo --out runs/demo-cal --max-steps 20000 --no-figures
+  tembayes calibrate data/example --out runs/one-by-one --jobs 1   # one module at a time, with stage messages
 
 writes RUN/summary.json (contract section 4: per module R0, R1, S0, S1 and K
 with mean, sd and 90 % interval, outlier_prob, convergence diagnostics; the
@@ -51,7 +52,10 @@ population's predictive distribution for a new module), RUN/posterior.nc
 sample_stats, observed_data, constant_data, prior, population),
 RUN/modules/<id>.nc as each module finishes, and corner plots in
 RUN/figures.  Interrupted runs continue with --resume (finished modules are
-reused, a running one continues from its sampler checkpoint).
+reused, a running one continues from its sampler checkpoint).  Known
+unit-to-unit spreads of the type go in batch.toml's optional [population]
+table (see the README); summary.json's population_spreads gives them for the
+next batch.
 """
 
 _EPILOG_INSPECT = """\

@@ -33,8 +33,9 @@ with ``dI ~ N(0, diag(level_sd^2))`` the residuals are jointly normal with
 covariance ``Sigma + G S G^T`` and the Woodbury identity and the matrix
 determinant lemma give its log density from ``Sigma``'s.  A hold's level
 reaches the window of the step into it and the next one (its pre-step
-samples, then the decay) -- further on it has decayed below 2 % of the noise
--- so the ``dI`` precision matrix is tridiagonal and costs ``O(holds)``.
+samples, then the decay) -- further on it has decayed to ~1 % of the noise
+(``level_band_neglected`` in the diagnostics) -- so the ``dI`` precision
+matrix is tridiagonal and costs ``O(holds)``.
 
 :meth:`StepLikelihood.log_likelihood` takes a parameter mapping (the pure
 function of the style guide); :meth:`StepLikelihood.pointwise` the sampler's
@@ -134,11 +135,12 @@ class LevelErrors:
     starts : ndarray of int, shape (ns,)
         First sample of every window; ``nh = ns + 1`` (window ``s`` follows
         the step from hold ``s`` into hold ``s + 1``).
+    noise : ndarray, shape (nc,), optional
+        Noise sd of each channel, to report :attr:`neglected`.
 
     Window ``s`` keeps the responses to holds ``s`` and ``s + 1`` only
     (``self.band``, shape ``(2, nc, n)``); :attr:`neglected` is the largest
-    dropped response, in units of ``level_sd`` over the noise, if ``noise``
-    is given.
+    dropped response times ``level_sd`` over the noise (~0.01 on the bench).
     """
 
     def __init__(self, response, level_sd, starts, noise=None):
@@ -253,7 +255,7 @@ class StepLikelihood:
         self.data = data
         self.model = model
         self.space = space
-        self.starts = np.flatnonzero(np.diff(np.concatenate([[-1], data.step])))
+        self.starts = data.window_starts
         if len(self.starts) != data.n_steps or np.any(np.diff(data.step) < 0):
             raise ValueError("step windows must be contiguous and ordered")
         self._ni = [space.index(n) for n in NOISE_SCALE]

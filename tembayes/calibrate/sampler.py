@@ -80,7 +80,9 @@ class IndependenceMove(emcee.moves.MHMove):
     def __init__(self, mean, cov, dof=5.0, scale=1.2):
         self.mean = np.asarray(mean, dtype=float)
         self.dof = float(dof)
-        self.chol = np.linalg.cholesky(np.asarray(cov, dtype=float) * scale ** 2)
+        cov = np.asarray(cov, dtype=float)
+        # a whisker of diagonal keeps a near-singular fit (a pinned coordinate) factorable
+        self.chol = np.linalg.cholesky((cov + 1e-12 * np.diag(np.diag(cov))) * scale ** 2)
         self.chol_inv = np.linalg.inv(self.chol)
         super().__init__(self._propose, ndim=len(self.mean))
 

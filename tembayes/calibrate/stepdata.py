@@ -98,6 +98,11 @@ class StepData:
         return len(self.step_time)
 
     @property
+    def window_starts(self):
+        """First selected sample of every step window, ``(ns,)``."""
+        return np.flatnonzero(np.diff(np.concatenate([[-1], self.step])))
+
+    @property
     def dI(self):
         """Current change of every step [A]."""
         return np.diff(self.levels)
