@@ -299,8 +299,6 @@ def test_non_gaussian_posterior_falls_back_to_importance_sums():
     assert not r.diagnostics["check"]["passed"]
 
 
-@pytest.mark.xfail(strict=False, reason="population stage in progress (issue 4): importance-weight ESS below 10 "
-                                       "on this batch")
 def test_result_contents(big_batch):
     r, _ = big_batch
     assert isinstance(r, PopulationResult)
