@@ -243,29 +243,24 @@ def test_calibrate_help_has_an_example(capsys):
 
 
 def test_another_module_type_needs_no_code_change(tmp_path):
-    # a smaller 71-couple module (TEC1-07103 class): other R, S, K and Imax.
-    # Its short-hold bench posterior mixes slowly (autocorrelation ~850 steps:
-    # 60 000 steps end at R-hat 1.02; issue 4 note), so this checks what a new
-    # type needs -- priors from its datasheet, the same code path, the right
-    # answer -- on a short budget, not convergence
+    # a smaller 71-couple module (TEC1-07103 class): other R, S, K and Imax, on
+    # the reference protocol (600 s holds; with half-length holds its steady
+    # states are not reached and the posterior mixes in ~850 steps, see the
+    # README's known limitation)
     from tembayes.calibrate.module import calibrate_module
     from tembayes.data import Datasheet
 
     ds = Datasheet(name="TEC1-07103", th=298.15, imax=3.0, vmax=8.6, dtmax=66.0, qmax=16.0)
     path = tmp_path / "other"
-    simulate_batch(path, BenchConfig(n_modules=1, seed=5, hold=300.0, n_validations=0, datasheet=ds),
+    simulate_batch(path, BenchConfig(n_modules=1, seed=5, hold=600.0, n_validations=0, datasheet=ds),
                    progress=lambda msg: None)
     b = load_batch(path)
     assert b.datasheet.name == "TEC1-07103"
     truth = json.loads((path / "truth.json").read_text())["modules"]["TEM1"]
-    with pytest.warns(RuntimeWarning, match="not converged"):
-        r = calibrate_module(b.modules["TEM1"], b.datasheet, rig_config=b.rig_config, seed=0,
-                             options=CalibrationOptions(max_steps=12000, max_relinearise=1))
-    # the levels within 1 % of the truth: > 5 posterior sds (~0.1-0.2 %), and
-    # 30x tighter than the datasheet prior (log-sd 0.3)
-    for k in ("R0_ohm", "S0_V_per_K", "K_W_per_K"):
+    r = calibrate_module(b.modules["TEM1"], b.datasheet, rig_config=b.rig_config, seed=0)
+    assert r.diagnostics["converged"]
+    for k in MODULE_PARAMETERS:
         v = r.draws[k].ravel()
-        assert abs(v.mean() / truth[k] - 1) < 0.01, k
-        assert v.std() / v.mean() < 0.01, k
+        assert abs(v.mean() - truth[k]) < 3.5 * v.std(), k
     # the priors followed the datasheet, not the TEC1-12706 numbers
     assert r.priors["R0_ohm"]["center"] == pytest.approx(ds.resistance())
