@@ -247,6 +247,12 @@ def load_batch_toml(path) -> tuple[Datasheet, dict]:
     DataError
         Naming the file, the TOML line for syntax errors, and the key.
     """
+    return _tables(*_read_batch_toml(path))
+
+
+def _read_batch_toml(path):
+    """``(path, parsed document)`` of a batch.toml (or its folder), refusing
+    a missing, unreadable, non-UTF-8 or malformed file."""
     path = Path(path)
     if path.is_dir():
         path = path / BATCH_TOML
@@ -267,6 +273,11 @@ def load_batch_toml(path) -> tuple[Datasheet, dict]:
         m = re.search(r"line (\d+)", str(e))
         raise DataError(path, f"TOML syntax error ({e})", "Fix the TOML syntax",
                         line=int(m.group(1)) if m else None) from None
+    return path, doc
+
+
+def _tables(path, doc):
+    """``[module_type]`` and ``[rig]`` of a parsed batch.toml, validated."""
     if "module_type" not in doc:
         raise DataError(path, "there is no [module_type] table",
                         "Add [module_type] with name, th_C, imax_A, vmax_V, dtmax_K, qmax_W "
@@ -314,10 +325,10 @@ def load_population_table(path) -> dict:
     DataError
         Naming the file and the key at fault.
     """
-    path = Path(path)
-    if path.is_dir():
-        path = path / BATCH_TOML
-    doc = tomllib.loads(path.read_bytes().decode("utf-8-sig"))  # already validated by load_batch_toml
+    return _population(*_read_batch_toml(path))
+
+
+def _population(path, doc):
     table = doc.get("population")
     if table is None:
         return {}
@@ -377,7 +388,8 @@ def load_batch(path) -> Batch:
     if not path.is_dir():
         raise DataError(path, "this is not a folder",
                         "Pass the batch folder (the one holding batch.toml and the module folders)")
-    datasheet, rig_config = load_batch_toml(path / BATCH_TOML)
+    toml = _read_batch_toml(path / BATCH_TOML)
+    datasheet, rig_config = _tables(*toml)
 
     folders = sorted(
         (p for p in path.iterdir()
@@ -406,4 +418,4 @@ def load_batch(path) -> Batch:
             validations=tuple(load_experiment(p, imax=datasheet.imax) for p in validation_files),
         )
     return Batch(path=path, datasheet=datasheet, rig_config=rig_config, modules=modules,
-                 population=load_population_table(path / BATCH_TOML))
+                 population=_population(*toml))
