@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 import tembayes
-from tembayes.errors import TembayesError
+from tembayes.errors import DataError, TembayesError
 
 _EPILOG_SIMULATE = """\
 examples:
@@ -56,6 +56,23 @@ reused, a running one continues from its sampler checkpoint).  Known
 unit-to-unit spreads of the type go in batch.toml's optional [population]
 table (see the README); summary.json's population_spreads gives them for the
 next batch.
+"""
+
+_EPILOG_PREDICT = """\
+examples:
+  tembayes predict runs/example data/example/TEM2/validation.csv --module TEM2 --out runs/example-pred
+  tembayes predict runs/example data/example/TEM2/validation.csv --module population --out runs/pop-pred
+  tembayes predict RUN new.csv --module SN0042 --batch path/to/batch --draws 1000 --seed 1 --no-constant
+
+writes DIR/metrics.json (contract section 4: per channel T1_C..T4_C and
+voltage_V the RMSE and max |error| of the predictive mean, in K or V, and the
+fraction of samples inside the central 50/90/95 % predictive bands, noise
+included; plus the errors per 5 K bin of T-bar, the anchoring of the rig and,
+unless --no-constant, the same for R and S constant at 35 degC under
+"constant_laws") and the figures prediction.png, residuals.png (and
+*_constant.png, error_vs_tavg.png).  The run's batch folder (recorded in
+summary.json, or --batch) is needed: its identification runs anchor the rig.
+--module population predicts a new unit known only through its batch.
 """
 
 _EPILOG_INSPECT = """\
@@ -198,6 +215,54 @@ def _cmd_calibrate(args):
     return 0 if summ["converged"] else 1
 
 
+def _cmd_predict(args):
+    from tembayes.calibrate.run import load_run
+    from tembayes.data import load_batch, load_experiment, write_json
+    from tembayes.data.write import _refuse_existing, atomic_directory
+    from tembayes.predict.predictive import predict
+
+    if args.draws < 10:
+        print(f"tembayes predict: --draws must be at least 10, got {args.draws}", file=sys.stderr)
+        return 2
+    run = load_run(args.run)  # refused inputs: nothing is written
+    if args.module != "population" and args.module not in run.module_ids:
+        raise DataError(args.run / "posterior.nc", f"has no module '{args.module}'",
+                        f"Choose one of {list(run.module_ids)} or 'population'.")
+    batch_path = args.batch
+    if batch_path is None:
+        recorded = (run.summary.get("batch") or {}).get("path")
+        candidates = [Path(recorded), args.run.parent / recorded] if recorded else []
+        batch_path = next((c for c in candidates if (c / "batch.toml").is_file()), None)
+        if batch_path is None:
+            raise DataError(args.run / "summary.json", f"names batch folder {recorded!r}, which is not there",
+                            "Give the batch the run was calibrated on with --batch BATCH.", column="batch.path")
+    batch = load_batch(batch_path)
+    exp = load_experiment(args.experiment, imax=batch.datasheet.imax)
+    _refuse_existing(args.out, args.overwrite)
+
+    def progress(msg):
+        print(msg, file=sys.stderr, flush=True)
+
+    result = predict(run, exp, args.module, batch, n_draws=args.draws, seed=args.seed,
+                     compare_constant=not args.no_constant, progress=progress)
+    with atomic_directory(args.out, overwrite=args.overwrite) as tmp:
+        doc = result.to_json()
+        doc["command"] = "tembayes " + " ".join(args.argv)
+        doc["tembayes_version"] = tembayes.__version__
+        write_json(tmp / "metrics.json", doc)
+        if not args.no_figures:
+            from tembayes.plots.predict import save_predict_figures
+
+            save_predict_figures(result, tmp)
+    for ch, m in result.linear.metrics().items():
+        unit = "V" if ch == "voltage_V" else "K"
+        print(f"{ch}: RMSE {m['rmse']:.4g} {unit}  max {m['max_abs']:.4g} {unit}  "
+              f"coverage 50/90/95 % {100 * m['coverage50']:.0f}/{100 * m['coverage90']:.0f}/"
+              f"{100 * m['coverage95']:.0f} %")
+    print(f"wrote {args.out / 'metrics.json'}")
+    return 0
+
+
 def build_parser():
     """The argument parser of the ``tembayes`` command."""
     parser = argparse.ArgumentParser(
@@ -284,6 +349,29 @@ def build_parser():
                    help="modules calibrated at once in worker processes (default: %(default)s, at most the "
                         "cores); the results do not depend on it")
     p.set_defaults(func=_cmd_calibrate)
+
+    p = sub.add_parser(
+        "predict",
+        help="posterior-predictive bands of an experiment for a calibrated module or a new unit",
+        description="Simulate an experiment (e.g. a validation run) for posterior draws of a module "
+        "-- laws, K, the rig's thermal parameters (those the step likelihood leaves open anchored on "
+        "the identification run), the step instants and the noise -- from its measured current, water "
+        "and ambient temperatures, and compare the measurements with the central 50/90/95 % bands.",
+        epilog=_EPILOG_PREDICT,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("run", type=Path, help="calibration run folder (tembayes calibrate --out)")
+    p.add_argument("experiment", type=Path, help="experiment CSV (contract section 2)")
+    p.add_argument("--module", required=True, metavar="ID", help="module id of the run, or 'population'")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder to create")
+    p.add_argument("--batch", type=Path, metavar="BATCH",
+                   help="the calibrated batch folder (default: the one recorded in RUN/summary.json)")
+    p.add_argument("--draws", type=int, default=500, metavar="N", help="predictive draws (default 500)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--no-constant", action="store_true", help="skip the constant-law comparison")
+    p.add_argument("--no-figures", action="store_true", help="write metrics.json only")
+    p.add_argument("--overwrite", action="store_true", help="replace DIR if it exists")
+    p.set_defaults(func=_cmd_predict)
 
     p = sub.add_parser(
         "inspect",

@@ -164,8 +164,7 @@ class StepResponseModel:
         out[failed] = np.nan
         volt[failed] = np.nan
         sensors = np.ascontiguousarray(out[:, :, :2].transpose(0, 2, 1))
-        if any(e.stage == "sensors" and any(np.any(m["params"].get(p.name, 0.0) != 0) for p in e.parameters)
-               for e in effects.CATALOGUE.values()):
+        if effects.has_sensor_effect(m["params"]):
             effects.apply_sensors(G[0], sensors, m["params"])
         o = self.obs_pos
         return dict(sensors=sensors[:, :, o], voltage=volt[:, o], t_hot=out[:, o, 2], t_cold=out[:, o, 3],

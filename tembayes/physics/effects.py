@@ -295,3 +295,9 @@ def apply_sensors(time, Y, params):
     for e in CATALOGUE.values():
         if e.stage == "sensors":
             e.hook(time, Y, params)
+
+
+def has_sensor_effect(params):
+    """True if a sensor-stage effect has a non-zero parameter in ``params``."""
+    return any(e.stage == "sensors" and any(np.any(np.asarray(params.get(p.name, 0.0)) != 0) for p in e.parameters)
+               for e in CATALOGUE.values())

@@ -1,0 +1,431 @@
+"""Posterior-predictive simulation of an experiment (``tembayes predict``).
+
+The pipeline, each step a plain function of the previous one's result:
+
+1. :func:`module_draws` -- a module's step-posterior draws from the run, the
+   rig parameters the step likelihood leaves unpinned anchored on its
+   identification run (:func:`~tembayes.predict.anchor.anchor_rig`), which
+   also fits each channel's residual process (the predictive noise);
+   :func:`population_draws` -- the same for a *new* unit of the batch: laws
+   and K from the population predictive, the rig (paste, plates, leaks) and
+   the noise of a random calibrated module (a new mount in the same rig);
+2. :func:`constant_laws` -- optionally, R and S frozen at T-bar = 35 degC (the
+   paper's Figure 8 model), re-anchored with K free (its own rig fit);
+3. :func:`simulate_predictive` -- every draw simulated through the experiment
+   from its measured current levels, water and ambient temperatures
+   (:class:`~tembayes.predict.runmodel.RunModel`), each draw with its own step
+   instant (the phase of a validation run's clock is unknown: uniform over
+   the sampling interval), plus measurement noise and discrepancy from the
+   residual processes, reduced to central 50/90/95 % bands per sample;
+4. :meth:`Prediction.metrics` -- RMSE, max error and band coverage per
+   channel (contract section 4) and the errors binned by T-bar.
+
+Everything is SI inside (K, V); ``metrics.json`` errors of the sensor
+channels are in K, which equal degC differences.
+"""
+
+from __future__ import annotations
+
+import time as _time
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from tembayes.constants import KELVIN, MODULE_PARAMETERS, T_REF
+from tembayes.errors import DataError, TembayesError
+from tembayes.predict.anchor import anchor_rig, unpinned
+from tembayes.predict.runmodel import CHANNELS, RunModel
+
+#: Central band levels [%] (contract section 4).
+LEVELS = (50, 90, 95)
+#: Temperature of the constant-law model [degC] (the paper's Figure 8).
+CONSTANT_AT_C = 35.0
+#: Width of the T-bar bins of the error summary [K].
+TAVG_BIN_K = 5.0
+#: Draws simulated at once (memory: ~60 MB per 100 draws of a 4 h run at 1 Hz).
+CHUNK = 100
+
+
+@dataclass(frozen=True)
+class PredictiveDraws:
+    """Parameter draws of a predictive and the noise that goes with them.
+
+    Attributes
+    ----------
+    params : dict
+        ``name -> (M,)`` simulation parameters (SI).
+    noise_sd : ndarray, shape (M, 5)
+        Sd of the residual process of each channel for each draw (K, V).
+    label : str
+        ``"TEM2"``, ``"population"``...
+    laws : str
+        ``"linear"`` or ``"constant"``.
+    anchor : dict
+        What the anchoring did (per module), for the record.
+    """
+
+    params: dict
+    noise_sd: np.ndarray
+    label: str
+    laws: str = "linear"
+    anchor: dict = field(default_factory=dict)
+
+    @property
+    def n(self):
+        return len(self.noise_sd)
+
+
+def _module_raw_draws(run, module_id):
+    post = run.idata.posterior
+    names = [k for k in post.data_vars]
+    X = run.draws(module_id, names)
+    return {k: X[:, j] for j, k in enumerate(names)}
+
+
+def _sim_names(draws, rig):
+    known = set(MODULE_PARAMETERS) | set(rig.parameter_names)
+    return [k for k in draws if k in known]
+
+
+def module_draws(run, module_id, identification, rig, *, laws="linear"):
+    """A calibrated module's predictive draws, anchored on its identification run.
+
+    Parameters
+    ----------
+    run : tembayes.calibrate.run.CalibrationRun
+    module_id : str
+    identification : tembayes.data.Experiment
+        The module's identification run (the one it was calibrated on).
+    rig : RigDescription
+        The calibration rig.
+    laws : {"linear", "constant"}
+        ``"constant"``: R and S frozen at :data:`CONSTANT_AT_C` (then K is
+        re-anchored too, as the paper refits its rig for that model).
+
+    Returns
+    -------
+    PredictiveDraws
+        All the module's draws (``chain x draw``).
+    """
+    if module_id not in run.module_ids:
+        raise DataError(run.path / "posterior.nc", f"has no module '{module_id}'",
+                        f"Choose one of {list(run.module_ids)} or 'population'.")
+    raw = _module_raw_draws(run, module_id)
+    names = unpinned(raw, run.priors(module_id), rig)
+    fixed = None
+    if laws == "constant":
+        raw = constant_laws(raw)
+        fixed = {"R1_ohm_per_K": 0.0, "S1_V_per_K2": 0.0}
+        names = tuple(names) + ("K_W_per_K",)
+    elif laws != "linear":
+        raise ValueError(f"laws must be 'linear' or 'constant', got {laws!r}")
+    a = anchor_rig(RunModel(identification, rig), raw, names, fixed=fixed)
+    params = {k: a.draws[k] for k in _sim_names(a.draws, rig)}
+    sd = np.array([a.residual[c].sd for c in CHANNELS])
+    M = len(params["R0_ohm"])
+    return PredictiveDraws(params=params, noise_sd=np.repeat(sd[None], M, axis=0), label=module_id, laws=laws,
+                           anchor={module_id: {"updated": list(names), **a.to_dict()}})
+
+
+def constant_laws(draws, at_C=CONSTANT_AT_C):
+    """Draws with R and S frozen at their value at ``at_C`` [degC] (slopes zero)."""
+    x = at_C + KELVIN - T_REF
+    out = dict(draws)
+    out["R0_ohm"] = np.asarray(draws["R0_ohm"]) + np.asarray(draws["R1_ohm_per_K"]) * x
+    out["S0_V_per_K"] = np.asarray(draws["S0_V_per_K"]) + np.asarray(draws["S1_V_per_K2"]) * x
+    out["R1_ohm_per_K"] = np.zeros_like(out["R0_ohm"])
+    out["S1_V_per_K2"] = np.zeros_like(out["S0_V_per_K"])
+    return out
+
+
+def population_draws(run, module_draws_by_id, rng, n):
+    """Predictive draws for a new unit of the batch.
+
+    Laws and K come from the run's population predictive (``summary.json``'s
+    ``population``); every other simulation parameter and the noise from a
+    draw of a randomly chosen calibrated module (the same rig, a new mount).
+
+    Parameters
+    ----------
+    run : CalibrationRun
+    module_draws_by_id : dict
+        ``module id -> PredictiveDraws`` (linear laws).
+    rng : numpy.random.Generator
+    n : int
+
+    Returns
+    -------
+    PredictiveDraws
+    """
+    pop = run.population_draws(MODULE_PARAMETERS)
+    if pop is None:
+        raise DataError(run.path / "posterior.nc", "has no population fit",
+                        "Calibrate the whole batch (the population needs at least two modules).")
+    rows = rng.choice(len(pop), size=n, replace=len(pop) < n)
+    ids = list(module_draws_by_id)
+    which = rng.integers(len(ids), size=n)
+    params = {k: pop[rows, j] for j, k in enumerate(MODULE_PARAMETERS)}
+    rig_names = [k for k in module_draws_by_id[ids[0]].params if k not in MODULE_PARAMETERS]
+    out = {k: np.empty(n) for k in rig_names}
+    noise = np.empty((n, len(CHANNELS)))
+    for i, mid in enumerate(ids):
+        sel = np.flatnonzero(which == i)
+        d = module_draws_by_id[mid]
+        pick = rng.integers(d.n, size=len(sel))
+        for k in rig_names:
+            out[k][sel] = d.params[k][pick]
+        noise[sel] = d.noise_sd[pick]
+    params.update(out)
+    anchor = {}
+    for d in module_draws_by_id.values():
+        anchor.update(d.anchor)
+    return PredictiveDraws(params=params, noise_sd=noise, label="population", anchor=anchor)
+
+
+def subsample(draws, rng, n):
+    """``n`` draws of a :class:`PredictiveDraws` (without replacement when there are enough)."""
+    idx = rng.choice(draws.n, size=n, replace=draws.n < n)
+    return PredictiveDraws(params={k: np.asarray(v)[idx] for k, v in draws.params.items()},
+                           noise_sd=draws.noise_sd[idx], label=draws.label, laws=draws.laws, anchor=draws.anchor)
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """A posterior-predictive of one experiment (SI).
+
+    Attributes
+    ----------
+    source : str
+        The experiment file.
+    label : str
+        Module id or ``"population"``.
+    laws : str
+        ``"linear"`` or ``"constant"``.
+    time : ndarray, shape (n,)
+        [s].
+    channels : tuple of str
+        :data:`~tembayes.predict.runmodel.CHANNELS`.
+    measured, mean, median : ndarray, shape (5, n)
+        Measured values, predictive mean and median (K for T1..T4, V).
+    bands : dict
+        Level [%] -> ``(lower, upper)``, each ``(5, n)``: the central band of
+        the predictive (measurement noise included).
+    tavg : ndarray, shape (n,)
+        Measured ``(T2 + T3)/2`` [K], the stand-in for T-bar in the error
+        summary.
+    current : ndarray, shape (n,)
+        Measured current [A].
+    n_draws : int
+    seconds : float
+        Wall time of the simulation and the bands.
+    """
+
+    source: str
+    label: str
+    laws: str
+    time: np.ndarray
+    channels: tuple
+    measured: np.ndarray
+    mean: np.ndarray
+    median: np.ndarray
+    bands: dict
+    tavg: np.ndarray
+    current: np.ndarray
+    n_draws: int
+    seconds: float
+
+    @property
+    def residual(self):
+        """Measured minus predictive mean, ``(5, n)``."""
+        return self.measured - self.mean
+
+    def coverage(self, level):
+        """Fraction of samples inside the central ``level`` % band, per channel ``(5,)``."""
+        lo, hi = self.bands[level]
+        return np.mean((self.measured >= lo) & (self.measured <= hi), axis=1)
+
+    def metrics(self):
+        """Contract section 4: ``{channel: {rmse, max_abs, coverage50, coverage90, coverage95}}``."""
+        r = self.residual
+        cov = {lv: self.coverage(lv) for lv in LEVELS}
+        return {ch: {"rmse": float(np.sqrt(np.mean(r[c] ** 2))), "max_abs": float(np.max(np.abs(r[c]))),
+                     **{f"coverage{lv}": float(cov[lv][c]) for lv in LEVELS}}
+                for c, ch in enumerate(self.channels)}
+
+    def by_tavg(self, width=TAVG_BIN_K, min_samples=30):
+        """RMSE per channel in bins of T-bar (measured ``(T2 + T3)/2``).
+
+        Returns
+        -------
+        list of dict
+            ``{"Tavg_C_low", "Tavg_C_high", "n", "rmse": {channel: ...}}``,
+            bins with fewer than ``min_samples`` samples left out.
+        """
+        tc = self.tavg - KELVIN
+        edges = np.arange(np.floor(tc.min() / width) * width, tc.max() + width, width)
+        out = []
+        r = self.residual
+        for lo, hi in zip(edges[:-1], edges[1:]):
+            m = (tc >= lo) & (tc < hi)
+            if m.sum() < min_samples:
+                continue
+            out.append({"Tavg_C_low": float(lo), "Tavg_C_high": float(hi), "n": int(m.sum()),
+                        "rmse": {ch: float(np.sqrt(np.mean(r[c, m] ** 2))) for c, ch in enumerate(self.channels)}})
+        return out
+
+
+def simulate_predictive(model, draws, rng, *, progress=None):
+    """Simulate every draw through an experiment and form the bands.
+
+    Parameters
+    ----------
+    model : RunModel
+        The experiment.
+    draws : PredictiveDraws
+    rng : numpy.random.Generator
+        Draws the step instants and the noise.
+    progress : callable, optional
+        Called with a message per chunk of draws.
+
+    Returns
+    -------
+    Prediction
+    """
+    t0 = _time.perf_counter()
+    exp = model.exp
+    M = draws.n
+    n = len(model.time)
+    Y = np.empty((M, len(CHANNELS), n))
+    # one phase per draw, common to the run's steps (see RunModel)
+    shift = rng.uniform(-1.0, 1.0, M) * model.shift_bound
+    for a in range(0, M, CHUNK):
+        b = min(a + CHUNK, M)
+        params = {k: np.asarray(v)[a:b] for k, v in draws.params.items()}
+        sens, volt = model.simulate(params, shift[a:b])
+        Y[a:b, :4] = sens
+        Y[a:b, 4] = volt
+        if progress:
+            progress(f"  predictive draws {b}/{M}")
+    mean = Y.mean(axis=0)
+    Y += rng.standard_normal(Y.shape) * draws.noise_sd[:, :, None]
+    qs = sorted({q for lv in LEVELS for q in (0.5 - lv / 200.0, 0.5 + lv / 200.0)} | {0.5})
+    Q = np.quantile(Y, qs, axis=0)
+    qi = {q: i for i, q in enumerate(qs)}
+    bands = {lv: (Q[qi[0.5 - lv / 200.0]], Q[qi[0.5 + lv / 200.0]]) for lv in LEVELS}
+    measured = np.vstack([np.asarray(exp.sensors, float), np.asarray(exp.voltage, float)[None]])
+    tavg = 0.5 * (measured[1] + measured[2])
+    return Prediction(source=str(exp.path), label=draws.label, laws=draws.laws, time=model.time.copy(),
+                      channels=CHANNELS, measured=measured, mean=mean, median=Q[qi[0.5]], bands=bands, tavg=tavg,
+                      current=np.asarray(exp.current, float), n_draws=M, seconds=_time.perf_counter() - t0)
+
+
+@dataclass(frozen=True)
+class PredictResult:
+    """Result of :func:`predict`.
+
+    Attributes
+    ----------
+    linear : Prediction
+        The calibration's laws (linear in T-bar).
+    constant : Prediction or None
+        R and S constant at :data:`CONSTANT_AT_C`, anchored on its own.
+    draws : PredictiveDraws
+        The linear-law draws that were simulated.
+    seed : int
+    seconds : float
+    """
+
+    linear: Prediction
+    constant: Prediction | None
+    draws: PredictiveDraws
+    seed: int
+    seconds: float
+
+    def to_json(self):
+        """``metrics.json``: contract section 4 plus the context."""
+        doc = {"channels": self.linear.metrics()}
+        doc.update({
+            "module": self.linear.label, "experiment": self.linear.source, "laws": "linear",
+            "n_draws": self.linear.n_draws, "seed": self.seed, "levels_percent": list(LEVELS),
+            "units": {"T1_C": "K (= degC difference)", "T2_C": "K", "T3_C": "K", "T4_C": "K", "voltage_V": "V"},
+            "rmse_about": "the posterior-predictive mean",
+            "by_Tavg": self.linear.by_tavg(),
+            "anchor": self.draws.anchor,
+            "seconds": self.seconds,
+        })
+        if self.constant is not None:
+            doc["constant_laws"] = {"T_C": CONSTANT_AT_C, "channels": self.constant.metrics(),
+                                    "by_Tavg": self.constant.by_tavg()}
+        return doc
+
+
+def _seed_for(seed, label, what):
+    return np.random.default_rng([int(seed), zlib.crc32(f"{label}/{what}".encode())])
+
+
+def predict(run, experiment, module, batch, *, n_draws=500, seed=0, compare_constant=True, progress=None):
+    """Posterior-predictive bands of an experiment for a module or a new unit.
+
+    Parameters
+    ----------
+    run : CalibrationRun
+    experiment : tembayes.data.Experiment
+    module : str
+        A module id of the run, or ``"population"``.
+    batch : tembayes.data.Batch
+        The calibrated batch (the identification runs anchor the rig).
+    n_draws : int
+        Predictive draws.
+    seed : int
+    compare_constant : bool
+        Also predict with R and S constant at 35 degC.
+    progress : callable, optional
+
+    Returns
+    -------
+    PredictResult
+    """
+    from tembayes.physics.rig import rig_from_config
+
+    t0 = _time.perf_counter()
+    say = progress or (lambda msg: None)
+    if n_draws < 10:
+        raise TembayesError(f"n_draws must be at least 10 (bands from fewer draws are noise), got {n_draws}")
+    if module != "population" and module not in run.module_ids:
+        raise DataError(run.path / "posterior.nc", f"has no module '{module}'",
+                        f"Choose one of {list(run.module_ids)} or 'population'.")
+    missing = [m for m in run.module_ids if m not in batch.modules]
+    if missing:
+        raise DataError(batch.path, f"has no module folder(s) {missing} of the run",
+                        "Give the batch folder the run was calibrated on (--batch).")
+    opts = (run.summary.get("calibration") or {}).get("options") or {}
+    rig = rig_from_config(batch.rig_config, opts.get("leg_cells", 4), opts.get("block_cells", 6))
+    model = RunModel(experiment, rig)
+    ids = list(run.module_ids) if module == "population" else [module]
+    results = {}
+    for laws in ("linear", "constant") if compare_constant else ("linear",):
+        per = {}
+        for mid in ids:
+            say(f"{mid}: anchoring the rig on the identification run ({laws} laws)")
+            per[mid] = module_draws(run, mid, batch.modules[mid].identification, rig, laws=laws)
+        if laws == "linear":
+            lin = per
+        rng = _seed_for(seed, module, laws)
+        if module == "population":
+            draws = population_draws(run, per, rng, n_draws)
+            params = draws.params
+            if laws == "constant":
+                # the population's laws frozen; K moved as the modules' own rig fits moved it
+                params = constant_laws(params)
+                ratio = np.mean([np.mean(per[m].params["K_W_per_K"]) / np.mean(lin[m].params["K_W_per_K"])
+                                 for m in ids])
+                params["K_W_per_K"] = params["K_W_per_K"] * ratio
+            draws = PredictiveDraws(params, draws.noise_sd, "population", laws, draws.anchor)
+        else:
+            draws = subsample(per[module], rng, n_draws)
+        say(f"{module}: simulating {n_draws} predictive draws of {Path(str(experiment.path)).name} ({laws} laws)")
+        results[laws] = (simulate_predictive(model, draws, rng, progress=progress), draws)
+    return PredictResult(linear=results["linear"][0], constant=results.get("constant", (None,))[0],
+                         draws=results["linear"][1], seed=int(seed), seconds=_time.perf_counter() - t0)
