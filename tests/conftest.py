@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 import hashlib
+import json
 from pathlib import Path
 
 import numpy as np
@@ -100,3 +101,27 @@ class DataFactory:
 @pytest.fixture
 def data_factory(tmp_path) -> DataFactory:
     return DataFactory(tmp_path)
+
+
+@pytest.fixture(scope="session")
+def batch3(tmp_path_factory):
+    """A 3-module bench batch (300 s holds, TEM2 an outlier), no validation runs."""
+    from tembayes.bench import BenchConfig, simulate_batch
+
+    path = tmp_path_factory.mktemp("b3") / "batch"
+    simulate_batch(path, BenchConfig(n_modules=3, seed=21, outlier="TEM2", hold=300.0, n_validations=0),
+                   progress=lambda msg: None)
+    return path
+
+
+@pytest.fixture(scope="session")
+def run3(batch3, tmp_path_factory):
+    """``batch3`` calibrated: ``(run folder, summary, truth)``."""
+    from tembayes.calibrate import calibrate_batch
+    from tembayes.data import load_batch
+
+    out = tmp_path_factory.mktemp("r3") / "run"
+    # two worker processes: test_same_seed_same_module_result then also checks
+    # that a module calibrated in a worker equals one calibrated in-process
+    summ = calibrate_batch(load_batch(batch3), out, seed=0, figures=True, jobs=2)
+    return out, summ, json.loads((batch3 / "truth.json").read_text())

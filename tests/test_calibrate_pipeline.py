@@ -38,22 +38,11 @@ def _bench(path, n, seed, outlier=None):
 
 
 @pytest.fixture(scope="module")
-def batch3(tmp_path_factory):
-    return _bench(tmp_path_factory.mktemp("b3") / "batch", 3, seed=21, outlier="TEM2")
-
-
-@pytest.fixture(scope="module")
 def batch1(tmp_path_factory):
     return _bench(tmp_path_factory.mktemp("b1") / "batch", 1, seed=22)
 
 
-@pytest.fixture(scope="module")
-def run3(batch3, tmp_path_factory):
-    out = tmp_path_factory.mktemp("r3") / "run"
-    # two worker processes: test_same_seed_same_module_result then also checks
-    # that a module calibrated in a worker equals one calibrated in-process
-    summ = calibrate_batch(load_batch(batch3), out, seed=0, figures=True, jobs=2)
-    return out, summ, json.loads((batch3 / "truth.json").read_text())
+# batch3 and run3 (the calibrated 3-module bench batch) are session fixtures in conftest.py
 
 
 def test_recovers_the_bench_truth_and_converges(run3):

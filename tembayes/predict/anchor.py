@@ -297,7 +297,7 @@ def anchor_rig(model, draws, names, *, shift=None, fixed=None):
         U = u_star[None] - (Dg @ (P @ Ju.T @ Jg).T) + Xi @ Lp.T
         Znew = mu[None] + Dg @ B.T + U @ Lc.T
         new = from_coords(Znew, names)
-        prior_sd = dict(zip(names, np.sqrt(np.diag(np.cov(Zu, rowvar=False))).reshape(-1).tolist()))
+        prior_sd = dict(zip(names, np.sqrt(np.diag(np.atleast_2d(np.cov(Zu, rowvar=False)))).tolist()))
         posterior_sd = dict(zip(names, np.atleast_1d(Znew.std(axis=0)).tolist()))
         mode = (zu_star[None], mg)
     else:

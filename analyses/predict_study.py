@@ -1,0 +1,195 @@
+"""Are the predictive bands honest?  RMSE and band coverage on fresh validation runs.
+
+Uses the calibrated bench batches of ``analyses/calibration_study.py`` (cached
+under ``runs/calibration_study``; run that first).  For every calibrated
+module it records a fresh 4-hour validation run on the bench (random holds of
+300-1200 s between -1.6 and +0.9 A, 1 Hz, the module's true parameters, a
+finer rig than the model, drifts and noise: a *correctly specified* bench, no
+catalogue effect) and predicts it with ``tembayes.predict.predict`` exactly as
+``tembayes predict`` does: linear laws and, side by side, R and S constant at
+35 degC.  For every batch it also makes a *new* unit of the batch's type (laws
+drawn from the bench's population, the batch's cooler and enclosure, a new
+mount) and predicts its validation run with ``--module population``.
+
+Targets (issue 5): linear-law RMSE <= 0.25 K on each of T1-T4; 90 % band
+coverage within 85-95 % on a correctly specified bench; the constant model
+visibly worse at T-bar far from 35 degC.
+
+    python analyses/predict_study.py                # all cached batches (~25 min on 2 cores)
+    python analyses/predict_study.py --quick        # 2 batches
+    python analyses/predict_study.py --draws 500    # as many draws as the CLI default
+
+Results: ``analyses/results/predict_study.json`` and ``predict_study.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+import zlib
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+RESULTS = Path(__file__).resolve().parent / "results"
+CHANNELS = ("T1_C", "T2_C", "T3_C", "T4_C", "voltage_V")
+
+
+def _validation(truth_module, datasheet, seed, path):
+    """Record a fresh validation run of a bench module and load it like a user's CSV."""
+    from tembayes.bench import bench as B
+    from tembayes.bench import hifi
+    from tembayes.bench.protocols import validation_cycle
+    from tembayes.data import load_experiment
+    from tembayes.data.write import write_experiment_csv
+
+    if not path.is_file():
+        rng = np.random.default_rng(seed)
+        proto = validation_cycle(rng, datasheet.imax)
+        exp = B.run_experiment(proto, truth_module, {}, rng, rate=1.0, rig=hifi.hifi_rig(),
+                               t0=float(np.round(rng.uniform(0, 1000), 3)))
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_experiment_csv(path, exp)
+    return load_experiment(path, imax=datasheet.imax)
+
+
+def _new_unit(truth, rng):
+    """A new module of the batch's type: population laws with the bench's unit spread, the batch's
+    cooler and enclosure, a new mount (paste, plates, legs)."""
+    from tembayes.bench import bench as B
+
+    pop = truth["population"]
+    laws = {k: v * (1.0 + B.UNIT_SPREAD[k] * rng.standard_normal()) for k, v in pop.items()}
+    first = next(iter(truth["modules"].values()))["rig_bench"]
+    rig = {k: first[k] for k in ("g_cooler", "leak_top", "leak_bottom")}
+    for k in ("g_paste_hot", "g_paste_cold", "c_plate_hot", "c_plate_cold", "c_legs"):
+        rig[k] = B._draw_rig(rng, k)
+    return {**laws, "outlier": False, "rig_bench": rig}
+
+
+def study_batch(args):
+    name, work, n_draws = args
+    from tembayes.calibrate.run import load_run
+    from tembayes.data import load_batch
+    from tembayes.predict import predict
+
+    batch = load_batch(work / "batches" / name)
+    run = load_run(work / "runs" / name)
+    truth = json.loads((work / "batches" / name / "truth.json").read_text())
+    rows = []
+    seed0 = zlib.crc32(f"predict-study/{name}".encode())  # independent runs per batch
+    targets = [(mid, truth["modules"][mid], mid) for mid in run.module_ids]
+    targets.append(("population", _new_unit(truth, np.random.default_rng(seed0 + 999)), "NEW"))
+    for k, (module, tmod, tag) in enumerate(targets):
+        t0 = time.perf_counter()
+        exp = _validation(tmod, batch.datasheet, seed0 + k, work / "validations" / name / f"{tag}.csv")
+        res = predict(run, exp, module, batch, n_draws=n_draws, seed=k, compare_constant=(module != "population"))
+        row = {"batch": name, "module": tag, "kind": "population" if module == "population" else "module",
+               "linear": res.linear.metrics(), "linear_by_Tavg": res.linear.by_tavg(),
+               "seconds": time.perf_counter() - t0, "predictive_s": res.linear.seconds}
+        if res.constant is not None:
+            row["constant"] = res.constant.metrics()
+            row["constant_by_Tavg"] = res.constant.by_tavg()
+        rows.append(row)
+        print(f"{name}/{tag}: T3 RMSE {row['linear']['T3_C']['rmse']:.4f} K, cov90 "
+              + " ".join(f"{row['linear'][c]['coverage90']:.2f}" for c in CHANNELS)
+              + f"  ({row['seconds']:.0f} s)", flush=True)
+    return rows
+
+
+def summarise(rows):
+    out = {}
+    for kind in ("module", "population"):
+        R = [r for r in rows if r["kind"] == kind]
+        if not R:
+            continue
+        s = {"n_runs": len(R)}
+        for ch in CHANNELS:
+            cov = {lv: np.array([r["linear"][ch][f"coverage{lv}"] for r in R]) for lv in (50, 90, 95)}
+            rmse = np.array([r["linear"][ch]["rmse"] for r in R])
+            s[ch] = {
+                **{f"coverage{lv}_mean": float(cov[lv].mean()) for lv in cov},
+                **{f"coverage{lv}_se": float(cov[lv].std(ddof=1) / np.sqrt(len(R))) if len(R) > 1 else None
+                   for lv in cov},
+                "coverage90_runs_in_85_95": float(np.mean((cov[90] >= 0.85) & (cov[90] <= 0.95))),
+                "rmse_median": float(np.median(rmse)), "rmse_max": float(rmse.max()),
+            }
+        out[kind] = s
+    # constant vs linear by T-bar (pooled over module runs): RMSE per 5 K bin, sample-weighted
+    bins = {}
+    for r in rows:
+        for model in ("linear", "constant"):
+            for b in r.get(f"{model}_by_Tavg", []):
+                key = b["Tavg_C_low"]
+                d = bins.setdefault(key, {"linear": [0.0, 0], "constant": [0.0, 0]})
+                if r["kind"] != "module":
+                    continue
+                d[model][0] += b["rmse"]["T3_C"] ** 2 * b["n"]
+                d[model][1] += b["n"]
+    out["T3_rmse_by_Tavg"] = [{"Tavg_C_low": k, "linear": float(np.sqrt(v["linear"][0] / v["linear"][1])),
+                               "constant": float(np.sqrt(v["constant"][0] / v["constant"][1])),
+                               "n": v["linear"][1]}
+                              for k, v in sorted(bins.items()) if v["linear"][1] and v["constant"][1]]
+    return out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--work", type=Path, default=Path("runs/calibration_study"))
+    ap.add_argument("--draws", type=int, default=300)
+    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--quick", action="store_true")
+    args = ap.parse_args(argv)
+    names = sorted(p.name for p in (args.work / "runs").iterdir() if (p / "summary.json").is_file())
+    if not names:
+        sys.exit(f"no calibrated batches under {args.work / 'runs'}: run analyses/calibration_study.py first")
+    if args.quick:
+        names = names[:2]
+    t0 = time.time()
+    os.environ["NUMBA_NUM_THREADS"] = "1"  # the workers run one draw loop each
+    import multiprocessing as mp
+
+    with ProcessPoolExecutor(max_workers=args.jobs, mp_context=mp.get_context("spawn")) as ex:
+        rows = [r for rs in ex.map(study_batch, [(n, args.work, args.draws) for n in names]) for r in rs]
+    summ = summarise(rows)
+    doc = {"command": "python analyses/predict_study.py " + " ".join(argv or sys.argv[1:]),
+           "n_draws": args.draws, "batches": names, "minutes": (time.time() - t0) / 60.0, "summary": summ,
+           "runs": rows}
+    RESULTS.mkdir(exist_ok=True)
+    from tembayes.data import write_json
+
+    write_json(RESULTS / "predict_study.json", doc)
+    lines = [f"# Predictive study ({len(rows)} validation runs, {args.draws} draws, {doc['minutes']:.0f} min)", ""]
+    for kind in ("module", "population"):
+        if kind not in summ:
+            continue
+        s = summ[kind]
+        lines += [f"## {kind} predictions ({s['n_runs']} runs)", "",
+                  "| channel | RMSE median | RMSE max | coverage 50 | coverage 90 (± se) | coverage 95 | runs with 90 % coverage in 85-95 % |",
+                  "|---|---|---|---|---|---|---|"]
+        for ch in CHANNELS:
+            c = s[ch]
+            u = "mV" if ch == "voltage_V" else "K"
+            f = 1e3 if ch == "voltage_V" else 1.0
+            lines.append(f"| {ch} | {f * c['rmse_median']:.4g} {u} | {f * c['rmse_max']:.4g} {u} | "
+                         f"{100 * c['coverage50_mean']:.1f} % | {100 * c['coverage90_mean']:.1f} ± "
+                         f"{100 * (c['coverage90_se'] or 0):.1f} % | {100 * c['coverage95_mean']:.1f} % | "
+                         f"{100 * c['coverage90_runs_in_85_95']:.0f} % |")
+        lines.append("")
+    lines += ["## T3 RMSE by T-bar, linear vs constant (35 degC) laws", "", "| T-bar bin | linear | constant |",
+              "|---|---|---|"]
+    for b in summ["T3_rmse_by_Tavg"]:
+        lines.append(f"| {b['Tavg_C_low']:.0f}-{b['Tavg_C_low'] + 5:.0f} degC | {b['linear']:.4f} K | "
+                     f"{b['constant']:.3f} K |")
+    (RESULTS / "predict_study.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
