@@ -191,9 +191,10 @@ def anchor_rig(model, draws, names, *, shift=None, fixed=None):
     posterior; the parameters ``names`` are updated given them.  Per draw
     ``i``, their step posterior conditional on the draw's ``given`` values,
     ``N(mu_c + B (g_i - g_mean), Lc Lc^T)`` from the draws' linear regression,
-    is the prior, and the update is linearised around the mean draw:
-    ``u_i = u* - P J_u^T J_g (g_i - g_mean) + chol(P) xi_i``, with ``xi_i`` the
-    draw's own whitened residual (its shape survives) and
+    is the prior; with the updated parameters ``mu_c + B (g_i - g_mean) + Lc u``
+    the update is linearised around the mean draw:
+    ``u_i = u* - P J_u^T (J_g + J_u Lc^-1 B) (g_i - g_mean) + chol(P) xi_i``,
+    with ``xi_i`` the draw's own whitened residual (its shape survives) and
     ``P = (I + J_u^T J_u)^-1``.
 
     Parameters
@@ -294,7 +295,10 @@ def anchor_rig(model, draws, names, *, shift=None, fixed=None):
         Jg = ((W[1:] - W[0][None]) / sg[:, None]).T
         P = np.linalg.inv(np.eye(p) + Ju.T @ Ju)
         Lp = np.linalg.cholesky(0.5 * (P + P.T))
-        U = u_star[None] - (Dg @ (P @ Ju.T @ Jg).T) + Xi @ Lp.T
+        # a draw's given parameters move the data directly (Jg) and through the
+        # conditional prior mean of the updated ones (B), which u is measured from
+        Jeff = Jg + Ju @ np.linalg.solve(Lc, B) if len(given) else Jg
+        U = u_star[None] - (Dg @ (P @ Ju.T @ Jeff).T) + Xi @ Lp.T
         Znew = mu[None] + Dg @ B.T + U @ Lc.T
         new = from_coords(Znew, names)
         prior_sd = dict(zip(names, np.sqrt(np.diag(np.atleast_2d(np.cov(Zu, rowvar=False)))).tolist()))
