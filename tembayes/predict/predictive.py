@@ -64,6 +64,8 @@ class PredictiveDraws:
         ``"linear"`` or ``"constant"``.
     anchor : dict
         What the anchoring did (per module), for the record.
+    noise_tau : ndarray, shape (M, 5), optional
+        Correlation time of each channel's residual process [s].
     """
 
     params: dict
@@ -71,6 +73,7 @@ class PredictiveDraws:
     label: str
     laws: str = "linear"
     anchor: dict = field(default_factory=dict)
+    noise_tau: np.ndarray | None = None
 
     @property
     def n(self):
@@ -124,9 +127,11 @@ def module_draws(run, module_id, identification, rig, *, laws="linear"):
     a = anchor_rig(RunModel(identification, rig), raw, names, fixed=fixed)
     params = {k: a.draws[k] for k in _sim_names(a.draws, rig)}
     sd = np.array([a.residual[c].sd for c in CHANNELS])
+    tau = np.array([a.residual[c].tau_s for c in CHANNELS])
     M = len(params["R0_ohm"])
     return PredictiveDraws(params=params, noise_sd=np.repeat(sd[None], M, axis=0), label=module_id, laws=laws,
-                           anchor={module_id: {"updated": list(names), **a.to_dict()}})
+                           anchor={module_id: {"updated": list(names), **a.to_dict()}},
+                           noise_tau=np.repeat(tau[None], M, axis=0))
 
 
 def constant_laws(draws, at_C=CONSTANT_AT_C):
@@ -170,6 +175,7 @@ def population_draws(run, module_draws_by_id, rng, n):
     rig_names = [k for k in module_draws_by_id[ids[0]].params if k not in MODULE_PARAMETERS]
     out = {k: np.empty(n) for k in rig_names}
     noise = np.empty((n, len(CHANNELS)))
+    tau = np.empty((n, len(CHANNELS)))
     for i, mid in enumerate(ids):
         sel = np.flatnonzero(which == i)
         d = module_draws_by_id[mid]
@@ -177,18 +183,20 @@ def population_draws(run, module_draws_by_id, rng, n):
         for k in rig_names:
             out[k][sel] = d.params[k][pick]
         noise[sel] = d.noise_sd[pick]
+        tau[sel] = d.noise_tau[pick] if d.noise_tau is not None else 0.0
     params.update(out)
     anchor = {}
     for d in module_draws_by_id.values():
         anchor.update(d.anchor)
-    return PredictiveDraws(params=params, noise_sd=noise, label="population", anchor=anchor)
+    return PredictiveDraws(params=params, noise_sd=noise, label="population", anchor=anchor, noise_tau=tau)
 
 
 def subsample(draws, rng, n):
     """``n`` draws of a :class:`PredictiveDraws` (without replacement when there are enough)."""
     idx = rng.choice(draws.n, size=n, replace=draws.n < n)
     return PredictiveDraws(params={k: np.asarray(v)[idx] for k, v in draws.params.items()},
-                           noise_sd=draws.noise_sd[idx], label=draws.label, laws=draws.laws, anchor=draws.anchor)
+                           noise_sd=draws.noise_sd[idx], label=draws.label, laws=draws.laws, anchor=draws.anchor,
+                           noise_tau=None if draws.noise_tau is None else draws.noise_tau[idx])
 
 
 @dataclass(frozen=True)
@@ -220,6 +228,13 @@ class Prediction:
     n_draws : int
     seconds : float
         Wall time of the simulation and the bands.
+    since_step : ndarray, shape (n,), optional
+        Time since the last current step [s] (since the start before the first).
+    deviations : ndarray, shape (M, 5, n), optional
+        The draws' noise-free predictions minus ``mean`` (float32), kept with
+        ``keep_draws=True`` for posterior-predictive checks.
+    noise_sd, noise_tau : ndarray, shape (M, 5), optional
+        The draws' residual processes (kept with ``keep_draws=True``).
     """
 
     source: str
@@ -235,6 +250,10 @@ class Prediction:
     current: np.ndarray
     n_draws: int
     seconds: float
+    since_step: np.ndarray | None = None
+    deviations: np.ndarray | None = None
+    noise_sd: np.ndarray | None = None
+    noise_tau: np.ndarray | None = None
 
     @property
     def residual(self):
@@ -276,7 +295,7 @@ class Prediction:
         return out
 
 
-def simulate_predictive(model, draws, rng, *, progress=None):
+def simulate_predictive(model, draws, rng, *, progress=None, keep_draws=False):
     """Simulate every draw through an experiment and form the bands.
 
     Parameters
@@ -288,6 +307,9 @@ def simulate_predictive(model, draws, rng, *, progress=None):
         Draws the step instants and the noise.
     progress : callable, optional
         Called with a message per chunk of draws.
+    keep_draws : bool
+        Keep the draws' predictions in the result (``deviations``), for
+        posterior-predictive checks (:mod:`tembayes.gap`).
 
     Returns
     -------
@@ -309,6 +331,7 @@ def simulate_predictive(model, draws, rng, *, progress=None):
         if progress:
             progress(f"  predictive draws {b}/{M}")
     mean = Y.mean(axis=0)
+    dev = (Y - mean[None]).astype(np.float32) if keep_draws else None
     Y += rng.standard_normal(Y.shape) * draws.noise_sd[:, :, None]
     qs = sorted({q for lv in LEVELS for q in (0.5 - lv / 200.0, 0.5 + lv / 200.0)} | {0.5})
     Q = np.quantile(Y, qs, axis=0)
@@ -316,9 +339,14 @@ def simulate_predictive(model, draws, rng, *, progress=None):
     bands = {lv: (Q[qi[0.5 - lv / 200.0]], Q[qi[0.5 + lv / 200.0]]) for lv in LEVELS}
     measured = np.vstack([np.asarray(exp.sensors, float), np.asarray(exp.voltage, float)[None]])
     tavg = 0.5 * (measured[1] + measured[2])
+    starts = np.concatenate([[model.time[0]], model.step_time])
+    since = model.time - starts[model.sample_hold]
     return Prediction(source=str(exp.path), label=draws.label, laws=draws.laws, time=model.time.copy(),
                       channels=CHANNELS, measured=measured, mean=mean, median=Q[qi[0.5]], bands=bands, tavg=tavg,
-                      current=np.asarray(exp.current, float), n_draws=M, seconds=_time.perf_counter() - t0)
+                      current=np.asarray(exp.current, float), n_draws=M, seconds=_time.perf_counter() - t0,
+                      since_step=since, deviations=dev,
+                      noise_sd=draws.noise_sd if keep_draws else None,
+                      noise_tau=draws.noise_tau if keep_draws else None)
 
 
 @dataclass(frozen=True)
@@ -422,7 +450,7 @@ def predict(run, experiment, module, batch, *, n_draws=500, seed=0, compare_cons
                 ratio = np.mean([np.mean(per[m].params["K_W_per_K"]) / np.mean(lin[m].params["K_W_per_K"])
                                  for m in ids])
                 params["K_W_per_K"] = params["K_W_per_K"] * ratio
-            draws = PredictiveDraws(params, draws.noise_sd, "population", laws, draws.anchor)
+            draws = PredictiveDraws(params, draws.noise_sd, "population", laws, draws.anchor, draws.noise_tau)
         else:
             draws = subsample(per[module], rng, n_draws)
         say(f"{module}: simulating {n_draws} predictive draws of {Path(str(experiment.path)).name} ({laws} laws)")

@@ -1,0 +1,1 @@
+"""Stage 5 -- the sim-to-real gap diagnosis (``tembayes gap``): where, which effect, how far."""

@@ -1,0 +1,82 @@
+"""Figures of the gap diagnosis: the gap map as a heat map, residual patterns.
+
+They read :class:`~tembayes.gap.where.GapMap` and
+:class:`~tembayes.predict.predictive.Prediction` objects only.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from matplotlib.colors import LogNorm
+from matplotlib.figure import Figure
+
+from tembayes.constants import KELVIN
+
+
+def plot_gap_map(gmap, fig=None, alpha=0.05):
+    """Heat map of the score (RMS standardised residual) per channel and regime.
+
+    1 means the measurement scatters as the predictive band says; cells that
+    are significant after Bonferroni over all cells carry a star.
+    """
+    channels = list(gmap.channels)
+    regimes = []
+    for c in gmap.cells:
+        if (c["family"], c["regime"]) not in regimes:
+            regimes.append((c["family"], c["regime"]))
+    S = np.full((len(channels), len(regimes)), np.nan)
+    sig = {(c["channel"], c["regime"]) for c in gmap.significant(alpha)}
+    for c in gmap.cells:
+        S[channels.index(c["channel"]), regimes.index((c["family"], c["regime"]))] = c["score"]
+    fig = fig or Figure(figsize=(max(7.0, 0.55 * len(regimes) + 3.0), 4.2), layout="constrained")
+    ax = fig.add_subplot()
+    im = ax.imshow(S, cmap="magma_r", norm=LogNorm(vmin=0.7, vmax=max(5.0, np.nanmax(S))), aspect="auto")
+    for i, ch in enumerate(channels):
+        for j, (_, reg) in enumerate(regimes):
+            if np.isfinite(S[i, j]):
+                ax.text(j, i, f"{S[i, j]:.1f}" + ("*" if (ch, reg) in sig else ""), ha="center", va="center",
+                        fontsize=7, color="white" if S[i, j] > 2.5 else "black")
+    ax.set_yticks(range(len(channels)), channels)
+    ax.set_xticks(range(len(regimes)), [r for _, r in regimes], rotation=60, ha="right", fontsize=7)
+    fig.colorbar(im, ax=ax, label="RMS standardised residual")
+    ax.set_title(f"Gap map: {Path(gmap.source).name} (* significant, Bonferroni over {len(gmap.cells)} cells, "
+                 f"{gmap.n_replicates} replicates)", fontsize=9)
+    return fig
+
+
+def plot_residual_patterns(pred, fig=None):
+    """Standardised residuals against T-bar and against time since the last step, per channel.
+
+    The standardisation uses the predictive's 90 % band (half-width / 1.645).
+    """
+    lo, hi = pred.bands[90]
+    z = (pred.measured - pred.mean) / np.maximum((hi - lo) / (2 * 1.645), 1e-12)
+    fig = fig or Figure(figsize=(11.0, 4.5), layout="constrained")
+    ax_t, ax_s = fig.subplots(1, 2, sharey=True)
+    tc = pred.tavg - KELVIN
+    edges_t = np.arange(np.floor(tc.min()), tc.max() + 2.0, 2.0)
+    s = np.maximum(pred.since_step if pred.since_step is not None else pred.time - pred.time[0], 0.5)
+    edges_s = np.geomspace(0.5, s.max() * 1.01, 25)
+    for c, ch in enumerate(pred.channels):
+        for ax, x, edges in ((ax_t, tc, edges_t), (ax_s, s, edges_s)):
+            idx = np.digitize(x, edges) - 1
+            cen, rms = [], []
+            for b in range(len(edges) - 1):
+                m = idx == b
+                if m.sum() >= 20:
+                    cen.append(0.5 * (edges[b] + edges[b + 1]))
+                    rms.append(np.sqrt(np.mean(z[c, m] ** 2)))
+            ax.plot(cen, rms, marker="o", ms=3, lw=1.2, label=ch, gid=f"rms:{ch}")
+    for ax in (ax_t, ax_s):
+        ax.axhline(1.0, color="0.4", ls="--", lw=1.0)
+        ax.set_yscale("log")
+        ax.grid(True, which="both", alpha=0.3)
+    ax_s.set_xscale("log")
+    ax_t.set_xlabel("T̄ ≈ (T2 + T3)/2 [°C]")
+    ax_s.set_xlabel("time since the last current step [s]")
+    ax_t.set_ylabel("RMS standardised residual per bin")
+    ax_t.legend(fontsize=8)
+    fig.suptitle(f"Residual patterns: {Path(pred.source).name} — {pred.label}")
+    return fig

@@ -1,0 +1,83 @@
+"""The gap diagnosis (issue 6), part 1 -- where: the gap map's posterior-predictive
+check on synthetic predictives whose truth is known, and its figures."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+CHANNELS = ("T1_C", "T2_C", "T3_C", "T4_C", "voltage_V")
+
+
+def _fake_prediction(rng, n=6000, M=300, bump=0.0):
+    """A predictive whose draws are known: run-long parameter errors plus OU noise; the measurement
+    is one more replicate, plus ``bump`` (in predictive sds) on T3 while the current is positive."""
+    from tembayes.gap.where import ou_paths
+    from tembayes.predict.predictive import Prediction
+
+    t = np.cumsum(rng.uniform(0.9, 1.1, n))
+    current = np.where((t // 900) % 2 == 0, 0.8, -1.2)
+    sd_par, sd_noise, tau = 0.01, 0.004, 20.0
+    shape = np.sin(t / 700.0)  # a parameter moves the prediction with this pattern
+    dev = rng.standard_normal((M, 5, 1)) * sd_par * shape[None, None, :]
+    dev -= dev.mean(axis=0)
+    mean = np.zeros((5, n)) + 300.0
+    y = mean + sd_par * rng.standard_normal((5, 1)) * shape
+    y += ou_paths(rng, t, np.full(5, sd_noise), np.full(5, tau))
+    total = np.sqrt(sd_par ** 2 * shape ** 2 + sd_noise ** 2)
+    y[2] += bump * total * (current > 0)
+    q = {50: 0.674, 90: 1.645, 95: 1.96}
+    bands = {lv: (mean - k * total, mean + k * total) for lv, k in q.items()}
+    return Prediction(source="fake.csv", label="X", laws="linear", time=t, channels=CHANNELS, measured=y,
+                      mean=mean, median=mean, bands=bands, tavg=np.full(n, 300.0), current=current,
+                      n_draws=M, seconds=0.0, since_step=t % 900, deviations=dev.astype(np.float32),
+                      noise_sd=np.full((M, 5), sd_noise), noise_tau=np.full((M, 5), tau))
+
+
+def test_ou_paths_have_the_stated_variance_and_correlation():
+    from tembayes.gap.where import ou_paths
+
+    rng = np.random.default_rng(4)
+    t = np.cumsum(rng.uniform(0.5, 1.5, 400))
+    x = ou_paths(rng, t, np.full(4000, 0.02), np.full(4000, 30.0))
+    assert x.std() == pytest.approx(0.02, rel=0.02)
+    i, j = 100, 130
+    rho = np.corrcoef(x[:, i], x[:, j])[0, 1]
+    assert rho == pytest.approx(np.exp(-(t[j] - t[i]) / 30.0), abs=0.05)
+
+
+def test_gap_map_is_quiet_on_replicates_and_finds_a_bump_in_its_regime():
+    from tembayes.gap.where import gap_map
+
+    # the measurement is one more replicate of the predictive: Bonferroni over the cells keeps the
+    # family-wise false alarm <= 5 %, so 3 or more alarms in 12 runs has probability < 2 %
+    alarms, ps = 0, []
+    for seed in range(12):
+        g = gap_map(_fake_prediction(np.random.default_rng(100 + seed)), np.random.default_rng(seed))
+        alarms += bool(g.significant())
+        ps += [c["p"] for c in g.cells]
+    assert alarms <= 2
+    # the p-values are calibrated: ~5 % below 0.05 (cells overlap: a loose band)
+    assert 0.01 <= np.mean(np.array(ps) < 0.05) <= 0.12
+    # 4 predictive sds on T3 while cooling: beyond what a run-long parameter error explains
+    # (a 2-sd bump is not, and is rightly not flagged: the parameter sd dominates the band)
+    loud = gap_map(_fake_prediction(np.random.default_rng(101), bump=4.0), np.random.default_rng(1))
+    sig = loud.significant()
+    assert sig and sig[0]["channel"] == "T3_C"
+    assert {c["channel"] for c in sig} == {"T3_C"}
+    assert any(c["regime"].startswith("cooling") for c in sig)
+    assert not any(c["regime"].startswith("heating") for c in sig)
+
+
+def test_gap_figures_draw_the_map_and_the_patterns():
+    from tembayes.gap.where import gap_map
+    from tembayes.plots.gap import plot_gap_map, plot_residual_patterns
+
+    pred = _fake_prediction(np.random.default_rng(101), bump=4.0)
+    g = gap_map(pred, np.random.default_rng(1))
+    fig = plot_gap_map(g)
+    texts = [t.get_text() for t in fig.axes[0].texts]
+    assert sum(t.endswith("*") for t in texts) == len(g.significant()) > 0
+    fig2 = plot_residual_patterns(pred)
+    gids = {line.get_gid() for ax in fig2.axes for line in ax.lines}
+    assert {f"rms:{ch}" for ch in CHANNELS} <= gids
