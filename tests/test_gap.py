@@ -81,3 +81,84 @@ def test_gap_figures_draw_the_map_and_the_patterns():
     fig2 = plot_residual_patterns(pred)
     gids = {line.get_gid() for ax in fig2.axes for line in ax.lines}
     assert {f"rms:{ch}" for ch in CHANNELS} <= gids
+
+
+# --------------------------------------------------------------------------- which: the effect screen
+
+
+@pytest.fixture(scope="module")
+def tem1_draws(run3, batch3):
+    from tembayes.calibrate.run import load_run
+    from tembayes.data import load_batch
+    from tembayes.physics.rig import reference_rig
+    from tembayes.predict.predictive import module_draws
+
+    out, _, truth = run3
+    batch = load_batch(batch3)
+    return module_draws(load_run(out), "TEM1", batch.modules["TEM1"].identification, reference_rig(4, 6)), truth
+
+
+def _screen(tem1_draws, effect, seed=7):
+    from tembayes.bench import bench as B
+    from tembayes.bench import hifi
+    from tembayes.bench.protocols import validation_cycle
+    from tembayes.gap.which import screen_effects
+    from tembayes.physics import effects as E
+    from tembayes.physics.rig import reference_rig
+    from tembayes.predict.anchor import ResidualProcess
+    from tembayes.predict.runmodel import RunModel
+
+    d, truth = tem1_draws
+    flat = {k: v for p in E.parse_effects([effect] if effect else []).values() for k, v in p.items()}
+    rng = np.random.default_rng(seed)
+    exp = B.run_experiment(validation_cycle(rng, 6.4, duration=2 * 3600.0), truth["modules"]["TEM1"], flat, rng,
+                           rate=1.0, rig=hifi.hifi_rig(), t0=50.0)
+    vm = RunModel(exp, reference_rig(4, 6))
+    procs = {ch: ResidualProcess(float(d.noise_sd[0, c]), float(d.noise_tau[0, c]), 0.0)
+             for c, ch in enumerate(CHANNELS)}
+    return screen_effects(vm, d.params, vm.shift_bound / np.sqrt(3), procs)
+
+
+@pytest.mark.parametrize("effect, param, true", [("k_temperature", "K1_per_K", 0.0015),
+                                                 ("sensor_lag", "sensor_tau_s", 6.0),
+                                                 ("ambient_leak", "extra_leak_W_per_K", 0.06)])
+def test_screen_names_the_effect_behind_a_held_out_gap_and_its_size(tem1_draws, effect, param, true):
+    # the module calibrated without the effect; a held-out run with it at the bench default
+    r = _screen(tem1_draws, effect)
+    assert r.ranking[0]["effect"] == effect
+    assert r.ranking[0]["log_bayes_factor"] > 100.0
+    est = r.ranking[0]["size"][param][0]
+    assert est == pytest.approx(true, rel=0.35)  # the linear screen's size: ~20 % on the example module
+    assert r.ranking[0]["rmse_after"] < 0.5 * r.base_rmse
+
+
+def test_screen_finds_nothing_strong_without_an_effect(tem1_draws):
+    r = _screen(tem1_draws, None)
+    assert r.base_rmse < 0.01  # K: the sensors' noise is 4 mK
+    assert r.ranking[0]["log_bayes_factor"] < 50.0
+    assert all(x["rmse_after"] > 0.9 * r.base_rmse for x in r.ranking)
+
+
+# --------------------------------------------------------------------------- prior-posterior conflicts
+
+
+def test_range_conflicts_flag_a_leak_far_above_the_enclosure_and_nothing_inside():
+    from tembayes.gap.conflicts import range_conflicts
+    from tembayes.physics.rig import reference_rig
+
+    rig = reference_rig(4, 6)
+    rng = np.random.default_rng(0)
+    nominal = rig.nominal()
+    draws = {k: v * np.exp(0.02 * rng.standard_normal(500)) for k, v in nominal.items()}
+    assert not any(r["conflict"] for r in range_conflicts(draws, rig))
+    # an ambient leak absorbed by the bottom leak: 0.14 W/K against a documented 0.02-0.06
+    draws["leak_bottom"] = 0.14 * np.exp(0.05 * rng.standard_normal(500))
+    # a plate capacitance the size of a block (31.6 J/K against 4-5), loosely determined
+    draws["c_plate_cold"] = 30.0 * np.exp(0.4 * rng.standard_normal(500))
+    res = range_conflicts(draws, rig)
+    flagged = [r["parameter"] for r in res if r["conflict"]]
+    assert flagged == ["c_plate_cold", "leak_bottom"]
+    assert res[0]["parameter"] == "c_plate_cold" and res[0]["outside_sd"] > 10
+    # a posterior that straddles the edge is not (yet) a conflict
+    draws["leak_bottom"] = 0.06 * np.exp(0.3 * rng.standard_normal(500))
+    assert "leak_bottom" not in [r["parameter"] for r in range_conflicts(draws, rig) if r["conflict"]]
