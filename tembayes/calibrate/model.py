@@ -29,8 +29,7 @@ from tembayes.calibrate.stepdata import RAMP
 from tembayes.constants import MODULE_PARAMETERS
 from tembayes.errors import ModelError
 from tembayes.physics import effects
-from tembayes.physics import kernel as K
-from tembayes.physics.simulate import build
+from tembayes.physics.simulate import build, integrate_on_grids
 
 #: Name of the step-instant nuisance parameter [s].
 SHIFT = "step_shift_s"
@@ -152,23 +151,16 @@ class StepResponseModel:
             Ic = np.repeat(self._current[None, :], nd, axis=0)
         else:
             Ic = np.ascontiguousarray(np.broadcast_to(levels, (nd, len(self.data.levels)))[:, self._hold])
-        TW = np.repeat(self._tw[None, :], nd, axis=0)
-        TA = np.repeat(self._ta[None, :], nd, axis=0)
-        Y0 = np.full((nd, len(names)), self._tw[0])
-        out, volt, stats = K.integrate_grids(G, Ic, TW, TA, m["A"], m["Bb"], m["Cinv"], m["tem"], m["P"], rec, Y0,
-                                             True, self.atol, self.hmax)
-        failed = (stats[:, 3] != 0) | ~np.all(np.isfinite(volt), axis=1)
+        out, volt, failed, steps = integrate_on_grids(m, G, Ic, self._tw, self._ta, rec, self.atol, self.hmax)
         if strict and np.any(failed):
             raise ModelError("the step-response simulation failed (no steady start, step budget exceeded or "
                              "non-finite values)")
-        out[failed] = np.nan
-        volt[failed] = np.nan
         sensors = np.ascontiguousarray(out[:, :, :2].transpose(0, 2, 1))
         if effects.has_sensor_effect(m["params"]):
             effects.apply_sensors(G[0], sensors, m["params"])
         o = self.obs_pos
         return dict(sensors=sensors[:, :, o], voltage=volt[:, o], t_hot=out[:, o, 2], t_cold=out[:, o, 3],
-                    steps=stats[:, 0])
+                    steps=steps)
 
     def predict(self, params, strict=True, levels=None):
         """Predicted channels ``(nd, 3, n_obs)``: voltage [V], dT [K], Tmean [K].

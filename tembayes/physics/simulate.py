@@ -232,3 +232,42 @@ def simulate(inputs, params, *, rig=REFERENCE, y0=None, steady_start=True, atol=
         t_cold=out[:, :, nch + 1],
         steps=stats[:, 0].astype(np.int64),
     )
+
+
+def integrate_on_grids(m, grids, current, t_water, t_amb, rec, atol, hmax):
+    """Run the kernel on a time grid per draw, from the steady state at the first point.
+
+    Parameters
+    ----------
+    m : dict
+        :func:`build` output.
+    grids : ndarray, shape (nd, nt)
+        Time points per draw [s].
+    current : ndarray, shape (nd, nt)
+        Current at the points [A].
+    t_water, t_amb : ndarray, shape (nt,)
+        Boundary temperatures at the points [K] (shared by the draws).
+    rec : ndarray of int
+        Nodes to record.
+    atol, hmax : float
+
+    Returns
+    -------
+    out : ndarray, shape (nd, nt, len(rec))
+    volt : ndarray, shape (nd, nt)
+    failed : ndarray of bool, shape (nd,)
+        No steady start, step budget exceeded or non-finite values; those
+        draws are NaN.
+    steps : ndarray, shape (nd,)
+        Accepted integrator steps per draw.
+    """
+    nd = m["nd"]
+    TW = np.repeat(np.asarray(t_water, float)[None, :], nd, axis=0)
+    TA = np.repeat(np.asarray(t_amb, float)[None, :], nd, axis=0)
+    Y0 = np.full((nd, len(m["network"].nodes)), float(t_water[0]))
+    out, volt, stats = K.integrate_grids(grids, current, TW, TA, m["A"], m["Bb"], m["Cinv"], m["tem"], m["P"], rec,
+                                         Y0, True, float(atol), float(hmax))
+    failed = (stats[:, 3] != 0) | ~np.all(np.isfinite(volt), axis=1)
+    out[failed] = np.nan
+    volt[failed] = np.nan
+    return out, volt, failed, stats[:, 0].copy()

@@ -11,8 +11,8 @@ The pipeline, each step a plain function of the previous one's result:
    the noise of a random calibrated module (a new mount in the same rig);
 2. :func:`constant_laws` -- optionally, R and S frozen at T-bar = 35 degC (the
    paper's Figure 8 model), re-anchored with K free (its own rig fit);
-3. :func:`simulate_predictive` -- every draw simulated through the experiment
-   from its measured current levels, water and ambient temperatures
+3. :func:`simulate_predictive` -- every draw simulated through the experiment,
+   driven by the measured current levels, water and ambient temperatures
    (:class:`~tembayes.predict.runmodel.RunModel`), each draw with its own step
    instant (the phase of a validation run's clock is unknown: uniform over
    the sampling interval), plus measurement noise and discrepancy from the

@@ -33,8 +33,7 @@ from tembayes.calibrate.stepdata import RAMP, _smooth
 from tembayes.errors import DataError, ModelError
 from tembayes.identify.steps import detect_steps
 from tembayes.physics import effects
-from tembayes.physics import kernel as K
-from tembayes.physics.simulate import build
+from tembayes.physics.simulate import build, integrate_on_grids
 
 #: Sensor channels in the order of the sensor axis (contract section 2).
 SENSOR_CHANNELS = ("T1_C", "T2_C", "T3_C", "T4_C")
@@ -195,17 +194,10 @@ class RunModel:
         shift = np.broadcast_to(np.atleast_1d(np.asarray(shift, dtype=float)), (nd,))
         G = self.grid(shift)
         Ic = np.repeat(self.levels[self._grid_hold][None, :], nd, axis=0)
-        TW = np.repeat(self._tw[None, :], nd, axis=0)
-        TA = np.repeat(self._ta[None, :], nd, axis=0)
-        Y0 = np.full((nd, len(names)), self._tw[0])
-        out, volt, stats = K.integrate_grids(G, Ic, TW, TA, m["A"], m["Bb"], m["Cinv"], m["tem"], m["P"], rec, Y0,
-                                             True, self.atol, self.hmax)
-        failed = (stats[:, 3] != 0) | ~np.all(np.isfinite(volt), axis=1)
+        out, volt, failed, _ = integrate_on_grids(m, G, Ic, self._tw, self._ta, rec, self.atol, self.hmax)
         if strict and np.any(failed):
             raise ModelError(f"the simulation of {self.exp.path} failed for {int(failed.sum())} of {nd} draws "
                              "(no steady start, step budget exceeded or non-finite values)")
-        out[failed] = np.nan
-        volt[failed] = np.nan
         sensors = np.ascontiguousarray(out.transpose(0, 2, 1))
         if effects.has_sensor_effect(m["params"]):
             effects.apply_sensors(G[0], sensors, m["params"])
