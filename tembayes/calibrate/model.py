@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from tembayes.calibrate.stepdata import RAMP
+from tembayes.calibrate.stepdata import step_grid
 from tembayes.constants import MODULE_PARAMETERS
 from tembayes.errors import ModelError
 from tembayes.physics import effects
@@ -73,21 +73,14 @@ class StepResponseModel:
         kind = np.concatenate([[0], np.ones(len(data.time), int), np.full(len(extra), 2)])
         order = np.argsort(base, kind="stable")
         base, kind = base[order], kind[order]
-        # insert the step pairs before the first point after each nominal step
-        ins = np.searchsorted(base, data.step_time)
-        n = len(base) + 2 * ns
-        is_step = np.zeros(n, bool)
-        pos_step = ins + 2 * np.arange(ns)
-        is_step[pos_step] = True
-        is_step[pos_step + 1] = True
-        grid = np.empty(n)
-        grid[~is_step] = base
         # the step pairs at their nominal instants (each draw shifts them in
         # grid()); the boundaries below are read there, so never leave them unset
-        grid[pos_step] = data.step_time
-        grid[pos_step + 1] = data.step_time + RAMP
+        sg = step_grid(base, data.step_time, data.step_window)
+        grid, pos_step = sg.grid, sg.pos_step
+        n = len(grid)
         kinds = np.full(n, 3)
-        kinds[~is_step] = kind
+        kinds[~sg.is_step] = kind
+        self._steps = sg
         self._n = n
         self._pos_step = pos_step
         self.obs_pos = np.flatnonzero(kinds == 1)
@@ -100,24 +93,11 @@ class StepResponseModel:
         self._current = data.levels[hold]
         tw, ta = data.boundaries(grid)
         self._tw, self._ta = tw, ta
-        # the step may fall anywhere in its sampling interval: the common
-        # shift ranges over the widest interval and each step's instant is
-        # clipped into its own (the intervals differ by the DAQ's jitter).  A
-        # bound at the narrowest one excluded the true instant of ~5 % of the
-        # bench's runs and pulled R, S and K with the shift.
-        eps = 1e-4
-        self._shift_lo = -data.step_window + eps
-        self._shift_hi = data.step_window - RAMP - eps
-        self.shift_bound = float(np.max(data.step_window)) - eps
+        self.shift_bound = sg.shift_bound
 
     def grid(self, shift):
-        """Per-draw time grids ``(nd, n)`` for step shifts ``shift`` [s]."""
-        shift = np.atleast_1d(np.asarray(shift, dtype=float))
-        G = np.repeat(self._base_grid[None, :], len(shift), axis=0)
-        G[:, self._pos_step] = self.data.step_time[None, :] + np.clip(shift[:, None], self._shift_lo[None, :],
-                                                                       self._shift_hi[None, :])
-        G[:, self._pos_step + 1] = G[:, self._pos_step] + RAMP
-        return G
+        """Per-draw time grids ``(nd, n)`` for step shifts ``shift`` [s] (see :class:`StepGrid`)."""
+        return self._steps.shifted(shift)
 
     def simulate(self, params, strict=True, levels=None):
         """Simulate the run for a parameter mapping (arrays of shape ``(nd,)``).

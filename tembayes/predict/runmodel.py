@@ -29,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.interpolate import CubicSpline
 
-from tembayes.calibrate.stepdata import RAMP, _smooth
+from tembayes.calibrate.stepdata import _smooth, hold_levels, step_grid
 from tembayes.errors import DataError, ModelError
 from tembayes.identify.steps import detect_steps
 from tembayes.physics import effects
@@ -89,7 +89,7 @@ class RunModel:
             holds[0] = (0, steps[0].index)
         else:
             holds = [(0, len(t))]
-        self.levels = np.array([np.mean(cur[a + 2:b - 2]) if b - a > 8 else np.median(cur[a:b]) for a, b in holds])
+        self.levels = hold_levels(cur, holds)
         self.step_time = np.array([s.t for s in steps])
         self.step_window = np.array([s.t_window for s in steps])
         ns = len(steps)
@@ -108,18 +108,11 @@ class RunModel:
             keep[s.index - 1] = True  # the last old sample ends its hold's spline
         self._samples = np.flatnonzero(keep)
         base = t[self._samples]
-        # insert two points per step (old level, new level) before its first new sample
-        ins = np.searchsorted(base, self.step_time)
-        n = len(base) + 2 * ns
-        pos_step = ins + 2 * np.arange(ns)
-        is_step = np.zeros(n, bool)
-        is_step[pos_step] = True
-        is_step[pos_step + 1] = True
-        grid = np.empty(n)
-        grid[~is_step] = base
-        grid[pos_step] = self.step_time
-        grid[pos_step + 1] = self.step_time + RAMP
-        self._pos_step = pos_step
+        # two points per step (old level, new level) before its first new sample
+        sg = step_grid(base, self.step_time, self.step_window)
+        self._steps = sg
+        is_step, pos_step, grid = sg.is_step, sg.pos_step, sg.grid
+        n = len(grid)
         self._obs_pos = np.flatnonzero(~is_step)
         self._base_grid = grid
         hold = np.empty(n, dtype=np.int64)
@@ -131,10 +124,7 @@ class RunModel:
         ta = _smooth(t, np.asarray(exp.t_amb, float), smooth)
         self._tw = np.interp(grid, t, tw)
         self._ta = np.interp(grid, t, ta)
-        eps = 1e-4
-        self._shift_lo = -self.step_window + eps
-        self._shift_hi = self.step_window - RAMP - eps
-        self.shift_bound = float(np.max(self.step_window)) - eps if ns else 0.0
+        self.shift_bound = sg.shift_bound
         # segments (holds) for the interpolation: grid samples and all samples per hold
         self._segments = []
         grid_hold_obs = hold[self._obs_pos]
@@ -155,13 +145,7 @@ class RunModel:
 
     def grid(self, shift):
         """Per-draw time grids ``(nd, n_grid)`` for step shifts ``shift`` [s]."""
-        shift = np.atleast_1d(np.asarray(shift, dtype=float))
-        G = np.repeat(self._base_grid[None, :], len(shift), axis=0)
-        if len(self.step_time):
-            G[:, self._pos_step] = self.step_time[None, :] + np.clip(shift[:, None], self._shift_lo[None, :],
-                                                                     self._shift_hi[None, :])
-            G[:, self._pos_step + 1] = G[:, self._pos_step] + RAMP
-        return G
+        return self._steps.shifted(shift)
 
     def simulate(self, params, shift, *, at="samples", strict=True):
         """Simulate the run.
