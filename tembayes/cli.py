@@ -58,6 +58,23 @@ table (see the README); summary.json's population_spreads gives them for the
 next batch.
 """
 
+_EPILOG_GAP = """\
+examples:
+  tembayes gap runs/example data/example --out runs/example-gap
+  tembayes simulate runs/lag --modules 3 --effect sensor_lag --validation-rate 1
+  tembayes calibrate runs/lag --out runs/lag-cal
+  tembayes gap runs/lag-cal runs/lag --out runs/lag-gap
+  tembayes gap runs/lag-cal runs/lag --out runs/lag-blind --exclude sensor_lag   # withheld
+
+writes DIR/gap.json (contract section 4: verdict, where, ranking with the
+held-out evidence and the gap before/after and its shrink, best; plus the
+screen, the range conflicts, the best group of effects the data cannot tell
+apart and the settings) and the figures ranking.png, gap_map_*.png and
+residuals_*.png.  The gap is the excess RMSE over T1..T4 [K] of the held-out
+runs beyond the predictive's own uncertainty; the evidence the held-out ELPD
+difference [nats] in 300 s blocks.
+"""
+
 _EPILOG_PREDICT = """\
 examples:
   tembayes predict runs/example data/example/TEM2/validation.csv --module TEM2 --out runs/example-pred
@@ -215,10 +232,23 @@ def _cmd_calibrate(args):
     return 0 if summ["converged"] else 1
 
 
+def _write_result(args, name, doc, figures):
+    """``args.out/name`` (the command line and version added) and the figures, as one atomic folder."""
+    from tembayes.data import write_json
+    from tembayes.data.write import atomic_directory
+
+    with atomic_directory(args.out, overwrite=args.overwrite) as tmp:
+        doc["command"] = "tembayes " + " ".join(args.argv)
+        doc["tembayes_version"] = tembayes.__version__
+        write_json(tmp / name, doc)
+        if not args.no_figures:
+            figures(tmp)
+
+
 def _cmd_predict(args):
     from tembayes.calibrate.run import load_run
-    from tembayes.data import load_batch, load_experiment, write_json
-    from tembayes.data.write import _refuse_existing, atomic_directory
+    from tembayes.data import load_batch, load_experiment
+    from tembayes.data.write import _refuse_existing
     from tembayes.predict.predictive import predict
 
     if args.draws < 10:
@@ -245,21 +275,48 @@ def _cmd_predict(args):
 
     result = predict(run, exp, args.module, batch, n_draws=args.draws, seed=args.seed,
                      compare_constant=not args.no_constant, progress=progress)
-    with atomic_directory(args.out, overwrite=args.overwrite) as tmp:
-        doc = result.to_json()
-        doc["command"] = "tembayes " + " ".join(args.argv)
-        doc["tembayes_version"] = tembayes.__version__
-        write_json(tmp / "metrics.json", doc)
-        if not args.no_figures:
-            from tembayes.plots.predict import save_predict_figures
+    from tembayes.plots.predict import save_predict_figures
 
-            save_predict_figures(result, tmp)
+    _write_result(args, "metrics.json", result.to_json(), lambda tmp: save_predict_figures(result, tmp))
     for ch, m in result.linear.metrics().items():
         unit = "V" if ch == "voltage_V" else "K"
         print(f"{ch}: RMSE {m['rmse']:.4g} {unit}  max {m['max_abs']:.4g} {unit}  "
               f"coverage 50/90/95 % {100 * m['coverage50']:.0f}/{100 * m['coverage90']:.0f}/"
               f"{100 * m['coverage95']:.0f} %")
     print(f"wrote {args.out / 'metrics.json'}")
+    return 0
+
+
+def _cmd_gap(args):
+    from tembayes.calibrate.run import load_run
+    from tembayes.data import load_batch
+    from tembayes.data.write import _refuse_existing
+    from tembayes.gap.diagnose import diagnose
+
+    run = load_run(args.run)  # refused inputs: nothing is written
+    batch = load_batch(args.batch)
+    _refuse_existing(args.out, args.overwrite)
+
+    def progress(msg):
+        print(msg, file=sys.stderr, flush=True)
+
+    diag = diagnose(run, batch, exclude=args.exclude or (), candidates=args.candidates, n_draws=args.draws,
+                    seed=args.seed, jobs=args.jobs, progress=progress)
+    from tembayes.plots.gap import save_gap_figures
+
+    _write_result(args, "gap.json", diag.to_json(), lambda tmp: save_gap_figures(diag, tmp))
+    print(f"verdict: {diag.verdict}" + (f" -- best: {diag.best}" if diag.best else ""))
+    if len(diag.best_group) > 1:
+        print(f"  the data cannot tell apart: {', '.join(diag.best_group)}")
+    for w in diag.where[:5]:
+        print(f"  where: {w['channel']}, {w['regime']} (score {w['score']:.2f})")
+    for r in diag.ranking:
+        if r.get("evidence") is None:
+            print(f"  {r['effect']:20s} failed: {r.get('failed')}")
+        elif r.get("evidence_kind") == "heldout_elpd":
+            print(f"  {r['effect']:20s} evidence {r['evidence']:+.4g} +- {r['evidence_se']:.3g} nats  "
+                  f"gap {1e3 * r['gap_before']:.1f} -> {1e3 * r['gap_after']:.1f} mK (shrink {r['shrink']:.0%})")
+    print(f"wrote {args.out / 'gap.json'}")
     return 0
 
 
@@ -372,6 +429,31 @@ def build_parser():
     p.add_argument("--no-figures", action="store_true", help="write metrics.json only")
     p.add_argument("--overwrite", action="store_true", help="replace DIR if it exists")
     p.set_defaults(func=_cmd_predict)
+
+    p = sub.add_parser(
+        "gap",
+        help="diagnose the sim-to-real gap of a calibrated batch on its held-out runs",
+        description="Where the calibrated model and the held-out measurements (validation*.csv) part "
+        "(a gap map per channel and operating regime), which catalogue effect causes it (a linear screen "
+        "of the catalogue, the rig parameters calibrated outside their documented range, then the "
+        "strongest candidates recalibrated with the effect added and ranked by held-out evidence), and how "
+        "far the gap shrinks with it; a verdict no_gap / explained / partially_explained / unexplained.",
+        epilog=_EPILOG_GAP,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("run", type=Path, help="calibration run folder (tembayes calibrate --out)")
+    p.add_argument("batch", type=Path, help="the calibrated batch folder (its validation*.csv are held out)")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder to create")
+    p.add_argument("--exclude", action="append", metavar="EFFECT",
+                   help="withhold a catalogue effect from the diagnosis (repeatable)")
+    p.add_argument("--candidates", type=int, default=2, metavar="K",
+                   help="candidates recalibrated (default 2, plus one a range conflict points at)")
+    p.add_argument("--draws", type=int, default=200, metavar="N", help="predictive draws per held-out run (default 200)")
+    p.add_argument("--jobs", type=int, default=2, metavar="N", help="recalibrations at once (default 2)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--no-figures", action="store_true", help="write gap.json only")
+    p.add_argument("--overwrite", action="store_true", help="replace DIR if it exists")
+    p.set_defaults(func=_cmd_gap)
 
     p = sub.add_parser(
         "inspect",

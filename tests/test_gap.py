@@ -3,6 +3,8 @@ check on synthetic predictives whose truth is known, and its figures."""
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -162,3 +164,99 @@ def test_range_conflicts_flag_a_leak_far_above_the_enclosure_and_nothing_inside(
     # a posterior that straddles the edge is not (yet) a conflict
     draws["leak_bottom"] = 0.06 * np.exp(0.3 * rng.standard_normal(500))
     assert "leak_bottom" not in [r["parameter"] for r in range_conflicts(draws, rig) if r["conflict"]]
+
+
+# --- the whole diagnosis (issue 6, parts 2-4) -----------------------------------------------------
+def test_block_log_density_is_the_exact_ou_density():
+    """The innovation decomposition equals the joint Gaussian density of an OU residual (known answer)."""
+    from scipy.stats import multivariate_normal
+
+    from tembayes.gap.diagnose import block_log_density
+
+    rng = np.random.default_rng(5)
+    t = np.cumsum(rng.uniform(0.5, 2.0, 40))
+    sd, tau = np.array([0.01, 0.02, 0.005, 0.003, 0.001]), np.array([5.0, 0.5, 30.0, 1e-9, 2.0])
+    Y = rng.normal(0, 0.01, (3, 5, 40))
+    y = rng.normal(0, 0.01, (5, 40))
+    L = block_log_density(Y, y, t, sd, tau, block_s=1e9)
+    assert L.shape == (3, 1)
+    for m in range(3):
+        exact = 0.0
+        for c in range(5):
+            C = sd[c] ** 2 * np.exp(-np.abs(t[:, None] - t[None]) / tau[c])
+            exact += multivariate_normal(np.zeros(40), C + 1e-18 * np.eye(40)).logpdf(y[c] - Y[m, c])
+        assert L[m, 0] == pytest.approx(exact, rel=1e-8, abs=1e-6)
+
+
+def test_held_out_gap_is_the_error_beyond_the_predictive_variance():
+    from tembayes.gap.diagnose import RunEvaluation, held_out_gap
+
+    ev = [RunEvaluation("A", "v.csv", sse=0.05 ** 2 * 100, n=100, expected=0.03 ** 2 * 100, elpd_blocks=np.zeros(1),
+                        significant=[], gap_map=None)]
+    assert held_out_gap(ev) == pytest.approx(0.04)  # sqrt(0.05^2 - 0.03^2)
+    ev[0].sse = 0.02 ** 2 * 100  # inside what the model expects: no gap
+    assert held_out_gap(ev) == 0.0
+
+
+@pytest.fixture(scope="module")
+def lag_case(tmp_path_factory):
+    """One bench module with a 6 s sensor lag and one without, each calibrated with the base model
+    (short runs and budgets: the lag is many sds away from zero either way)."""
+    from tembayes.bench import BenchConfig, simulate_batch
+    from tembayes.calibrate import calibrate_batch
+    from tembayes.calibrate.module import CalibrationOptions
+    from tembayes.data import load_batch
+
+    root = tmp_path_factory.mktemp("gap")
+    opt = CalibrationOptions(max_steps=8000, pilot=1500)
+    out = {}
+    for name, effects in (("lag", {"sensor_lag": {"sensor_tau_s": 6.0}}), ("null", {})):
+        b = root / f"b_{name}"
+        simulate_batch(b, BenchConfig(n_modules=1, seed=31, hold=300.0, validation_rate=1.0,
+                                      validation_duration=5400.0, effects=effects), progress=lambda m: None)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # short budget: convergence not the point here
+            calibrate_batch(load_batch(b), root / f"r_{name}", seed=0, options=opt, figures=False, population=False)
+        (b / "truth.json").rename(root / f"truth_{name}.json")  # the diagnosis is blind
+        out[name] = (b, root / f"r_{name}")
+    return out
+
+
+def test_gap_names_a_sensor_lag_recovers_its_size_and_shrinks_the_gap(lag_case, tmp_path):
+    """End to end through the command: the lag is found where it acts (the block sensors), named,
+    its time constant recovered within its interval, the gap shrunk by more than half; gap.json has
+    the contract's keys.  The batch has no truth.json (the fixture moved it away): nothing to peek at."""
+    from tembayes.cli import main
+
+    batch, run = lag_case["lag"]
+    assert not (batch / "truth.json").exists()
+    out = tmp_path / "gap"
+    with pytest.warns(RuntimeWarning):  # short recalibration budgets: not converged
+        assert main(["gap", str(run), str(batch), "--out", str(out), "--candidates", "1", "--draws", "100"]) == 0
+    doc = __import__("json").loads((out / "gap.json").read_text())
+    assert set(doc) >= {"verdict", "where", "ranking", "best"}
+    assert doc["verdict"] == "explained" and doc["best"] == "sensor_lag"
+    assert {w["channel"] for w in doc["where"][:5]} & {"T1_C", "T4_C"}
+    top = doc["ranking"][0]
+    assert top["effect"] == "sensor_lag" and top["shrink"] >= 0.5
+    assert top["evidence"] > 2 * top["evidence_se"]
+    size = top["size"]["TEM1"]["sensor_tau_s"]
+    assert size["q05"] - 0.3 <= 6.0 <= size["q95"] + 0.3
+    assert (out / "ranking.png").is_file() and list(out.glob("gap_map_TEM1_*.png"))
+
+
+def test_gap_is_quiet_without_an_effect_and_refuses_a_batch_without_held_out_runs(lag_case, batch3, run3, tmp_path):
+    """Negative control: the correctly specified bench gets no_gap (nothing recalibrated).  A batch
+    without validation runs is refused with nothing written."""
+    from tembayes.calibrate.run import load_run
+    from tembayes.cli import main
+    from tembayes.data import load_batch
+    from tembayes.gap.diagnose import diagnose
+
+    batch, run = lag_case["null"]
+    d = diagnose(load_run(run), load_batch(batch), n_draws=100)
+    assert d.verdict == "no_gap" and d.best is None and d.where == []
+    assert all(r["evidence_kind"] == "screen" for r in d.ranking)
+    out = tmp_path / "refused"
+    assert main(["gap", str(run3[0]), str(batch3), "--out", str(out)]) != 0
+    assert not out.exists()

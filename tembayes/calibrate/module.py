@@ -46,11 +46,12 @@ from tembayes.calibrate import sampler as smp
 from tembayes.calibrate.likelihood import OFFSET_SD, LevelErrors, StepLikelihood, noise_priors
 from tembayes.calibrate.model import SHIFT, LinearisedModel, StepResponseModel
 from tembayes.calibrate.parameters import ParameterSpace
-from tembayes.calibrate.priors import ParameterPrior, law_priors, rig_prior
+from tembayes.calibrate.priors import ParameterPrior, effect_priors, law_priors, rig_prior
 from tembayes.calibrate.stepdata import step_data
 from tembayes.constants import MODULE_PARAMETERS
 from tembayes.data.write import atomic_write_text
 from tembayes.errors import ModelError
+from tembayes.physics.effects import EFFECT_PARAMETERS
 from tembayes.physics.rig import rig_from_config
 
 #: Resolution of the calibration model: legs in 4 cells, blocks in 6.  The
@@ -192,11 +193,12 @@ def calibration_rig(rig_config, options):
     return rig_from_config(rig_config or {}, leg_cells=options.leg_cells, block_cells=options.block_cells)
 
 
-def parameter_space(rig, datasheet, data, shift_bound):
-    """The sampled coordinates: laws and K, rig nuisances, step shift, noise."""
+def parameter_space(rig, datasheet, data, shift_bound, effects=()):
+    """The sampled coordinates: laws and K, rig nuisances, the parameters of
+    ``effects`` (catalogue names added to the base model), step shift, noise."""
     nuis = [p for p in rig.parameters if p.high / p.low > NUISANCE_MIN_RANGE]
     fixed = {p.name: p.nominal for p in rig.parameters if p.high / p.low <= NUISANCE_MIN_RANGE}
-    pri = list(law_priors(datasheet)) + [rig_prior(p) for p in nuis]
+    pri = list(law_priors(datasheet)) + [rig_prior(p) for p in nuis] + list(effect_priors(effects))
     pri.append(ParameterPrior(SHIFT, "uniform", 0.0, shift_bound))
     model_space = ParameterSpace(tuple(pri), fixed)
     return model_space, ParameterSpace(tuple(pri) + noise_priors(data), fixed)
@@ -210,6 +212,11 @@ def _prior_residuals(space, X):
         m = np.log(p.center) if p.kind == "lognormal" else p.center
         cols.append((X[:, j] - m) / p.scale)
     return np.column_stack(cols)
+
+
+def _prior_sd(space):
+    """Prior sd of every coordinate (a uniform's half-width / sqrt 3)."""
+    return np.array([p.scale / np.sqrt(3.0) if p.kind == "uniform" else p.scale for p in space.priors])
 
 
 def fd_steps(space):
@@ -368,6 +375,14 @@ def calibrate_module(module, datasheet, **kw):
         ``progress(message)`` for stage messages.
     progress_bar : bool
         Show the sampler's progress bar.
+    effects : sequence of str
+        Catalogue effects added to the base model, their parameters sampled
+        under :func:`~tembayes.calibrate.priors.effect_priors` (the gap
+        diagnosis's recalibration).  Default none: the paper's model.
+    start : dict, optional
+        ``name -> value`` (SI) where the search for the mode starts (e.g. the
+        base calibration's posterior mean); default the prior centres, the
+        effects at zero.
 
     Returns
     -------
@@ -380,7 +395,7 @@ def calibrate_module(module, datasheet, **kw):
 
 
 def _calibrate_module(module, datasheet, *, rig_config=None, seed=0, options=None, checkpoint=None, resume=False,
-                      progress=None, progress_bar=False):
+                      progress=None, progress_bar=False, effects=(), start=None):
     opt = options or CalibrationOptions()
     say = progress or (lambda msg: None)
     timings = {}
@@ -390,7 +405,7 @@ def _calibrate_module(module, datasheet, *, rig_config=None, seed=0, options=Non
     data = step_data(module.identification)
     rig = calibration_rig(rig_config, opt)
     model = StepResponseModel(data, rig)
-    model_space, space = parameter_space(rig, datasheet, data, model.shift_bound)
+    model_space, space = parameter_space(rig, datasheet, data, model.shift_bound, effects)
     nwalkers = 2 * space.ndim + 2 if opt.nwalkers is None else int(opt.nwalkers)
     if nwalkers < 2 * space.ndim:
         raise ModelError(f"nwalkers must be at least 2 x {space.ndim} parameters, got {nwalkers}")
@@ -403,6 +418,12 @@ def _calibrate_module(module, datasheet, *, rig_config=None, seed=0, options=Non
         say(f"{module.id}: posterior mode")
         x0 = np.array([pr.to_unconstrained(pr.center) for pr in model_space.priors])
         x0[model_space.index(SHIFT)] = 0.0
+        for name in EFFECT_PARAMETERS:
+            if name in model_space.names:  # start at the base model
+                x0[model_space.index(name)] = 0.0
+        for name, value in (start or {}).items():
+            if name in model_space.names and name != SHIFT:
+                x0[model_space.index(name)] = model_space.priors[model_space.index(name)].to_unconstrained(value)
         x_map, cov, sol = fit_map(model, model_space, data, x0)
         state = {"x_map": x_map.tolist(), "cov": cov.tolist(), "x_lin": x_map.tolist(), "x_level": x_map.tolist(),
                  "stage": 0, "map_nfev": int(sol.nfev)}
@@ -425,6 +446,10 @@ def _calibrate_module(module, datasheet, *, rig_config=None, seed=0, options=Non
         x_lin = np.array(state["x_lin"])
         # steps of sqrt(3) posterior sds: the expansion interpolates over the posterior
         h = np.maximum(EXPANSION_STEP_SD * np.sqrt(np.diag(cov)), fd_steps(model_space))
+        # never probe beyond two prior sds: a coordinate the data leave open (an
+        # effect traded against a rig parameter) would send the expansion
+        # where the rig cannot be simulated
+        h = np.minimum(h, 2.0 * _prior_sd(model_space))
         lin = LinearisedModel(model, model_space, x_lin, h, noise=data.noise)
         like = StepLikelihood(data, lin, space, levels)
         # a stream per stage: a resumed run draws exactly what a straight one does

@@ -130,3 +130,33 @@ def rig_prior(parameter):
     centred on the nominal value, its documented range spanning +-2 sd."""
     return ParameterPrior(parameter.name, "lognormal", parameter.nominal,
                           np.log(parameter.high / parameter.low) / 4.0)
+
+
+def effect_priors(names):
+    """Priors of the parameters of catalogue effects added to a calibration.
+
+    Zero is the base model.  A signed parameter gets ``N(0, scale)``; one that
+    is physically non-negative (a sensor time constant, a contact resistance,
+    an extra leak) a uniform prior on ``[0, 3 scale]``, ``scale`` being the
+    catalogue's prior size of the effect
+    (:class:`~tembayes.physics.effects.EffectParameter`).
+
+    Parameters
+    ----------
+    names : sequence of str
+        Effect names (contract section 5).
+
+    Returns
+    -------
+    tuple of ParameterPrior
+    """
+    from tembayes.physics import effects as E
+
+    out = []
+    for name in names:
+        for p in E.get(name).parameters:
+            if p.nonnegative:
+                out.append(ParameterPrior(p.name, "uniform", 1.5 * p.scale, 1.5 * p.scale))
+            else:
+                out.append(ParameterPrior(p.name, "normal", 0.0, p.scale))
+    return tuple(out)

@@ -1,4 +1,4 @@
-"""Stage 5 -- the sim-to-real gap diagnosis (``tembayes gap``; issue 6, in progress).
+"""Stage 5 -- the sim-to-real gap diagnosis (``tembayes gap``).
 
 - :mod:`~tembayes.gap.where`: the gap map -- standardised held-out residuals per
   channel and operating regime, with a posterior-predictive significance;
@@ -7,8 +7,17 @@
   (log Bayes factor of each effect's sensitivity pattern against the base
   parameters', with the effect's size);
 - :mod:`~tembayes.gap.conflicts`: rig parameters whose posterior lies outside
-  their documented range (an effect absorbed by the base model).
+  their documented range (an effect absorbed by the base model);
+- :mod:`~tembayes.gap.diagnose`: the whole diagnosis -- the strongest
+  candidates recalibrated with the effect added, their held-out evidence and
+  gap shrink, the verdict and ``gap.json``.
 
-Still to come: recalibration of the strongest candidates with the effect
-added, held-out evidence, the verdict, ``gap.json`` and the command.
+To add an effect, add it to :mod:`tembayes.physics.effects` (its parameters,
+prior scale and hook); the screen, the recalibration and the benchmark pick
+it up from the catalogue.  If a rig parameter can absorb it, add the pair to
+:data:`tembayes.gap.diagnose.SUSPECTS`.
 """
+
+from tembayes.gap.diagnose import GapDiagnosis, diagnose
+
+__all__ = ["GapDiagnosis", "diagnose"]

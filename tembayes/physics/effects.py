@@ -49,6 +49,8 @@ class EffectParameter:
         Prior scale for the gap diagnosis (SI).
     unit : str
     doc : str
+    nonnegative : bool
+        Physically at least zero (a time constant, a resistance, a conductance).
     """
 
     name: str
@@ -56,6 +58,7 @@ class EffectParameter:
     scale: float
     unit: str
     doc: str
+    nonnegative: bool = False
 
 
 @dataclass(frozen=True)
@@ -81,6 +84,10 @@ class Effect:
     def parameter_names(self):
         return tuple(p.name for p in self.parameters)
 
+    def parameter(self, name):
+        """The :class:`EffectParameter` called ``name``."""
+        return next(p for p in self.parameters if p.name == name)
+
     def defaults(self, value=None):
         """Bench parameter values; ``value`` sets the first and scales the rest."""
         first = self.parameters[0].default
@@ -89,11 +96,14 @@ class Effect:
 
 
 # --- hooks --------------------------------------------------------------------
-def _get(params, name, nd):
+def _get(params, name, nd, nonnegative=False):
     v = params.get(name)
     if v is None:
         return np.zeros(nd)
-    return np.broadcast_to(np.asarray(v, dtype=float), (nd,))
+    v = np.broadcast_to(np.asarray(v, dtype=float), (nd,))
+    # a sampler's expansion may probe a physically non-negative parameter
+    # below zero: there the effect is off (the base model), not unstable
+    return np.maximum(v, 0.0) if nonnegative else v
 
 
 def _tem_k_temperature(P, params):
@@ -135,7 +145,7 @@ def _module_links(rig, node):
 def _network_contact(net, rig, params):
     nd = net.C.shape[0]
     for side, node in (("cold", rig.cold), ("hot", rig.hot)):
-        r = _get(params, f"contact_R_{side}_K_per_W", nd)
+        r = _get(params, f"contact_R_{side}_K_per_W", nd, nonnegative=True)
         if not np.any(r):
             continue
         i = net.index(node)
@@ -148,7 +158,7 @@ def _network_contact(net, rig, params):
 
 
 def _network_ambient(net, rig, params):
-    extra = _get(params, "extra_leak_W_per_K", net.C.shape[0])
+    extra = _get(params, "extra_leak_W_per_K", net.C.shape[0], nonnegative=True)
     if not np.any(extra):
         return
     # spread in proportion to the leaks the rig already has
@@ -159,7 +169,7 @@ def _network_ambient(net, rig, params):
 
 def _sensor_lag(time, Y, params):
     """First-order sensor lag on ``Y`` (nd, nch, nt), in place (compiled: a hot path)."""
-    tau = _get(params, "sensor_tau_s", Y.shape[0])
+    tau = _get(params, "sensor_tau_s", Y.shape[0], nonnegative=True)
     if np.any(tau):
         K.first_order_lag(np.ascontiguousarray(time, dtype=float), Y, np.ascontiguousarray(tau))
 
@@ -184,7 +194,7 @@ CATALOGUE = {
         Effect(
             "sensor_lag",
             "the temperature sensors respond with a first-order lag",
-            (EffectParameter("sensor_tau_s", 6.0, 10.0, "s", "sensor time constant"),),
+            (EffectParameter("sensor_tau_s", 6.0, 10.0, "s", "sensor time constant", True),),
             "sensors",
             _sensor_lag,
         ),
@@ -192,8 +202,8 @@ CATALOGUE = {
             "contact_resistance",
             "extra thermal resistance between the module and a block",
             (
-                EffectParameter("contact_R_cold_K_per_W", 0.06, 0.1, "K/W", "module cold face to bottom block"),
-                EffectParameter("contact_R_hot_K_per_W", 0.0, 0.1, "K/W", "module hot face to top block"),
+                EffectParameter("contact_R_cold_K_per_W", 0.06, 0.1, "K/W", "module cold face to bottom block", True),
+                EffectParameter("contact_R_hot_K_per_W", 0.0, 0.1, "K/W", "module hot face to top block", True),
             ),
             "network",
             _network_contact,
@@ -228,7 +238,7 @@ CATALOGUE = {
         Effect(
             "ambient_leak",
             "more heat exchange with ambient than the rig model allows",
-            (EffectParameter("extra_leak_W_per_K", 0.06, 0.2, "W/K", "extra conductance to ambient"),),
+            (EffectParameter("extra_leak_W_per_K", 0.06, 0.2, "W/K", "extra conductance to ambient", True),),
             "network",
             _network_ambient,
         ),

@@ -80,3 +80,58 @@ def plot_residual_patterns(pred, fig=None):
     ax_t.legend(fontsize=8)
     fig.suptitle(f"Residual patterns: {Path(pred.source).name} — {pred.label}")
     return fig
+
+
+def plot_ranking(diag, fig=None):
+    """The recalibrated candidates: held-out evidence (with 2 se) and the gap before and after.
+
+    Parameters
+    ----------
+    diag : GapDiagnosis
+    """
+    fig = fig or Figure(figsize=(10, 3.8), layout="constrained")
+    ax1, ax2 = fig.subplots(1, 2)
+    rows = [r for r in diag.ranking if r.get("evidence") is not None]
+    names = [r["effect"] for r in rows][::-1]
+    y = np.arange(len(names))
+    if rows and rows[0].get("evidence_kind") == "heldout_elpd":
+        ev = np.array([r["evidence"] for r in rows][::-1])
+        se = np.array([r.get("evidence_se", 0.0) for r in rows][::-1])
+        ax1.barh(y, ev, xerr=2 * se, color=["C2" if r["effect"] == diag.best else "C0" for r in rows][::-1])
+        ax1.set_xlabel("held-out ELPD difference to the base model [nats], ±2 se")
+        ax1.set_xscale("symlog", linthresh=max(1.0, float(np.min(np.abs(se[se > 0])) if np.any(se > 0) else 1.0)))
+        before = np.array([r["gap_before"] for r in rows][::-1]) * 1e3
+        after = np.array([r["gap_after"] for r in rows][::-1]) * 1e3
+        ax2.barh(y + 0.2, before, height=0.4, color="0.6", label="base model")
+        ax2.barh(y - 0.2, after, height=0.4, color="C1", label="with the effect")
+        ax2.set_xlabel("held-out gap (excess RMSE over T1..T4) [mK]")
+        ax2.legend(fontsize=8)
+    else:
+        ev = np.array([r["evidence"] for r in rows][::-1])
+        ax1.barh(y, ev, color="C0")
+        ax1.set_xlabel("screen: log Bayes factor against the base parameters")
+        ax2.axis("off")
+        ax2.text(0.5, 0.5, "no gap: nothing recalibrated", ha="center", va="center", transform=ax2.transAxes)
+    for ax in (ax1, ax2):
+        ax.set_yticks(y, names if ax is ax1 else [""] * len(names))
+        ax.grid(axis="x", alpha=0.3)
+    fig.suptitle(f"verdict: {diag.verdict}" + (f" — best: {' ≈ '.join(diag.best_group)}" if diag.best else ""))
+    return fig
+
+
+def save_gap_figures(diag, out_dir):
+    """Write the figure set of a :class:`~tembayes.gap.diagnose.GapDiagnosis`; returns the paths.
+
+    ``ranking.png``, and per module and held-out run ``gap_map_<module>_<run>.png``
+    and ``residuals_<module>_<run>.png``.
+    """
+    from tembayes.plots.predict import _save_png
+
+    out = Path(out_dir)
+    written = [_save_png(plot_ranking(diag), out / "ranking.png")]
+    for ev in diag.evaluations["base"]:
+        tag = f"{ev.module_id}_{Path(ev.source).stem}"
+        written.append(_save_png(plot_gap_map(ev.gap_map), out / f"gap_map_{tag}.png"))
+        if ev.prediction is not None:
+            written.append(_save_png(plot_residual_patterns(ev.prediction), out / f"residuals_{tag}.png"))
+    return written

@@ -40,11 +40,12 @@ from scipy.optimize import least_squares
 from tembayes.constants import MODULE_PARAMETERS
 from tembayes.data.quality import noise_estimate
 from tembayes.errors import ModelError
+from tembayes.physics.effects import EFFECT_PARAMETERS
 from tembayes.predict.runmodel import CHANNELS, SENSOR_CHANNELS
 
 #: Parameters sampled on their natural scale (can be negative); every other
 #: simulation parameter is positive and handled in log.
-LINEAR = ("R1_ohm_per_K", "S1_V_per_K2")
+LINEAR = ("R1_ohm_per_K", "S1_V_per_K2", *EFFECT_PARAMETERS)
 
 #: Finite-difference step in whitened coordinates (posterior sds).
 FD_STEP = 1.0
@@ -216,7 +217,7 @@ def anchor_rig(model, draws, names, *, shift=None, fixed=None):
     -------
     Anchored
     """
-    known = set(MODULE_PARAMETERS) | set(model.rig.parameter_names)
+    known = set(MODULE_PARAMETERS) | set(model.rig.parameter_names) | set(EFFECT_PARAMETERS)
     names = tuple(names)
     fixed = dict(fixed or {})
     given = tuple(k for k in draws if k in known and k not in names and k not in fixed)

@@ -35,7 +35,9 @@ import numpy as np
 
 from tembayes.constants import KELVIN, MODULE_PARAMETERS, T_REF
 from tembayes.errors import DataError, TembayesError
-from tembayes.predict.anchor import anchor_rig, unpinned
+from tembayes.physics import effects as E
+from tembayes.physics.effects import EFFECT_PARAMETERS
+from tembayes.predict.anchor import UNPINNED_FRACTION, anchor_rig, unpinned
 from tembayes.predict.runmodel import CHANNELS, RunModel
 
 #: Central band levels [%] (contract section 4).
@@ -88,7 +90,7 @@ def _module_raw_draws(run, module_id):
 
 
 def _sim_names(draws, rig):
-    known = set(MODULE_PARAMETERS) | set(rig.parameter_names)
+    known = set(MODULE_PARAMETERS) | set(rig.parameter_names) | set(EFFECT_PARAMETERS)
     return [k for k in draws if k in known]
 
 
@@ -115,8 +117,34 @@ def module_draws(run, module_id, identification, rig, *, laws="linear"):
     if module_id not in run.module_ids:
         raise DataError(run.path / "posterior.nc", f"has no module '{module_id}'",
                         f"Choose one of {list(run.module_ids)} or 'population'.")
-    raw = _module_raw_draws(run, module_id)
-    names = unpinned(raw, run.priors(module_id), rig)
+    return posterior_draws(_module_raw_draws(run, module_id), run.priors(module_id), module_id, identification, rig,
+                           laws=laws)
+
+
+def posterior_draws(raw, priors, label, identification, rig, *, laws="linear"):
+    """Predictive draws of a module posterior given as draws and priors.
+
+    The work behind :func:`module_draws`, for a posterior that is not in a
+    calibration run (e.g. the gap diagnosis's recalibration with an effect
+    added, whose effect parameters are anchored like the rig's when the step
+    likelihood leaves them open).
+
+    Parameters
+    ----------
+    raw : dict
+        ``name -> (M,)`` posterior draws (SI).
+    priors : dict
+        ``name -> {"kind", "center", "scale"}``.
+    label : str
+    identification : tembayes.data.Experiment
+    rig : RigDescription
+    laws : {"linear", "constant"}
+
+    Returns
+    -------
+    PredictiveDraws
+    """
+    names = unpinned(raw, priors, rig) + unpinned_effects(raw, priors)
     fixed = None
     if laws == "constant":
         raw = constant_laws(raw)
@@ -126,12 +154,28 @@ def module_draws(run, module_id, identification, rig, *, laws="linear"):
         raise ValueError(f"laws must be 'linear' or 'constant', got {laws!r}")
     a = anchor_rig(RunModel(identification, rig), raw, names, fixed=fixed)
     params = {k: a.draws[k] for k in _sim_names(a.draws, rig)}
+    for k in params:
+        if k in EFFECT_PARAMETERS and E.CATALOGUE[EFFECT_PARAMETERS[k]].parameter(k).nonnegative:
+            params[k] = np.maximum(params[k], 0.0)
     sd = np.array([a.residual[c].sd for c in CHANNELS])
     tau = np.array([a.residual[c].tau_s for c in CHANNELS])
     M = len(params["R0_ohm"])
-    return PredictiveDraws(params=params, noise_sd=np.repeat(sd[None], M, axis=0), label=module_id, laws=laws,
-                           anchor={module_id: {"updated": list(names), **a.to_dict()}},
+    return PredictiveDraws(params=params, noise_sd=np.repeat(sd[None], M, axis=0), label=label, laws=laws,
+                           anchor={label: {"updated": list(names), **a.to_dict()}},
                            noise_tau=np.repeat(tau[None], M, axis=0))
+
+
+def unpinned_effects(draws, priors, fraction=UNPINNED_FRACTION):
+    """Effect parameters the step likelihood leaves near their prior (see :func:`unpinned`)."""
+    out = []
+    for k in EFFECT_PARAMETERS:
+        if k not in draws or k not in priors:
+            continue
+        pr = priors[k]
+        prior_sd = float(pr["scale"]) / np.sqrt(3.0) if pr["kind"] == "uniform" else float(pr["scale"])
+        if np.std(np.asarray(draws[k], float)) > fraction * prior_sd:
+            out.append(k)
+    return tuple(out)
 
 
 def constant_laws(draws, at_C=CONSTANT_AT_C):
