@@ -200,26 +200,24 @@ def test_held_out_gap_is_the_error_beyond_the_predictive_variance():
 
 @pytest.fixture(scope="module")
 def lag_case(tmp_path_factory):
-    """One bench module with a 6 s sensor lag and one without, each calibrated with the base model
-    (short runs and budgets: the lag is many sds away from zero either way)."""
+    """One bench module with a 6 s sensor lag, calibrated with the base model (short runs and
+    budget: the lag is many sds away from zero either way)."""
     from tembayes.bench import BenchConfig, simulate_batch
     from tembayes.calibrate import calibrate_batch
     from tembayes.calibrate.module import CalibrationOptions
     from tembayes.data import load_batch
 
     root = tmp_path_factory.mktemp("gap")
-    opt = CalibrationOptions(max_steps=8000, pilot=1500)
-    out = {}
-    for name, effects in (("lag", {"sensor_lag": {"sensor_tau_s": 6.0}}), ("null", {})):
-        b = root / f"b_{name}"
-        simulate_batch(b, BenchConfig(n_modules=1, seed=31, hold=300.0, validation_rate=1.0,
-                                      validation_duration=5400.0, effects=effects), progress=lambda m: None)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # short budget: convergence not the point here
-            calibrate_batch(load_batch(b), root / f"r_{name}", seed=0, options=opt, figures=False, population=False)
-        (b / "truth.json").rename(root / f"truth_{name}.json")  # the diagnosis is blind
-        out[name] = (b, root / f"r_{name}")
-    return out
+    b = root / "b_lag"
+    simulate_batch(b, BenchConfig(n_modules=1, seed=31, hold=300.0, validation_rate=1.0,
+                                  validation_duration=2700.0, effects={"sensor_lag": {"sensor_tau_s": 6.0}}),
+                   progress=lambda m: None)
+    (b / "truth.json").rename(root / "truth_lag.json")  # the diagnosis is blind
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # short budget: convergence not the point here
+        calibrate_batch(load_batch(b), root / "r_lag", seed=0, options=CalibrationOptions(max_steps=5000, pilot=1000),
+                        figures=False, population=False)
+    return b, root / "r_lag"
 
 
 def test_gap_names_a_sensor_lag_recovers_its_size_and_shrinks_the_gap(lag_case, tmp_path):
@@ -228,11 +226,11 @@ def test_gap_names_a_sensor_lag_recovers_its_size_and_shrinks_the_gap(lag_case, 
     the contract's keys.  The batch has no truth.json (the fixture moved it away): nothing to peek at."""
     from tembayes.cli import main
 
-    batch, run = lag_case["lag"]
+    batch, run = lag_case
     assert not (batch / "truth.json").exists()
     out = tmp_path / "gap"
     with pytest.warns(RuntimeWarning):  # short recalibration budgets: not converged
-        assert main(["gap", str(run), str(batch), "--out", str(out), "--candidates", "1", "--draws", "100"]) == 0
+        assert main(["gap", str(run), str(batch), "--out", str(out), "--candidates", "1", "--draws", "80"]) == 0
     doc = __import__("json").loads((out / "gap.json").read_text())
     assert set(doc) >= {"verdict", "where", "ranking", "best"}
     assert doc["verdict"] == "explained" and doc["best"] == "sensor_lag"
@@ -245,18 +243,30 @@ def test_gap_names_a_sensor_lag_recovers_its_size_and_shrinks_the_gap(lag_case, 
     assert (out / "ranking.png").is_file() and list(out.glob("gap_map_TEM1_*.png"))
 
 
-def test_gap_is_quiet_without_an_effect_and_refuses_a_batch_without_held_out_runs(lag_case, batch3, run3, tmp_path):
-    """Negative control: the correctly specified bench gets no_gap (nothing recalibrated).  A batch
-    without validation runs is refused with nothing written."""
+def test_gap_is_quiet_without_an_effect_and_refuses_a_batch_without_held_out_runs(batch3, run3, tmp_path):
+    """Negative control: a correctly specified bench module (batch3's TEM1, calibrated with the base
+    model) with a fresh held-out run gets no_gap, nothing recalibrated.  batch3 itself has no
+    validation runs: refused, nothing written."""
+    import shutil
+
+    from tembayes.bench import bench as B
+    from tembayes.bench import hifi
+    from tembayes.bench.protocols import validation_cycle
     from tembayes.calibrate.run import load_run
     from tembayes.cli import main
     from tembayes.data import load_batch
+    from tembayes.data.write import write_experiment_csv
     from tembayes.gap.diagnose import diagnose
 
-    batch, run = lag_case["null"]
-    d = diagnose(load_run(run), load_batch(batch), n_draws=100)
-    assert d.verdict == "no_gap" and d.best is None and d.where == []
-    assert all(r["evidence_kind"] == "screen" for r in d.ranking)
     out = tmp_path / "refused"
     assert main(["gap", str(run3[0]), str(batch3), "--out", str(out)]) != 0
     assert not out.exists()
+    held = tmp_path / "batch"
+    shutil.copytree(batch3, held, ignore=shutil.ignore_patterns("truth.json"))
+    rng = np.random.default_rng(12)
+    exp = B.run_experiment(validation_cycle(rng, 6.4, duration=2700.0), run3[2]["modules"]["TEM1"], {}, rng,
+                           rate=1.0, rig=hifi.hifi_rig(), t0=30.0)
+    write_experiment_csv(held / "TEM1" / "validation.csv", exp)
+    d = diagnose(load_run(run3[0]), load_batch(held), n_draws=80)
+    assert d.verdict == "no_gap" and d.best is None and d.where == []
+    assert all(r["evidence_kind"] == "screen" for r in d.ranking)
