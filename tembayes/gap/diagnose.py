@@ -469,12 +469,11 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
     alpha = ALPHA / n_maps
 
     # 1-2. the base model: predictive, gap map, screen, range conflicts
-    base_evals, screen_sum, screen_rows, conflicts, base_draws, starts = [], {}, {}, {}, {}, {}
+    base_evals, screen_sum, screen_rows, conflicts, starts = [], {}, {}, {}, {}
     for mid in ids:
         module = batch.modules[mid]
         say(f"{mid}: base model, anchoring on the identification run")
         d = module_draws(run, mid, module.identification, rig)
-        base_draws[mid] = d
         names = list(run.idata.posterior.data_vars)
         X = run.draws(mid, names)
         conflicts[mid] = [r for r in range_conflicts({k: X[:, j] for j, k in enumerate(names)}, rig)
