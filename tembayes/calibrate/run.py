@@ -96,6 +96,27 @@ class CalibrationRun:
         """``{"R_ohm": {"estimate", "sd", "z"}, "S_V_per_K": {...}}`` (up - down, SI), or {}."""
         return self.module_summary(module_id).get("hysteresis") or {}
 
+    def options(self) -> dict:
+        """The calibration options recorded in ``summary.json``."""
+        return dict((self.summary.get("calibration") or {}).get("options") or {})
+
+    def rig_for(self, batch):
+        """The calibration rig of this run on ``batch``, after checking the batch holds every module.
+
+        Raises
+        ------
+        DataError
+            The batch is not the one the run was calibrated on.
+        """
+        from tembayes.physics.rig import rig_from_config
+
+        missing = [m for m in self.module_ids if m not in batch.modules]
+        if missing:
+            raise DataError(batch.path, f"has no module folder(s) {missing} of the run",
+                            "Give the batch folder the run was calibrated on.")
+        opts = self.options()
+        return rig_from_config(batch.rig_config, opts.get("leg_cells", 4), opts.get("block_cells", 6))
+
     def priors(self, module_id) -> dict:
         """``name -> {"kind", "center", "scale"}`` of the module's priors (from ``posterior.nc``)."""
         self._check(module_id)

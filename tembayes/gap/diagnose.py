@@ -66,7 +66,7 @@ from tembayes.gap.where import gap_map
 from tembayes.gap.which import screen_effects
 from tembayes.physics import effects as E
 from tembayes.predict.anchor import ResidualProcess
-from tembayes.predict.predictive import (PredictiveDraws, module_draws, posterior_draws, simulate_predictive,
+from tembayes.predict.predictive import (PredictiveDraws, module_raw_draws, posterior_draws, simulate_predictive,
                                          subsample)
 from tembayes.predict.runmodel import CHANNELS, RunModel
 
@@ -441,7 +441,6 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
     GapDiagnosis
     """
     from tembayes.calibrate.module import CalibrationOptions
-    from tembayes.physics.rig import rig_from_config
 
     t_start = _time.perf_counter()
     say = progress or (lambda msg: None)
@@ -449,17 +448,13 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
     if unknown:
         raise DataError("--exclude", f"names no catalogue effect: {unknown}", f"Choose from {list(E.CATALOGUE)}.")
     allowed = [e for e in E.CATALOGUE if e not in set(exclude)]
-    missing = [m for m in run.module_ids if m not in batch.modules]
-    if missing:
-        raise DataError(batch.path, f"has no module folder(s) {missing} of the run",
-                        "Give the batch folder the run was calibrated on.")
+    rig = run.rig_for(batch)
     ids = [m for m in run.module_ids if batch.modules[m].validations]
     if not ids:
         raise DataError(batch.path, "has no validation*.csv in any module folder",
                         "The diagnosis needs held-out runs: add at least one validation experiment per module.")
-    opts = dict((run.summary.get("calibration") or {}).get("options") or {})
+    opts = run.options()
     leg, blk = opts.get("leg_cells", 4), opts.get("block_cells", 6)
-    rig = rig_from_config(batch.rig_config, leg, blk)
     if options is None:
         known = CalibrationOptions.__dataclass_fields__
         options = CalibrationOptions(**{k: v for k, v in opts.items() if k in known})
@@ -473,12 +468,10 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
     for mid in ids:
         module = batch.modules[mid]
         say(f"{mid}: base model, anchoring on the identification run")
-        d = module_draws(run, mid, module.identification, rig)
-        names = list(run.idata.posterior.data_vars)
-        X = run.draws(mid, names)
-        conflicts[mid] = [r for r in range_conflicts({k: X[:, j] for j, k in enumerate(names)}, rig)
-                          if r["outside_sd"] > 0]
-        starts[mid] = {k: float(np.median(X[:, j])) for j, k in enumerate(names) if k in MODULE_PARAMETERS}
+        raw = module_raw_draws(run, mid)  # read once: anchoring, conflicts and the recalibrations' start
+        d = posterior_draws(raw, run.priors(mid), mid, module.identification, rig)
+        conflicts[mid] = [r for r in range_conflicts(raw, rig) if r["outside_sd"] > 0]
+        starts[mid] = {k: float(np.median(raw[k])) for k in MODULE_PARAMETERS}
         procs = {ch: ResidualProcess(float(d.noise_sd[0, c]), float(d.noise_tau[0, c]), 0.0)
                  for c, ch in enumerate(CHANNELS)}
         for exp in module.validations:

@@ -82,7 +82,8 @@ class PredictiveDraws:
         return len(self.noise_sd)
 
 
-def _module_raw_draws(run, module_id):
+def module_raw_draws(run, module_id):
+    """``name -> (M,)`` every sampled parameter's posterior draws of a module of a run (SI)."""
     post = run.idata.posterior
     names = [k for k in post.data_vars]
     X = run.draws(module_id, names)
@@ -117,7 +118,7 @@ def module_draws(run, module_id, identification, rig, *, laws="linear"):
     if module_id not in run.module_ids:
         raise DataError(run.path / "posterior.nc", f"has no module '{module_id}'",
                         f"Choose one of {list(run.module_ids)} or 'population'.")
-    return posterior_draws(_module_raw_draws(run, module_id), run.priors(module_id), module_id, identification, rig,
+    return posterior_draws(module_raw_draws(run, module_id), run.priors(module_id), module_id, identification, rig,
                            laws=laws)
 
 
@@ -459,8 +460,6 @@ def predict(run, experiment, module, batch, *, n_draws=500, seed=0, compare_cons
     -------
     PredictResult
     """
-    from tembayes.physics.rig import rig_from_config
-
     t0 = _time.perf_counter()
     say = progress or (lambda msg: None)
     if n_draws < 10:
@@ -468,12 +467,7 @@ def predict(run, experiment, module, batch, *, n_draws=500, seed=0, compare_cons
     if module != "population" and module not in run.module_ids:
         raise DataError(run.path / "posterior.nc", f"has no module '{module}'",
                         f"Choose one of {list(run.module_ids)} or 'population'.")
-    missing = [m for m in run.module_ids if m not in batch.modules]
-    if missing:
-        raise DataError(batch.path, f"has no module folder(s) {missing} of the run",
-                        "Give the batch folder the run was calibrated on (--batch).")
-    opts = (run.summary.get("calibration") or {}).get("options") or {}
-    rig = rig_from_config(batch.rig_config, opts.get("leg_cells", 4), opts.get("block_cells", 6))
+    rig = run.rig_for(batch)
     model = RunModel(experiment, rig)
     ids = list(run.module_ids) if module == "population" else [module]
     results = {}
