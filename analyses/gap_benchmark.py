@@ -29,6 +29,8 @@ Targets: top-1 >= 0.85 (groups as one), null false alarm <= 10 %, withheld not
 
     python analyses/gap_benchmark.py                 # 5 seeds x (null + 8 effects + 8 withheld), resumable
     python analyses/gap_benchmark.py --seeds 2 --effects sensor_lag joule_split
+    python analyses/gap_benchmark.py --shard 0/2 & python analyses/gap_benchmark.py --shard 1/2; \
+        python analyses/gap_benchmark.py --summarise
 
 Each case is cached under ``runs/gap_benchmark/<effect>_s<seed>/`` (batch,
 run, ``gap.json``, ``gap_withheld.json``); an interrupted benchmark resumes.
@@ -65,7 +67,7 @@ def _tembayes(*args, check=True):
                    stderr=subprocess.DEVNULL)
 
 
-def _case(work, effect, seed, withheld):
+def _case(work, effect, seed, withheld, compute=True):
     from tembayes.calibrate.run import load_run
     from tembayes.data import load_batch
     from tembayes.data.write import write_json
@@ -73,6 +75,11 @@ def _case(work, effect, seed, withheld):
 
     d = work / f"{effect or 'null'}_s{seed}"
     batch, run = d / "batch", d / "run"
+    if not compute:  # summarising: the cached results only
+        tags = ["gap"] + (["gap_withheld"] if withheld and effect else [])
+        if not all((d / f"{t}.json").is_file() for t in tags):
+            return None
+        return {t: json.loads((d / f"{t}.json").read_text()) for t in tags}
     if not (run / "summary.json").is_file():
         d.mkdir(parents=True, exist_ok=True)
         eff = ["--effect", effect] if effect else []
@@ -83,12 +90,12 @@ def _case(work, effect, seed, withheld):
                   "--overwrite", check=False)
         if not (run / "summary.json").is_file():
             raise RuntimeError(f"calibrating {batch} wrote no run")
-    out = {}
+    out, cache = {}, {}  # the withheld diagnosis reuses the other candidates' recalibrations
     for tag, exclude in (("gap", ()),) + ((("gap_withheld", (effect,)),) if withheld and effect else ()):
         f = d / f"{tag}.json"
         if not f.is_file():
             t0 = time.perf_counter()
-            diag = diagnose(load_run(run), load_batch(batch), exclude=exclude, seed=seed)
+            diag = diagnose(load_run(run), load_batch(batch), exclude=exclude, seed=seed, cache=cache)
             doc = diag.to_json()
             doc["wall_s"] = time.perf_counter() - t0
             write_json(f, doc)
@@ -166,18 +173,31 @@ def main(argv=None):
     ap.add_argument("--no-null", action="store_true")
     ap.add_argument("--no-withheld", action="store_true")
     ap.add_argument("--work", type=Path, default=Path("runs/gap_benchmark"))
+    ap.add_argument("--shard", default="0/1", metavar="I/N",
+                    help="run every N-th case from the I-th (two shards fill 2 cores while one calibrates)")
+    ap.add_argument("--summarise", action="store_true", help="only summarise the cases already cached")
     args = ap.parse_args(argv)
+    i_shard, n_shard = (int(x) for x in args.shard.split("/"))
     cases = {}
     todo = ([] if args.no_null else [None]) + list(args.effects)
-    for seed in range(args.seeds):
-        for effect in todo:
-            t0 = time.perf_counter()
-            cases[(effect, seed)] = docs = _case(args.work, effect, seed, not args.no_withheld)
-            msg = f"[{effect or 'null'} s{seed}] {_called(docs['gap'])}"
-            if "gap_withheld" in docs:
-                msg += f"; withheld: {_called(docs['gap_withheld'])}"
-            print(msg + f" ({time.perf_counter() - t0:.0f} s)", flush=True)
+    for k, (seed, effect) in enumerate((s, e) for s in range(args.seeds) for e in todo):
+        if args.summarise:
+            docs = _case(args.work, effect, seed, not args.no_withheld, compute=False)
+            if docs is not None:
+                cases[(effect, seed)] = docs
+            continue
+        if k % n_shard != i_shard:
+            continue
+        t0 = time.perf_counter()
+        cases[(effect, seed)] = docs = _case(args.work, effect, seed, not args.no_withheld)
+        msg = f"[{effect or 'null'} s{seed}] {_called(docs['gap'])}"
+        if "gap_withheld" in docs:
+            msg += f"; withheld: {_called(docs['gap_withheld'])}"
+        print(msg + f" ({time.perf_counter() - t0:.0f} s)", flush=True)
     s = summarise(cases)
+    if n_shard > 1 and not args.summarise:
+        print(_markdown(s))  # this shard's cases; `--summarise` writes the whole table
+        return
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / "gap_benchmark.json").write_text(json.dumps(s, indent=1))
     (RESULTS / "gap_benchmark.md").write_text(_markdown(s))

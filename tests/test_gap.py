@@ -198,6 +198,24 @@ def test_held_out_gap_is_the_error_beyond_the_predictive_variance():
     assert held_out_gap(ev) == 0.0
 
 
+def test_race_carries_only_helpful_candidates_to_the_other_modules_and_reuses_the_cache():
+    from tembayes.gap.diagnose import _race
+
+    ran = []
+
+    def work(mid, effect):
+        ran.append((mid, effect))
+        return {"module": mid, "effect": effect, "helps": effect == "good", "seconds": 1.0}
+
+    cache = {("B", "good"): {"module": "B", "effect": "good", "helps": True, "seconds": 0.0}}
+    out = _race([("A", "good"), ("A", "bad")],
+                lambda r: [("B", r["effect"]), ("C", r["effect"])] if r["helps"] and r["module"] == "A" else [],
+                lambda mid, e: (mid, e), 1, cache, lambda msg: None, work=work)
+    assert set(out) == {("A", "good"), ("A", "bad"), ("B", "good"), ("C", "good")}
+    assert ("B", "good") not in ran and sorted(ran) == [("A", "bad"), ("A", "good"), ("C", "good")]
+    assert set(cache) == set(out)  # filled for the next call (the withheld diagnosis)
+
+
 @pytest.fixture(scope="module")
 def lag_case(tmp_path_factory):
     """One bench module with a 6 s sensor lag, calibrated with the base model (short runs and

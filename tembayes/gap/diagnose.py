@@ -17,7 +17,10 @@ For every calibrated module with held-out runs (``validation*.csv``):
    (:func:`~tembayes.calibrate.module.calibrate_module` with ``effects``),
    anchored, and predicted on the held-out runs.  Their held-out evidence is
    the block-wise ELPD (below) against the base model's, the gap is
-   :data:`GAP_METRIC` before and after.
+   :data:`GAP_METRIC` before and after.  On a batch the candidates *race*:
+   each is recalibrated first on the module with the largest gap, and only
+   those that gain held-out evidence there are recalibrated on the others
+   (the rest are reported with their evidence on that module, ``dropped``).
 
 Held-out evidence.  Each model predicts a held-out run with its own residual
 process (the Ornstein-Uhlenbeck model fitted on its identification run);
@@ -306,6 +309,51 @@ def _candidate_job(module, datasheet, rig_config, leg_cells, block_cells, effect
             "warnings": [str(w.message) for w in caught]}
 
 
+def _race(first, follow, job, jobs, cache, say, work=_candidate_job):
+    """Run the recalibrations ``first`` and, as each finishes, those ``follow(result)`` asks for.
+
+    ``first`` and ``follow``'s return are lists of ``(module_id, effect)``;
+    ``work(*job(module_id, effect))`` is one recalibration (a picklable
+    top-level function with ``jobs > 1``).  Results already in
+    ``cache`` (a dict keyed by ``(module_id, effect)``) are not run again;
+    new ones are added to it.  Returns ``{(module_id, effect): result}``.
+    """
+    from concurrent.futures import FIRST_COMPLETED, wait
+
+    out, pending = {}, list(first)
+    done = 0
+
+    def record(key, r):
+        nonlocal done
+        out[key] = r
+        if cache is not None:
+            cache[key] = r
+        done += 1
+        say(f"  recalibrated {key[0]} with {key[1]} ({done} done, {r['seconds']:.0f} s)")
+        pending.extend(k for k in follow(r) if k not in out)
+
+    if jobs <= 1:
+        while pending:
+            key = pending.pop(0)
+            record(key, cache[key] if cache is not None and key in cache else work(*job(*key)))
+        return out
+    ctx = multiprocessing.get_context("spawn")  # the compiled kernels' OpenMP runtime is not fork-safe
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx) as ex:
+        running = {}
+        while pending or running:
+            while pending:
+                key = pending.pop(0)
+                if cache is not None and key in cache:
+                    record(key, cache[key])
+                else:
+                    running[ex.submit(work, *job(*key))] = key
+            if running:
+                finished, _ = wait(running, return_when=FIRST_COMPLETED)
+                for f in finished:
+                    record(running.pop(f), f.result())
+    return out
+
+
 @dataclass(frozen=True)
 class GapDiagnosis:
     """Result of :func:`diagnose` (a plain result object; ``to_json`` is ``gap.json``).
@@ -413,7 +461,7 @@ def _suspects(conflicts, allowed):
 
 
 def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, seed=0, options=None, jobs=2,
-             progress=None):
+             progress=None, cache=None):
     """Diagnose the sim-to-real gap of a calibrated batch on its held-out runs.
 
     Parameters
@@ -435,6 +483,10 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
     jobs : int
         Recalibrations at once, in worker processes.
     progress : callable, optional
+    cache : dict, optional
+        Recalibrations kept between calls on the same run, batch, seed and
+        settings, keyed by ``(module_id, effect)``: a diagnosis with an effect
+        withheld reuses the other candidates' (filled in place).
 
     Returns
     -------
@@ -522,25 +574,35 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
         chosen = suspects[:candidates]
         say(f"no held-out gap, but {len(param_gaps)} rig parameter(s) outside their documented range; "
             f"recalibrating with {', '.join(chosen) or 'nothing (no catalogue effect stands for them)'}")
+    in_runs = bool(where)
     where = where + param_gaps
     # each search for the mode starts at the base posterior's laws (the rig at
     # its nominal, the effect at zero): a rig the base model distorted to
     # absorb the effect is no place to start
-    jobs_args = [(batch.modules[mid], batch.datasheet, batch.rig_config, leg, blk, e, seed, options, n_draws, alpha,
-                  starts[mid]) for e in chosen for mid in ids]
-    results = []
-    if jobs > 1 and len(jobs_args) > 1:
-        ctx = multiprocessing.get_context("spawn")  # the compiled kernels' OpenMP runtime is not fork-safe
-        with ProcessPoolExecutor(max_workers=min(jobs, len(jobs_args)), mp_context=ctx) as ex:
-            futures = [ex.submit(_candidate_job, *a) for a in jobs_args]
-            for i, f in enumerate(futures):
-                results.append(f.result())
-                say(f"  recalibrated {results[-1]['module']} with {results[-1]['effect']} "
-                    f"({i + 1}/{len(futures)}, {results[-1]['seconds']:.0f} s)")
-    else:
-        for i, a in enumerate(jobs_args):
-            say(f"  recalibrating {a[0].id} with {a[5]} ({i + 1}/{len(jobs_args)})")
-            results.append(_candidate_job(*a))
+    # racing: every candidate on the module with the largest gap first; only
+    # those that gain held-out evidence there go on to the other modules
+    score = {mid: held_out_gap([e for e in base_evals if e.module_id == mid]) for mid in ids}
+    if not in_runs:
+        score = {mid: sum(r["conflict"] for r in conflicts[mid]) for mid in ids}
+    lead = max(ids, key=lambda m: score[m])
+    rest = [m for m in ids if m != lead]
+    lead_base = np.concatenate([e.elpd_blocks for e in base_evals if e.module_id == lead])
+
+    def job(mid, e):
+        return (batch.modules[mid], batch.datasheet, batch.rig_config, leg, blk, e, seed, options, n_draws, alpha,
+                starts[mid])
+
+    def helps(r):
+        if r["failed"]:
+            return False
+        if not in_runs:
+            return not r["conflicts"]
+        return float(np.concatenate([ev.elpd_blocks for ev in r["evals"]]).sum() - lead_base.sum()) > 0.0
+
+    results = _race([(lead, e) for e in chosen], lambda r: [(m, r["effect"]) for m in rest] if helps(r) else [],
+                    job, jobs, cache, say)
+    dropped = {e for e in chosen if not helps(results[(lead, e)])} if rest else set()
+    results = list(results.values())
     for r in results:
         for msg in r["warnings"]:
             warnings.warn(f"recalibration with {r['effect']}: {msg}", RuntimeWarning, stacklevel=2)
@@ -550,6 +612,20 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
     for e in chosen:
         rs = [r for r in results if r["effect"] == e]
         bad = [f"{r['module']}: {r['failed']}" for r in rs if r["failed"]]
+        if e in dropped and not bad:
+            (r,) = rs
+            diff = np.concatenate([ev.elpd_blocks for ev in r["evals"]]) - lead_base
+            lead_before = held_out_gap([ev for ev in base_evals if ev.module_id == lead])
+            after = held_out_gap(r["evals"])
+            failed.append({"effect": e, "evidence": float(diff.sum()),
+                           "evidence_se": float(np.sqrt(len(diff)) * diff.std()),
+                           "evidence_kind": "heldout_elpd_lead_module", "module": lead,
+                           "gap_before": lead_before, "gap_after": after,
+                           "shrink": 1.0 - after / lead_before if lead_before > 0 else 0.0,
+                           "size": {lead: r["size"]}, "converged": r["converged"],
+                           "dropped": f"did not help on {lead} (the module with the largest gap): "
+                                      "not recalibrated on the other modules"})
+            continue
         if bad:
             failed.append({"effect": e, "evidence": None, "evidence_kind": "heldout_elpd", "gap_before": gap_before,
                            "gap_after": None, "shrink": None, "failed": "; ".join(bad)})
@@ -572,7 +648,6 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
                         "conflicts_resolved": all(not r["conflicts"] for r in rs),
                         "converged": all(r["converged"] for r in rs),
                         "seconds": float(sum(r["seconds"] for r in rs))})
-    in_runs = any(w.get("kind") != "parameter" for w in where)
     if in_runs:
         ranking.sort(key=lambda r: -r["evidence"])
     else:
