@@ -316,6 +316,8 @@ def _cmd_gap(args):
         elif r.get("evidence_kind") == "heldout_elpd":
             print(f"  {r['effect']:20s} evidence {r['evidence']:+.4g} +- {r['evidence_se']:.3g} nats  "
                   f"gap {1e3 * r['gap_before']:.1f} -> {1e3 * r['gap_after']:.1f} mK (shrink {r['shrink']:.0%})")
+        elif r.get("dropped"):
+            print(f"  {r['effect']:20s} dropped: {r['dropped']}")
     print(f"wrote {args.out / 'gap.json'}")
     return 0
 

@@ -310,7 +310,7 @@ def _candidate_job(module, datasheet, rig_config, leg_cells, block_cells, effect
 
 
 def _race(first, follow, job, jobs, cache, say, work=_candidate_job):
-    """Run the recalibrations ``first`` and, as each finishes, those ``follow(result)`` asks for.
+    """Run the recalibrations ``first`` and, as each finishes, those ``follow(result)`` asks for (first).
 
     ``first`` and ``follow``'s return are lists of ``(module_id, effect)``;
     ``work(*job(module_id, effect))`` is one recalibration (a picklable
@@ -321,16 +321,16 @@ def _race(first, follow, job, jobs, cache, say, work=_candidate_job):
     from concurrent.futures import FIRST_COMPLETED, wait
 
     out, pending = {}, list(first)
-    done = 0
+    queued = set(first)
 
     def record(key, r):
-        nonlocal done
         out[key] = r
         if cache is not None:
             cache[key] = r
-        done += 1
-        say(f"  recalibrated {key[0]} with {key[1]} ({done} done, {r['seconds']:.0f} s)")
-        pending.extend(k for k in follow(r) if k not in out)
+        say(f"  recalibrated {key[0]} with {key[1]} ({len(out)} done, {r['seconds']:.0f} s)")
+        new = [k for k in follow(r) if k not in queued]
+        queued.update(new)
+        pending[:0] = new  # a candidate carried on goes first: it is the one likely to be reported
 
     if jobs <= 1:
         while pending:
@@ -341,7 +341,7 @@ def _race(first, follow, job, jobs, cache, say, work=_candidate_job):
     with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx) as ex:
         running = {}
         while pending or running:
-            while pending:
+            while pending and len(running) < jobs:  # submit no further ahead: carried jobs jump the queue
                 key = pending.pop(0)
                 if cache is not None and key in cache:
                     record(key, cache[key])
@@ -592,16 +592,33 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
         return (batch.modules[mid], batch.datasheet, batch.rig_config, leg, blk, e, seed, options, n_draws, alpha,
                 starts[mid])
 
-    def helps(r):
-        if r["failed"]:
-            return False
-        if not in_runs:
-            return not r["conflicts"]
-        return float(np.concatenate([ev.elpd_blocks for ev in r["evals"]]).sum() - lead_base.sum()) > 0.0
+    lead_done, why = {}, {}
 
-    results = _race([(lead, e) for e in chosen], lambda r: [(m, r["effect"]) for m in rest] if helps(r) else [],
-                    job, jobs, cache, say)
-    dropped = {e for e in chosen if not helps(results[(lead, e)])} if rest else set()
+    def carry(r):
+        """The other modules for a lead result that gains evidence and is not beaten so far."""
+        if r["module"] != lead:
+            return []
+        lead_done[r["effect"]] = r
+        if r["failed"]:
+            return []
+        if not in_runs:
+            why[r["effect"]] = f"its range conflicts stay on {lead}"
+            return [(m, r["effect"]) for m in rest] if not r["conflicts"] else []
+        blocks = {e: np.concatenate([ev.elpd_blocks for ev in x["evals"]])
+                  for e, x in lead_done.items() if not x["failed"]}
+        d = blocks[r["effect"]] - lead_base
+        if d.sum() <= EVIDENCE_Z * np.sqrt(len(d)) * d.std():
+            why[r["effect"]] = f"no significant held-out gain on {lead}"
+            return []
+        for e, b in blocks.items():  # beaten by a candidate already in: the race is lost
+            d = b - blocks[r["effect"]]
+            if e != r["effect"] and d.sum() > EVIDENCE_Z * np.sqrt(len(d)) * d.std():
+                why[r["effect"]] = f"beaten by {e} on {lead}"
+                return []
+        return [(m, r["effect"]) for m in rest]
+
+    results = _race([(lead, e) for e in chosen], carry, job, jobs, cache, say)
+    dropped = {e for e in chosen if any((m, e) not in results for m in rest)}
     results = list(results.values())
     for r in results:
         for msg in r["warnings"]:
@@ -623,7 +640,7 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
                            "gap_before": lead_before, "gap_after": after,
                            "shrink": 1.0 - after / lead_before if lead_before > 0 else 0.0,
                            "size": {lead: r["size"]}, "converged": r["converged"],
-                           "dropped": f"did not help on {lead} (the module with the largest gap): "
+                           "dropped": f"{why.get(e, 'lost the race on ' + lead)} (the module with the largest gap): "
                                       "not recalibrated on the other modules"})
             continue
         if bad:
