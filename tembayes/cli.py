@@ -58,6 +58,18 @@ table (see the README); summary.json's population_spreads gives them for the
 next batch.
 """
 
+_EPILOG_EXPORT = """\
+examples:
+  tembayes export runs/example --format mat --out runs/example-observer.mat
+  tembayes export runs/example --out runs/ex.json --point 30,2.5 --point 45,5 --module TEM1
+
+reads the run and its batch (recorded in RUN/summary.json, or --batch) and
+writes one file, SI units (temperatures in K).  In Python:
+  scipy.io.loadmat("x.mat", simplify_cells=True)["modules"]["TEM1"]["linear"]["op0"]["A"]
+  numpy.load("x.npz")["modules__TEM1__linear__op0__A"]
+in MATLAB: x = load('x.mat'); x.modules.TEM1.linear.op0.A
+"""
+
 _EPILOG_GAP = """\
 examples:
   tembayes gap runs/example data/example --out runs/example-gap
@@ -245,9 +257,63 @@ def _write_result(args, name, doc, figures):
             figures(tmp)
 
 
+def _run_batch(args, run):
+    """The batch of ``--batch``, or the one recorded in ``RUN/summary.json``."""
+    from tembayes.data import load_batch
+
+    batch_path = args.batch
+    if batch_path is None:
+        recorded = (run.summary.get("batch") or {}).get("path")
+        candidates = [Path(recorded), args.run.parent / recorded] if recorded else []
+        batch_path = next((c for c in candidates if (c / "batch.toml").is_file()), None)
+        if batch_path is None:
+            raise DataError(args.run / "summary.json", f"names batch folder {recorded!r}, which is not there",
+                            "Give the batch the run was calibrated on with --batch BATCH.", column="batch.path")
+    return load_batch(batch_path)
+
+
+def _cmd_export(args):
+    from tembayes.calibrate.run import load_run
+    from tembayes.data.write import _refuse_existing
+    from tembayes.export.formats import write_export
+    from tembayes.export.observer import observer_inputs
+
+    fmt = args.format or (args.out.suffix.lstrip(".").lower() or None)
+    if fmt not in ("json", "npz", "mat"):
+        print(f"tembayes export: give --format json, npz or mat (FILE {args.out} has no such suffix)",
+              file=sys.stderr)
+        return 2
+    points = []
+    for text in args.point or ["25,0", "25,2", "40,4"]:
+        try:
+            tavg, current = (float(x) for x in text.split(","))
+        except ValueError:
+            print(f"tembayes export: --point {text!r}: expected T_AVG_C,CURRENT_A, e.g. --point 30,2.5",
+                  file=sys.stderr)
+            return 2
+        points.append((tavg, current))
+    run = load_run(args.run)  # refused inputs: nothing is written
+    batch = _run_batch(args, run)
+    _refuse_existing(args.out, args.overwrite)
+
+    def progress(msg):
+        print(msg, file=sys.stderr, flush=True)
+
+    exp = observer_inputs(run, batch, points=points, t_amb_C=args.ambient, n_draws=args.draws, seed=args.seed,
+                          modules=args.module, progress=progress)
+    write_export(exp, args.out, fmt)
+    for mid, m in exp.modules.items():
+        pn = m["process_noise"]
+        print(f"{mid}: {len(exp.parameters)} parameters, {len(m['linear'])} operating points; process noise "
+              + ", ".join(f"{c} {1e3 * s:.2g} m/{t:.0f} s" for c, s, t in zip(pn["channels"], pn["sd"],
+                                                                                pn["tau_s"])))
+    print(f"wrote {args.out} ({fmt})")
+    return 0
+
+
 def _cmd_predict(args):
     from tembayes.calibrate.run import load_run
-    from tembayes.data import load_batch, load_experiment
+    from tembayes.data import load_experiment
     from tembayes.data.write import _refuse_existing
     from tembayes.predict.predictive import predict
 
@@ -258,15 +324,7 @@ def _cmd_predict(args):
     if args.module != "population" and args.module not in run.module_ids:
         raise DataError(args.run / "posterior.nc", f"has no module '{args.module}'",
                         f"Choose one of {list(run.module_ids)} or 'population'.")
-    batch_path = args.batch
-    if batch_path is None:
-        recorded = (run.summary.get("batch") or {}).get("path")
-        candidates = [Path(recorded), args.run.parent / recorded] if recorded else []
-        batch_path = next((c for c in candidates if (c / "batch.toml").is_file()), None)
-        if batch_path is None:
-            raise DataError(args.run / "summary.json", f"names batch folder {recorded!r}, which is not there",
-                            "Give the batch the run was calibrated on with --batch BATCH.", column="batch.path")
-    batch = load_batch(batch_path)
+    batch = _run_batch(args, run)
     exp = load_experiment(args.experiment, imax=batch.datasheet.imax)
     _refuse_existing(args.out, args.overwrite)
 
@@ -456,6 +514,32 @@ def build_parser():
     p.add_argument("--no-figures", action="store_true", help="write gap.json only")
     p.add_argument("--overwrite", action="store_true", help="replace DIR if it exists")
     p.set_defaults(func=_cmd_gap)
+
+    p = sub.add_parser(
+        "export",
+        help="uncertainty inputs for observer design: posterior moments, noise, linearised rig model",
+        description="Per module and for a new unit of the batch: the posterior mean and covariance of the "
+        "laws, K and the rig parameters (and thinned draws), the sensors' measurement-noise covariance, a "
+        "process-noise suggestion (an OU disturbance per output, fitted to the held-out residuals), and the "
+        "rig linearised at operating points (A, B, C, D, state/input/output names) with its sensitivities "
+        "to the parameters.  Schema: tembayes/export/formats.py.",
+        epilog=_EPILOG_EXPORT,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("run", type=Path, help="calibration run folder (tembayes calibrate --out)")
+    p.add_argument("--out", type=Path, required=True, metavar="FILE", help="file to write")
+    p.add_argument("--format", choices=("json", "npz", "mat"), help="default: FILE's suffix")
+    p.add_argument("--batch", type=Path, metavar="BATCH",
+                   help="the calibrated batch folder (default: the one recorded in RUN/summary.json)")
+    p.add_argument("--point", action="append", metavar="T_AVG_C,CURRENT_A",
+                   help="operating point to linearise at (repeatable; default 25,0 25,2 40,4)")
+    p.add_argument("--ambient", type=float, default=25.0, metavar="C",
+                   help="ambient temperature of the operating points [C] (default 25)")
+    p.add_argument("--module", action="append", metavar="ID", help="only these modules (repeatable)")
+    p.add_argument("--draws", type=int, default=200, metavar="N", help="posterior draws kept per module")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--overwrite", action="store_true", help="replace FILE if it exists")
+    p.set_defaults(func=_cmd_export)
 
     p = sub.add_parser(
         "inspect",

@@ -1,0 +1,247 @@
+"""Uncertainty inputs for observer design (``tembayes export``).
+
+Per calibrated module, and for a new module of the batch (the population):
+
+- the posterior mean and covariance of the laws, ``K`` and the rig
+  parameters (the rig anchored on the identification run, as ``tembayes
+  predict`` does), and a thinned set of posterior draws (for a UKF's sigma
+  points or a robust design's scenarios);
+- the sensors' measurement-noise covariance (T1..T4, V), read off the
+  identification run: second differences, robust scale on the diagonal,
+  correlations from the samples away from the current steps;
+- a process-noise suggestion: the model discrepancy as one Ornstein-Uhlenbeck
+  disturbance per output (``d' = -d/tau + w``, ``y = C x + D u + d + v``),
+  fitted to the posterior-predictive residuals of the held-out runs when
+  the module has any, else to the identification run's (``source`` says
+  which); ``q = 2 sd^2 / tau`` is the spectral density of ``w``;
+- the rig linearised at the operating points asked for
+  (:mod:`tembayes.export.linearise`), with its sensitivities to every
+  exported parameter.
+"""
+
+from __future__ import annotations
+
+import time as _time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from tembayes.constants import MODULE_PARAMETERS
+from tembayes.data.quality import noise_estimate
+from tembayes.errors import DataError
+from tembayes.export.linearise import INPUTS, OUTPUTS, linearise
+from tembayes.predict.predictive import module_draws, predict
+from tembayes.predict.runmodel import CHANNELS
+
+#: Schema name and version of the export (``schema`` key of every format).
+SCHEMA = "tembayes-observer-export/1"
+#: Default operating points ``(T̄ [degC], I [A])``.
+DEFAULT_POINTS = ((25.0, 0.0), (25.0, 2.0), (40.0, 4.0))
+
+
+@dataclass(frozen=True)
+class ObserverExport:
+    """Result of :func:`observer_inputs` (plain data; :mod:`tembayes.export.formats` writes it).
+
+    Attributes
+    ----------
+    parameters : tuple of str
+        Order of ``mean``, ``cov``, ``draws`` and the sensitivities.
+    units : dict
+        Parameter -> unit.
+    modules : dict
+        Module id (and ``"population"``) -> ``{"mean", "cov", "draws",
+        "measurement_noise_cov", "process_noise", "linear": [LinearModel]}``.
+    states, inputs, outputs : tuple of str
+    meta : dict
+        Run, seed, command context.
+    """
+
+    parameters: tuple
+    units: dict
+    modules: dict
+    states: tuple
+    inputs: tuple = INPUTS
+    outputs: tuple = OUTPUTS
+    meta: dict = field(default_factory=dict)
+
+
+def measurement_noise_cov(exp, step_guard=5):
+    """Covariance of the white sensor noise of an experiment, ``(5, 5)`` (T1..T4 in K, V in V).
+
+    Parameters
+    ----------
+    exp : tembayes.data.Experiment
+    step_guard : int
+        Samples left out on either side of a current step (the voltage jumps there).
+    """
+    Y = np.vstack([np.asarray(exp.sensors[c], float) for c in range(4)] + [np.asarray(exp.voltage, float)])
+    sd = np.array([noise_estimate(y) for y in Y])
+    d2 = np.diff(Y, n=2, axis=1)
+    di = np.abs(np.diff(np.asarray(exp.current, float)))
+    jumps = np.flatnonzero(di > 20 * max(noise_estimate(exp.current), 1e-6))
+    keep = np.ones(d2.shape[1], bool)
+    for j in jumps:
+        keep[max(j - step_guard, 0):j + step_guard] = False
+    d2 = d2[:, keep]
+    # robust: drop any sample beyond 5 robust sds in any channel, then correlations
+    ok = np.all(np.abs(d2) <= 5 * np.sqrt(6) * sd[:, None], axis=0)
+    corr = np.corrcoef(d2[:, ok]) if ok.sum() > 10 else np.eye(5)
+    corr = np.where(np.isfinite(corr), corr, 0.0)
+    np.fill_diagonal(corr, 1.0)
+    return corr * np.outer(sd, sd)
+
+
+def fit_ou_plus_white(t, r, white_sd, *, taus=np.geomspace(1.0, 2e4, 48), n_sd=48):
+    """Maximum-likelihood OU disturbance under known white noise: ``r = d + v``, ``v ~ N(0, white_sd^2)``.
+
+    A scalar Kalman filter, vectorised over a grid of ``(tau, sd)``; a plain
+    OU fit would spend its correlation time on the white noise (taus of a
+    second on a 1 Hz residual).
+
+    Returns
+    -------
+    (sd, tau_s) : float, float
+        Stationary sd of ``d`` (0 when the residual is white) [unit of r], its correlation time [s].
+    """
+    r = np.asarray(r, float)
+    rv = float(white_sd) ** 2
+    top = max(np.std(r), 1e-12)
+    sds = np.concatenate([[0.0], np.geomspace(top * 1e-3, top * 2.0, n_sd - 1)])
+    tau, sd = (a.ravel() for a in np.meshgrid(taus, sds, indexing="ij"))
+    q = sd * sd
+    m, P = np.zeros_like(q), q.copy()
+    ll = np.zeros_like(q)
+    dt = np.diff(t, prepend=t[0])
+    for k in range(len(r)):
+        phi = np.exp(-dt[k] / tau)
+        m = phi * m
+        P = phi * phi * P + q * (1.0 - phi * phi)
+        S = P + rv
+        e = r[k] - m
+        ll -= 0.5 * (np.log(S) + e * e / S)
+        g = P / S
+        m = m + g * e
+        P = (1.0 - g) * P
+    i = int(np.argmax(ll))
+    return float(sd[i]), float(tau[i])
+
+
+def _process_noise(t, residual, floor, source):
+    fits = [fit_ou_plus_white(t, residual[c], floor[c]) for c in range(len(CHANNELS))]
+    sd = np.array([f[0] for f in fits])
+    tau = np.array([f[1] for f in fits])
+    return {"sd": sd, "tau_s": tau, "q_continuous": 2.0 * sd ** 2 / tau, "source": source,
+            "channels": list(CHANNELS)}
+
+
+def observer_inputs(run, batch, *, points=DEFAULT_POINTS, t_amb_C=25.0, n_draws=200, seed=0, modules=None,
+                    heldout=True, progress=None):
+    """Posterior moments, noise and linearised models of a calibration run for observer design.
+
+    Parameters
+    ----------
+    run : tembayes.calibrate.run.CalibrationRun
+    batch : tembayes.data.Batch
+        The calibrated batch (its identification runs anchor the rig and give
+        the sensor noise; its validation runs, if any, the process noise).
+    points : sequence of (float, float)
+        Operating points ``(T̄ [degC], I [A])`` to linearise at.
+    t_amb_C : float
+        Ambient temperature of the operating points [degC].
+    n_draws : int
+        Posterior draws kept per module (evenly thinned).
+    seed : int
+        Seeds the held-out predictive (process noise).
+    modules : sequence of str, optional
+        Default: every module of the run.
+    heldout : bool
+        Fit the process noise on the held-out runs where there are any.
+    progress : callable, optional
+
+    Returns
+    -------
+    ObserverExport
+    """
+    t0 = _time.perf_counter()
+    say = progress or (lambda msg: None)
+    rig = run.rig_for(batch)
+    ids = list(modules) if modules else list(run.module_ids)
+    bad = [m for m in ids if m not in run.module_ids]
+    if bad:
+        raise DataError(run.path, f"has no module(s) {bad}", f"Choose from {list(run.module_ids)}.")
+    rig_names = [k for k in rig.parameter_names]
+    names, out, states = None, {}, None
+    per_params = {}
+    for mid in ids:
+        module = batch.modules[mid]
+        say(f"{mid}: anchoring the rig on the identification run")
+        d = module_draws(run, mid, module.identification, rig)
+        if names is None:
+            names = tuple(MODULE_PARAMETERS) + tuple(k for k in rig_names if k in d.params)
+        X = np.column_stack([np.asarray(d.params[k], float) for k in names])
+        per_params[mid] = X
+        keep = X[np.linspace(0, len(X) - 1, min(n_draws, len(X))).round().astype(int)]
+        R = measurement_noise_cov(module.identification)
+        floor = np.sqrt(np.diag(R))
+        vals = [v for v in module.validations] if heldout else []
+        if vals:
+            say(f"{mid}: process noise from the held-out run(s)")
+            ts, rs = [], []
+            for exp in vals:
+                p = predict(run, exp, mid, batch, n_draws=100, seed=seed, compare_constant=False).linear
+                ts.append(p.time)
+                rs.append(p.residual)
+            # runs are joined end to end; the one spurious innovation at a seam is negligible
+            t = np.concatenate([ts[0]] + [ts[i] - ts[i][0] + ts[i - 1][-1] + 1.0 for i in range(1, len(ts))])
+            pn = _process_noise(t, np.concatenate(rs, axis=1), floor,
+                                "held-out posterior-predictive residuals: " + ", ".join(str(e.path.name)
+                                                                                      for e in vals))
+        else:
+            pn = {"sd": np.sqrt(np.maximum(d.noise_sd[0] ** 2 - floor ** 2, 0.0)), "tau_s": d.noise_tau[0],
+                  "source": "identification-run residuals (the module has no held-out run)",
+                  "channels": list(CHANNELS)}
+            pn["q_continuous"] = 2.0 * pn["sd"] ** 2 / pn["tau_s"]
+        mean = X.mean(axis=0)
+        lin = _linear_models(dict(zip(names, mean)), rig, points, t_amb_C, names, say, mid)
+        states = lin[0].states
+        out[mid] = {"mean": mean, "cov": np.cov(X, rowvar=False), "draws": keep, "measurement_noise_cov": R,
+                    "process_noise": pn, "linear": lin, "n_posterior": len(X)}
+    pop = run.population_draws(MODULE_PARAMETERS)
+    if pop is not None:
+        # a new unit: the population's laws, the rig as the calibrated modules' (their pooled draws)
+        rigX = np.vstack([per_params[m][:, len(MODULE_PARAMETERS):] for m in ids])
+        rng = np.random.default_rng(seed)
+        rigX = rigX[rng.integers(0, len(rigX), len(pop))]
+        X = np.hstack([pop, rigX])
+        mean = X.mean(axis=0)
+        say("population: linearising a new module of the batch")
+        out["population"] = {"mean": mean, "cov": np.cov(X, rowvar=False),
+                             "draws": X[np.linspace(0, len(X) - 1, min(n_draws, len(X))).round().astype(int)],
+                             "measurement_noise_cov": np.mean([out[m]["measurement_noise_cov"] for m in ids], axis=0),
+                             "process_noise": _pool_process_noise([out[m]["process_noise"] for m in ids]),
+                             "linear": _linear_models(dict(zip(names, mean)), rig, points, t_amb_C, names, say,
+                                                      "population"),
+                             "n_posterior": len(X)}
+    units = {p.name: p.unit for p in rig.parameters}
+    units.update({"R0_ohm": "ohm", "R1_ohm_per_K": "ohm/K", "S0_V_per_K": "V/K", "S1_V_per_K2": "V/K^2",
+                  "K_W_per_K": "W/K"})
+    meta = {"run": str(run.path), "batch": str(batch.path), "seed": int(seed), "t_amb_C": float(t_amb_C),
+            "points": [list(map(float, p)) for p in points], "tref_C": run.tref_C,
+            "seconds": _time.perf_counter() - t0}
+    return ObserverExport(names, {k: units.get(k, "") for k in names}, out, states, meta=meta)
+
+
+def _linear_models(params, rig, points, t_amb_C, names, say, label):
+    lin = []
+    for tavg, current in points:
+        say(f"{label}: linearising at T_avg {tavg:g} C, I {current:g} A")
+        lin.append(linearise(params, rig, tavg, current, t_amb_C=t_amb_C, sensitivity=names))
+    return lin
+
+
+def _pool_process_noise(items):
+    sd = np.sqrt(np.mean([p["sd"] ** 2 for p in items], axis=0))
+    tau = np.mean([p["tau_s"] for p in items], axis=0)
+    return {"sd": sd, "tau_s": tau, "q_continuous": 2.0 * sd ** 2 / tau,
+            "source": "mean over the calibrated modules", "channels": list(CHANNELS)}
