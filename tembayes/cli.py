@@ -276,7 +276,7 @@ def _cmd_export(args):
     from tembayes.calibrate.run import load_run
     from tembayes.data.write import _refuse_existing
     from tembayes.export.formats import write_export
-    from tembayes.export.observer import observer_inputs
+    from tembayes.export.observer import DEFAULT_POINTS, observer_inputs
 
     fmt = args.format or (args.out.suffix.lstrip(".").lower() or None)
     if fmt not in ("json", "npz", "mat"):
@@ -284,7 +284,7 @@ def _cmd_export(args):
               file=sys.stderr)
         return 2
     points = []
-    for text in args.point or ["25,0", "25,2", "40,4"]:
+    for text in args.point or [f"{t:g},{i:g}" for t, i in DEFAULT_POINTS]:
         try:
             tavg, current = (float(x) for x in text.split(","))
         except ValueError:

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import time as _time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -184,7 +185,7 @@ def observer_inputs(run, batch, *, points=DEFAULT_POINTS, t_amb_C=25.0, n_draws=
         keep = X[np.linspace(0, len(X) - 1, min(n_draws, len(X))).round().astype(int)]
         R = measurement_noise_cov(module.identification)
         floor = np.sqrt(np.diag(R))
-        vals = [v for v in module.validations] if heldout else []
+        vals = list(module.validations) if heldout else []
         if vals:
             say(f"{mid}: process noise from the held-out run(s)")
             ts, rs = [], []
@@ -195,8 +196,8 @@ def observer_inputs(run, batch, *, points=DEFAULT_POINTS, t_amb_C=25.0, n_draws=
             # runs are joined end to end; the one spurious innovation at a seam is negligible
             t = np.concatenate([ts[0]] + [ts[i] - ts[i][0] + ts[i - 1][-1] + 1.0 for i in range(1, len(ts))])
             pn = _process_noise(t, np.concatenate(rs, axis=1), floor,
-                                "held-out posterior-predictive residuals: " + ", ".join(str(e.path.name)
-                                                                                      for e in vals))
+                                "held-out posterior-predictive residuals: "
+                                + ", ".join(Path(str(e.path)).name for e in vals))
         else:
             pn = {"sd": np.sqrt(np.maximum(d.noise_sd[0] ** 2 - floor ** 2, 0.0)), "tau_s": d.noise_tau[0],
                   "source": "identification-run residuals (the module has no held-out run)",
