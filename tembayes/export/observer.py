@@ -128,12 +128,16 @@ def fit_ou_plus_white(t, r, white_sd, *, taus=np.geomspace(1.0, 2e4, 48), n_sd=4
     return float(sd[i]), float(tau[i])
 
 
-def _process_noise(t, residual, floor, source):
-    fits = [fit_ou_plus_white(t, residual[c], floor[c]) for c in range(len(CHANNELS))]
-    sd = np.array([f[0] for f in fits])
-    tau = np.array([f[1] for f in fits])
+def _ou_noise(sd, tau, source):
+    """``process_noise``: an OU disturbance per output, ``q = 2 sd^2 / tau`` the spectral density of its drive."""
+    sd, tau = np.asarray(sd, float), np.asarray(tau, float)
     return {"sd": sd, "tau_s": tau, "q_continuous": 2.0 * sd ** 2 / tau, "source": source,
             "channels": list(CHANNELS)}
+
+
+def _process_noise(t, residual, floor, source):
+    fits = [fit_ou_plus_white(t, residual[c], floor[c]) for c in range(len(CHANNELS))]
+    return _ou_noise([f[0] for f in fits], [f[1] for f in fits], source)
 
 
 def observer_inputs(run, batch, *, points=DEFAULT_POINTS, t_amb_C=25.0, n_draws=200, seed=0, modules=None,
@@ -171,7 +175,6 @@ def observer_inputs(run, batch, *, points=DEFAULT_POINTS, t_amb_C=25.0, n_draws=
     bad = [m for m in ids if m not in run.module_ids]
     if bad:
         raise DataError(run.path, f"has no module(s) {bad}", f"Choose from {list(run.module_ids)}.")
-    rig_names = [k for k in rig.parameter_names]
     names, out, states = None, {}, None
     per_params = {}
     for mid in ids:
@@ -179,10 +182,10 @@ def observer_inputs(run, batch, *, points=DEFAULT_POINTS, t_amb_C=25.0, n_draws=
         say(f"{mid}: anchoring the rig on the identification run")
         d = module_draws(run, mid, module.identification, rig)
         if names is None:
-            names = tuple(MODULE_PARAMETERS) + tuple(k for k in rig_names if k in d.params)
+            names = tuple(MODULE_PARAMETERS) + tuple(k for k in rig.parameter_names if k in d.params)
         X = np.column_stack([np.asarray(d.params[k], float) for k in names])
         per_params[mid] = X
-        keep = X[np.linspace(0, len(X) - 1, min(n_draws, len(X))).round().astype(int)]
+        keep = _thin(X, n_draws)
         R = measurement_noise_cov(module.identification)
         floor = np.sqrt(np.diag(R))
         vals = list(module.validations) if heldout else []
@@ -199,10 +202,8 @@ def observer_inputs(run, batch, *, points=DEFAULT_POINTS, t_amb_C=25.0, n_draws=
                                 "held-out posterior-predictive residuals: "
                                 + ", ".join(Path(str(e.path)).name for e in vals))
         else:
-            pn = {"sd": np.sqrt(np.maximum(d.noise_sd[0] ** 2 - floor ** 2, 0.0)), "tau_s": d.noise_tau[0],
-                  "source": "identification-run residuals (the module has no held-out run)",
-                  "channels": list(CHANNELS)}
-            pn["q_continuous"] = 2.0 * pn["sd"] ** 2 / pn["tau_s"]
+            pn = _ou_noise(np.sqrt(np.maximum(d.noise_sd[0] ** 2 - floor ** 2, 0.0)), d.noise_tau[0],
+                           "identification-run residuals (the module has no held-out run)")
         mean = X.mean(axis=0)
         lin = _linear_models(dict(zip(names, mean)), rig, points, t_amb_C, names, say, mid)
         states = lin[0].states
@@ -218,7 +219,7 @@ def observer_inputs(run, batch, *, points=DEFAULT_POINTS, t_amb_C=25.0, n_draws=
         mean = X.mean(axis=0)
         say("population: linearising a new module of the batch")
         out["population"] = {"mean": mean, "cov": np.cov(X, rowvar=False),
-                             "draws": X[np.linspace(0, len(X) - 1, min(n_draws, len(X))).round().astype(int)],
+                             "draws": _thin(X, n_draws),
                              "measurement_noise_cov": np.mean([out[m]["measurement_noise_cov"] for m in ids], axis=0),
                              "process_noise": _pool_process_noise([out[m]["process_noise"] for m in ids]),
                              "linear": _linear_models(dict(zip(names, mean)), rig, points, t_amb_C, names, say,
@@ -233,6 +234,11 @@ def observer_inputs(run, batch, *, points=DEFAULT_POINTS, t_amb_C=25.0, n_draws=
     return ObserverExport(names, {k: units.get(k, "") for k in names}, out, states, meta=meta)
 
 
+def _thin(X, n):
+    """At most ``n`` rows of ``X``, evenly spaced."""
+    return X[np.linspace(0, len(X) - 1, min(n, len(X))).round().astype(int)]
+
+
 def _linear_models(params, rig, points, t_amb_C, names, say, label):
     lin = []
     for tavg, current in points:
@@ -242,7 +248,5 @@ def _linear_models(params, rig, points, t_amb_C, names, say, label):
 
 
 def _pool_process_noise(items):
-    sd = np.sqrt(np.mean([p["sd"] ** 2 for p in items], axis=0))
-    tau = np.mean([p["tau_s"] for p in items], axis=0)
-    return {"sd": sd, "tau_s": tau, "q_continuous": 2.0 * sd ** 2 / tau,
-            "source": "mean over the calibrated modules", "channels": list(CHANNELS)}
+    return _ou_noise(np.sqrt(np.mean([p["sd"] ** 2 for p in items], axis=0)),
+                     np.mean([p["tau_s"] for p in items], axis=0), "mean over the calibrated modules")

@@ -261,6 +261,11 @@ def held_out_gap(evals):
     return float(np.sqrt(max(excess, 0.0)))
 
 
+def _block_se(d):
+    """Standard error of a sum of block terms ``d`` (the blocks nearly independent) [nats]."""
+    return float(np.sqrt(len(d)) * np.std(d))
+
+
 def _seed(seed, *keys):
     return np.random.default_rng([int(seed), *(zlib.crc32(str(k).encode()) for k in keys)])
 
@@ -545,7 +550,7 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
     base_elpd = np.concatenate([e.elpd_blocks for e in base_evals])
     where = _where(base_evals)
     base = {"gap": gap_before, "rmse_T": _rmse(base_evals), "elpd": float(base_elpd.sum()),
-            "elpd_se": float(np.sqrt(len(base_elpd)) * base_elpd.std()),
+            "elpd_se": _block_se(base_elpd),
             "runs": [{"module": e.module_id, "run": Path(e.source).name, "rmse_T": float(np.sqrt(e.sse / e.n)),
                       "significant_cells": len(e.significant), "channels": e.gap_map.channels}
                      for e in base_evals]}
@@ -581,12 +586,14 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
     # absorb the effect is no place to start
     # racing: every candidate on the module with the largest gap first; only
     # those that gain held-out evidence there go on to the other modules
-    score = {mid: held_out_gap([e for e in base_evals if e.module_id == mid]) for mid in ids}
-    if not in_runs:
+    if in_runs:
+        score = {mid: held_out_gap([e for e in base_evals if e.module_id == mid]) for mid in ids}
+    else:
         score = {mid: sum(r["conflict"] for r in conflicts[mid]) for mid in ids}
     lead = max(ids, key=lambda m: score[m])
     rest = [m for m in ids if m != lead]
-    lead_base = np.concatenate([e.elpd_blocks for e in base_evals if e.module_id == lead])
+    lead_evals = [e for e in base_evals if e.module_id == lead]
+    lead_base = np.concatenate([e.elpd_blocks for e in lead_evals])
 
     def job(mid, e):
         return (batch.modules[mid], batch.datasheet, batch.rig_config, leg, blk, e, seed, options, n_draws, alpha,
@@ -607,12 +614,12 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
         blocks = {e: np.concatenate([ev.elpd_blocks for ev in x["evals"]])
                   for e, x in lead_done.items() if not x["failed"]}
         d = blocks[r["effect"]] - lead_base
-        if d.sum() <= EVIDENCE_Z * np.sqrt(len(d)) * d.std():
+        if d.sum() <= EVIDENCE_Z * _block_se(d):
             why[r["effect"]] = f"no significant held-out gain on {lead}"
             return []
         for e, b in blocks.items():  # beaten by a candidate already in: the race is lost
             d = b - blocks[r["effect"]]
-            if e != r["effect"] and d.sum() > EVIDENCE_Z * np.sqrt(len(d)) * d.std():
+            if e != r["effect"] and d.sum() > EVIDENCE_Z * _block_se(d):
                 why[r["effect"]] = f"beaten by {e} on {lead}"
                 return []
         return [(m, r["effect"]) for m in rest]
@@ -632,10 +639,10 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
         if e in dropped and not bad:
             (r,) = rs
             diff = np.concatenate([ev.elpd_blocks for ev in r["evals"]]) - lead_base
-            lead_before = held_out_gap([ev for ev in base_evals if ev.module_id == lead])
+            lead_before = held_out_gap(lead_evals)
             after = held_out_gap(r["evals"])
             failed.append({"effect": e, "evidence": float(diff.sum()),
-                           "evidence_se": float(np.sqrt(len(diff)) * diff.std()),
+                           "evidence_se": _block_se(diff),
                            "evidence_kind": "heldout_elpd_lead_module", "module": lead,
                            "gap_before": lead_before, "gap_after": after,
                            "shrink": 1.0 - after / lead_before if lead_before > 0 else 0.0,
@@ -654,7 +661,7 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
         diff = v["blocks"] - base_elpd
         after = held_out_gap(evs)
         ranking.append({"effect": e, "evidence": float(diff.sum()),
-                        "evidence_se": float(np.sqrt(len(diff)) * diff.std()), "evidence_kind": "heldout_elpd",
+                        "evidence_se": _block_se(diff), "evidence_kind": "heldout_elpd",
                         "gap_before": gap_before, "gap_after": after,
                         "shrink": 1.0 - after / gap_before if gap_before > 0 else 0.0,
                         "remaining_cells": int(sum(len(ev.significant) for ev in evs)),
@@ -679,7 +686,7 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
     group = [top["effect"]]
     for r in ranking[1:len(per_effect)]:
         d = per_effect[top["effect"]]["blocks"] - per_effect[r["effect"]]["blocks"]
-        same = d.sum() < EVIDENCE_Z * np.sqrt(len(d)) * d.std()
+        same = d.sum() < EVIDENCE_Z * _block_se(d)
         if same and (in_runs or r["conflicts_resolved"]):
             group.append(r["effect"])
     if in_runs:
