@@ -62,6 +62,7 @@ _EPILOG_EXPORT = """\
 examples:
   tembayes export runs/example --format mat --out runs/example-observer.mat
   tembayes export runs/example --out runs/ex.json --point 30,2.5 --point 45,5 --module TEM1
+  tembayes export runs/two --out runs/two.npz --heldout validation.csv   # validation2.csv stays unseen
 
 reads the run and its batch (recorded in RUN/summary.json, or --batch) and
 writes one file, SI units (temperatures in K).  In Python:
@@ -300,7 +301,7 @@ def _cmd_export(args):
         print(msg, file=sys.stderr, flush=True)
 
     exp = observer_inputs(run, batch, points=points, t_amb_C=args.ambient, n_draws=args.draws, seed=args.seed,
-                          modules=args.module, progress=progress)
+                          modules=args.module, heldout=args.heldout or True, progress=progress)
     write_export(exp, args.out, fmt)
     for mid, m in exp.modules.items():
         pn = m["process_noise"]
@@ -537,6 +538,9 @@ def build_parser():
                    help="ambient temperature of the operating points [C] (default 25)")
     p.add_argument("--module", action="append", metavar="ID", help="only these modules (repeatable)")
     p.add_argument("--draws", type=int, default=200, metavar="N", help="posterior draws kept per module")
+    p.add_argument("--heldout", action="append", metavar="NAME",
+                   help="fit the process noise on this validation run only (file name, repeatable; default: "
+                   "every validation run) -- keeps another run unseen for checking an observer")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--overwrite", action="store_true", help="replace FILE if it exists")
     p.set_defaults(func=_cmd_export)

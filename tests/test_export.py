@@ -153,3 +153,7 @@ def test_export_cli_refuses_a_bad_point_and_writes_nothing(run3, tmp_path, capsy
     assert "--point '30;2'" in capsys.readouterr().err and not out.exists()
     assert main(["export", str(run3[0]), "--out", str(tmp_path / "x.txt")]) == 2
     assert not (tmp_path / "x.txt").exists()
+    # a held-out run the module does not have: refused up front, naming the module folder
+    assert main(["export", str(run3[0]), "--out", str(out), "--heldout", "validation7.csv"]) == 2
+    err = capsys.readouterr().err
+    assert "validation7.csv" in err and "TEM1" in err and not out.exists()

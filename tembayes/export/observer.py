@@ -160,8 +160,11 @@ def observer_inputs(run, batch, *, points=DEFAULT_POINTS, t_amb_C=25.0, n_draws=
         Seeds the held-out predictive (process noise).
     modules : sequence of str, optional
         Default: every module of the run.
-    heldout : bool
-        Fit the process noise on the held-out runs where there are any.
+    heldout : bool or sequence of str
+        Fit the process noise on the held-out runs where there are any
+        (True: every validation run; a sequence: only the runs of these file
+        names, e.g. ``["validation.csv"]``, so that another run stays unseen
+        for checking an observer; False: the identification run's residuals).
     progress : callable, optional
 
     Returns
@@ -175,6 +178,7 @@ def observer_inputs(run, batch, *, points=DEFAULT_POINTS, t_amb_C=25.0, n_draws=
     bad = [m for m in ids if m not in run.module_ids]
     if bad:
         raise DataError(run.path, f"has no module(s) {bad}", f"Choose from {list(run.module_ids)}.")
+    chosen = {mid: _heldout_runs(batch.modules[mid], heldout) for mid in ids}  # refused before any work
     names, out, states = None, {}, None
     per_params = {}
     for mid in ids:
@@ -188,7 +192,7 @@ def observer_inputs(run, batch, *, points=DEFAULT_POINTS, t_amb_C=25.0, n_draws=
         keep = _thin(X, n_draws)
         R = measurement_noise_cov(module.identification)
         floor = np.sqrt(np.diag(R))
-        vals = list(module.validations) if heldout else []
+        vals = chosen[mid]
         if vals:
             say(f"{mid}: process noise from the held-out run(s)")
             ts, rs = [], []
@@ -232,6 +236,18 @@ def observer_inputs(run, batch, *, points=DEFAULT_POINTS, t_amb_C=25.0, n_draws=
             "points": [list(map(float, p)) for p in points], "tref_C": run.tref_C,
             "seconds": _time.perf_counter() - t0}
     return ObserverExport(names, {k: units.get(k, "") for k in names}, out, states, meta=meta)
+
+
+def _heldout_runs(module, heldout):
+    """The module's validation runs chosen by ``heldout`` (True, False or file names)."""
+    if heldout is True or heldout is False:
+        return list(module.validations) if heldout else []
+    names = {Path(str(e.path)).name: e for e in module.validations}
+    missing = [n for n in heldout if n not in names]
+    if missing:
+        raise DataError(module.path, f"has no validation run(s) {missing}",
+                        f"Choose from {sorted(names)} (file names), or leave out --heldout.")
+    return [names[n] for n in heldout]
 
 
 def _thin(X, n):
