@@ -71,6 +71,26 @@ writes one file, SI units (temperatures in K).  In Python:
 in MATLAB: x = load('x.mat'); x.modules.TEM1.linear.op0.A
 """
 
+_EPILOG_REPORT = """\
+examples:
+  tembayes report runs/example --out runs/example-report
+  tembayes report runs/example --out runs/rep --gap runs/example-gap --tolerance R0=3% --tolerance K=8%
+  tembayes report runs/big --out runs/big-report --no-validation --tolerance R1=0.008:0.012
+
+writes DIR/report.html, one self-contained file (figures inline, no script,
+no network): acceptance per module, batch overview, data quality, laws with
+bands over the step estimates, population and outlier probabilities,
+hysteresis, convergence, corner plots, validation bands and metrics, the gap
+diagnosis given with --gap, provenance; and DIR/report.json (its numbers).
+
+tolerances (repeatable; default R0=5% S0=5% K=10% outlier_prob=0.5 converged=yes):
+  R0=5%              within 5 % of the datasheet-derived value (R0, S0, K)
+  R1=0.008:0.012     inside an absolute range, SI (ohm/K here)
+  outlier_prob=0.3   outlier probability at most 0.3
+  converged=no       do not require convergence
+a parameter check passes when P(inside) >= --confidence (default 0.95).
+"""
+
 _EPILOG_GAP = """\
 examples:
   tembayes gap runs/example data/example --out runs/example-gap
@@ -312,6 +332,41 @@ def _cmd_export(args):
     return 0
 
 
+def _cmd_report(args):
+    from tembayes.calibrate.run import load_run
+    from tembayes.data.write import _refuse_existing
+    from tembayes.report import build_report, write_report
+    from tembayes.report.tolerances import DEFAULT_TOLERANCES, parse_tolerance
+
+    tolerances = args.tolerance or list(DEFAULT_TOLERANCES)
+    try:
+        for t in tolerances:
+            parse_tolerance(t)
+    except ValueError as err:
+        print(f"tembayes report: {err}", file=sys.stderr)
+        return 2
+    if not 0.5 <= args.confidence < 1.0:
+        print(f"tembayes report: --confidence must be in [0.5, 1), got {args.confidence}", file=sys.stderr)
+        return 2
+    run = load_run(args.run)  # refused inputs: nothing is written
+    batch = _run_batch(args, run)
+    _refuse_existing(args.out, args.overwrite)
+
+    def progress(msg):
+        print(msg, file=sys.stderr, flush=True)
+
+    rep = build_report(run, batch, tolerances=tolerances, confidence=args.confidence,
+                       validate=not args.no_validation, predict_dirs=args.predict or (), gap_dirs=args.gap or (),
+                       n_draws=args.draws, seed=args.seed, max_figure_modules=args.max_figure_modules,
+                       command="tembayes " + " ".join(args.argv), progress=progress)
+    path = write_report(rep, args.out, overwrite=args.overwrite)
+    for m in rep.modules:
+        failed = [c["check"] for c in m["acceptance"]["checks"] if not c["passed"]]
+        print(f"{m['id']}: {'PASS' if not failed else 'FAIL (' + ', '.join(failed) + ')'}")
+    print(f"wrote {path}")
+    return 0
+
+
 def _cmd_predict(args):
     from tembayes.calibrate.run import load_run
     from tembayes.data import load_experiment
@@ -515,6 +570,38 @@ def build_parser():
     p.add_argument("--no-figures", action="store_true", help="write gap.json only")
     p.add_argument("--overwrite", action="store_true", help="replace DIR if it exists")
     p.set_defaults(func=_cmd_gap)
+
+    p = sub.add_parser(
+        "report",
+        help="batch-calibration report: one self-contained HTML file with pass/fail per module",
+        description="A report a quality engineer reads for a calibrated batch: acceptance against tolerances, "
+        "batch overview and data quality, laws with bands over the step estimates, modules against the "
+        "population with outlier probabilities, hysteresis, convergence, corner plots, validation bands and "
+        "metrics, the gap diagnosis, and the versions, seed and commands that produced it.",
+        epilog=_EPILOG_REPORT,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("run", type=Path, help="calibration run folder (tembayes calibrate --out)")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="folder to create (report.html)")
+    p.add_argument("--batch", type=Path, metavar="BATCH",
+                   help="the calibrated batch folder (default: the one recorded in RUN/summary.json)")
+    p.add_argument("--tolerance", action="append", metavar="SPEC",
+                   help="acceptance check (repeatable; replaces the defaults, see below)")
+    p.add_argument("--confidence", type=float, default=0.95,
+                   help="posterior probability of the tolerance range that passes (default 0.95)")
+    p.add_argument("--gap", action="append", metavar="DIR", type=Path,
+                   help="a `tembayes gap` output folder to summarise (repeatable)")
+    p.add_argument("--predict", action="append", metavar="DIR", type=Path,
+                   help="a `tembayes predict` output folder to include instead of computing that module's bands")
+    p.add_argument("--no-validation", action="store_true",
+                   help="do not compute posterior-predictive bands on the validation runs")
+    p.add_argument("--draws", type=int, default=200, metavar="N",
+                   help="posterior draws per validation prediction (default 200)")
+    p.add_argument("--max-figure-modules", type=int, default=12, metavar="N",
+                   help="modules given their own figures, likeliest outliers first (default 12)")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the validation draws (default 0)")
+    p.add_argument("--overwrite", action="store_true", help="replace DIR if it exists")
+    p.set_defaults(func=_cmd_report)
 
     p = sub.add_parser(
         "export",

@@ -15,19 +15,17 @@ import json
 import numpy as np
 import pytest
 
-from tembayes.bench import bench as B
-from tembayes.bench import hifi
-from tembayes.bench.protocols import validation_cycle
 from tembayes.calibrate.run import load_run
 from tembayes.cli import main
 from tembayes.constants import MODULE_PARAMETERS
-from tembayes.data import load_batch, load_experiment
-from tembayes.data.write import write_experiment_csv
+from tembayes.data import load_batch
 from tembayes.errors import DataError
 from tembayes.physics.rig import reference_rig
 from tembayes.predict import RunModel, constant_laws, predict, simulate_predictive
 from tembayes.predict.anchor import ResidualProcess, fit_residual_process
 from tembayes.predict.predictive import LEVELS, PredictiveDraws
+
+from benchdata import record_validation as _record_validation
 
 RIG = reference_rig(4, 6)
 CONTRACT_METRICS = {"rmse", "max_abs", "coverage50", "coverage90", "coverage95"}
@@ -39,12 +37,6 @@ def _truth_params(truth, mid):
     return {k: t[k] for k in MODULE_PARAMETERS} | t["rig"]
 
 
-def _record_validation(truth_module, path, seed, hours=2.0):
-    rng = np.random.default_rng(seed)
-    proto = validation_cycle(rng, 6.4, duration=hours * 3600.0)
-    exp = B.run_experiment(proto, truth_module, {}, rng, rate=1.0, rig=hifi.hifi_rig(), t0=123.4)
-    write_experiment_csv(path, exp)
-    return load_experiment(path)
 
 
 @pytest.fixture(scope="module")

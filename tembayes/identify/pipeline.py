@@ -177,6 +177,38 @@ def _laws_from_rows(rows):
     return {"R": R, "S": S, "R_paper": R_paper, "S_paper": S_paper, "S_sensor_dT": S_sensor}
 
 
+def step_estimates(exp, rig, rig_values=None, rig_sds=None):
+    """Per-step R and S of an identification run, with the rig values given (no rig fit).
+
+    The step method of :func:`identify_module`'s second pass: R from each
+    voltage jump at the junction mean temperature before the step, S from
+    each hold's steady state.  The batch report draws them under the
+    posterior laws, with the rig at its posterior mean.
+
+    Parameters
+    ----------
+    exp : tembayes.data.Experiment
+    rig : tembayes.physics.rig.RigDescription
+    rig_values, rig_sds : dict, optional
+        Rig parameter values and sds (SI); default the rig's nominal values.
+
+    Returns
+    -------
+    dict
+        Arrays over the steps: ``t_s``, ``direction``, ``Tavg_R_C`` [degC],
+        ``R_ohm``, ``R_sd``, ``Tavg_S_C`` [degC], ``S_V_per_K``, ``S_sd``
+        (NaN where the hold's dT is too small for S).
+    """
+    rows = _step_table(exp, rig, rig_values, rig_sds)
+    _laws_from_rows(rows)  # adds S to the rows
+    col = lambda f: np.array([f(r) for r in rows], dtype=float)  # noqa: E731
+    return {"t_s": col(lambda r: r["t_s"]), "direction": np.array([r["direction"] for r in rows]),
+            "Tavg_R_C": col(lambda r: r["Tavg_R"]) - KELVIN, "R_ohm": col(lambda r: r["jump"].R),
+            "R_sd": col(lambda r: np.hypot(r["jump"].R_sd_fit, r["jump"].R_sd_time)),
+            "Tavg_S_C": col(lambda r: r["Tavg"]) - KELVIN, "S_V_per_K": col(lambda r: r["S"]),
+            "S_sd": col(lambda r: r["S_sd"])}
+
+
 def identify_module(module, datasheet, *, rig_config=None, leg_cells=0, rig_fit_options=None, progress=None):
     """Run the deterministic step method on one module.
 
