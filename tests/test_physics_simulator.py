@@ -7,6 +7,7 @@ import pytest
 
 from tembayes.errors import ModelError
 from tembayes.physics import Inputs, simulate
+from tembayes.physics import kernel as K
 from tembayes.physics.reference import simulate_reference
 from tembayes.physics.rig import reference_rig
 
@@ -188,3 +189,23 @@ def test_without_steady_start_the_rig_relaxes():
     assert T3[0] == 300.0
     # cools towards the ~293.3 K steady state, monotonically (a 6-node passive network)
     assert np.all(np.diff(T3) < 0) and T3[-1] < 296.0
+
+
+def test_kernel_gets_one_array_type_even_from_read_only_inputs():
+    """Experiment columns are read-only, and a read-only array is another numba type: a
+    second compiled version of the parallel integrator, loaded back from the on-disk cache,
+    crashed the process (segfault).  The entry points copy such arrays, so every compiled
+    version of the integrators takes writable C arrays only."""
+    from numba.core import types
+
+    inp = _experiment(60.0, 1.0)
+    for a in (inp.time, inp.current, inp.t_water, inp.t_amb):
+        a.flags.writeable = False
+    simulate(inp, PAPER)
+    simulate(Inputs(inp.time[::2], inp.current[::2], inp.t_water[::2], inp.t_amb[::2]), PAPER)  # strided views
+    for fn in (K._integrate, K._integrate_grids):
+        for sig in fn.signatures:
+            arrays = [a for a in sig if isinstance(a, types.Array)]
+            if fn is K._integrate_grids and any(a.layout != "C" for a in arrays):
+                continue  # _integrate's own call with broadcast views: one fixed internal type
+            assert all(a.mutable and a.layout == "C" for a in arrays), sig

@@ -171,7 +171,7 @@ def _sensor_lag(time, Y, params):
     """First-order sensor lag on ``Y`` (nd, nch, nt), in place (compiled: a hot path)."""
     tau = _get(params, "sensor_tau_s", Y.shape[0], nonnegative=True)
     if np.any(tau):
-        K.first_order_lag(np.ascontiguousarray(time, dtype=float), Y, np.ascontiguousarray(tau))
+        K.first_order_lag(K.writable(time, np.float64), Y, K.writable(tau, np.float64))
 
 
 CATALOGUE = {

@@ -405,8 +405,37 @@ def _integrate_one(
     stats[1] = nrej
 
 
-@njit(cache=True)
+def writable(a, dtype=None):
+    """``a`` as the compiled entry points take it: C-contiguous and writable.
+
+    A read-only or strided array is a different numba type, and so another
+    compiled version of the entry point; with ``cache=True`` a second version
+    loaded back from the on-disk cache crashed the process (segmentation fault,
+    numba 0.68, the parallel integrator).  Every Python caller therefore hands
+    the kernel one array type; a read-only array (``Experiment`` columns) is
+    copied, which is cheap next to the integration.
+    """
+    return np.require(a, dtype=dtype, requirements=("C", "W"))
+
+
 def integrate(t, i_meas, tw, ta, A, Bb, Cinv, tem, P, rec, Y0, steady_start, atol, hmax):
+    """Simulate ``nd`` parameter draws of one experiment (see :func:`_integrate`)."""
+    w = writable
+    return _integrate(w(t, np.float64), w(i_meas, np.float64), w(tw, np.float64), w(ta, np.float64), w(A), w(Bb),
+                      w(Cinv), w(tem, np.int64), w(P), w(rec, np.int64), w(Y0, np.float64), bool(steady_start),
+                      float(atol), float(hmax))
+
+
+def integrate_grids(T, I, TW, TA, A, Bb, Cinv, tem, P, rec, Y0, steady_start, atol, hmax):
+    """:func:`integrate` with a time grid and inputs of its own for every draw (see :func:`_integrate_grids`)."""
+    w = writable
+    return _integrate_grids(w(T, np.float64), w(I, np.float64), w(TW, np.float64), w(TA, np.float64), w(A), w(Bb),
+                            w(Cinv), w(tem, np.int64), w(P), w(rec, np.int64), w(Y0, np.float64),
+                            bool(steady_start), float(atol), float(hmax))
+
+
+@njit(cache=True)
+def _integrate(t, i_meas, tw, ta, A, Bb, Cinv, tem, P, rec, Y0, steady_start, atol, hmax):
     """Simulate ``nd`` parameter draws of one experiment.
 
     Parameters
@@ -450,13 +479,13 @@ def integrate(t, i_meas, tw, ta, A, Bb, Cinv, tem, P, rec, Y0, steady_start, ato
     nt = t.shape[0]
     # one grid for every draw: stride-0 views, no copies
     T = np.broadcast_to(t, (nd, nt))
-    return integrate_grids(T, np.broadcast_to(i_meas, (nd, nt)), np.broadcast_to(tw, (nd, nt)),
+    return _integrate_grids(T, np.broadcast_to(i_meas, (nd, nt)), np.broadcast_to(tw, (nd, nt)),
                            np.broadcast_to(ta, (nd, nt)), A, Bb, Cinv, tem, P, rec, Y0, steady_start, atol, hmax)
 
 
 @njit(cache=True, parallel=True)
-def integrate_grids(T, I, TW, TA, A, Bb, Cinv, tem, P, rec, Y0, steady_start, atol, hmax):
-    """:func:`integrate` with a time grid and inputs of its own for every draw.
+def _integrate_grids(T, I, TW, TA, A, Bb, Cinv, tem, P, rec, Y0, steady_start, atol, hmax):
+    """:func:`_integrate` with a time grid and inputs of its own for every draw.
 
     Same as :func:`integrate` except ``T``, ``I``, ``TW`` and ``TA`` have shape
     ``(nd, nt)``: the calibration moves each draw's current steps to its own
