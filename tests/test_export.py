@@ -55,7 +55,7 @@ def test_sensitivities_predict_the_relinearised_model(rig):
     for name in names:
         h = 0.01 * base[name]  # 100x the differencing step: a first-order prediction, checked at 1e-3 of the change
         moved = linearise({**base, name: base[name] + h}, rig, 30.0, 3.0)
-        for k in "ABCD":
+        for k in ("A", "B", "C", "D", "x0", "u0", "y0"):  # the matrices and the operating point
             change = getattr(moved, k) - getattr(lm, k)
             pred = lm.sensitivity[name][k] * h
             if np.max(np.abs(change)) > 1e-6 * np.max(np.abs(getattr(lm, k))):  # else rounding only
@@ -80,6 +80,32 @@ def test_ou_fit_under_white_noise_recovers_the_disturbance_and_finds_none_in_whi
     assert tau / 1.6 < tau_hat < tau * 1.6
     s0, _ = fit_ou_plus_white(t, rng.normal(0, white, n), white)
     assert s0 < 0.1 * white  # negative control: white noise is no disturbance
+
+
+def test_disturbance_structure_finds_a_transient_after_steps_and_a_shared_disturbance():
+    """Synthetic residuals: white noise on every channel; channels 0 and 1 share one slow
+    disturbance; channel 2 has an extra 50 mK error only in the first 10 s after each current
+    step.  The profile shows that error in the first bin only, the correlation the sharing."""
+    from tembayes.export.observer import STEP_BINS_S, disturbance_structure, time_since_step
+
+    rng = np.random.default_rng(5)
+    n, white = 20000, 0.004
+    t = np.arange(n, dtype=float)
+    current = np.repeat(np.tile([0.5, -1.0, 1.5, -0.5], n // 2000), 500) + rng.normal(0, 1e-3, n)
+    since = time_since_step(t, current)
+    assert since[0] == np.inf and since[500] == 0.0 and since[777] == 277.0
+    common = np.convolve(rng.normal(0, 1, n + 300), np.ones(300) / np.sqrt(300), "valid")[:n] * 0.01
+    r = rng.normal(0, white, (5, n))
+    r[0] += common
+    r[1] += common
+    r[2] += np.where(since < 10, rng.normal(0, 0.05, n), 0.0)
+    R = np.eye(5) * white ** 2
+    out = disturbance_structure(t, r, current, R)
+    prof = out["sd_by_time_since_step"]
+    assert list(out["step_bins_s"]) == list(STEP_BINS_S) and prof.shape == (5, len(STEP_BINS_S))
+    assert prof[2, 0] == pytest.approx(0.05, rel=0.15) and np.all(prof[2, 1:] < 0.005)
+    assert out["corr"][0, 1] > 0.9 and abs(out["corr"][0, 2]) < 0.2
+    assert np.all(np.linalg.eigvalsh(out["corr"]) > -1e-9) and np.allclose(np.diag(out["corr"]), 1.0)
 
 
 @pytest.fixture(scope="module")
@@ -128,21 +154,32 @@ def test_export_round_trips_in_every_format(export1, fmt):
         cov = np.array(doc["modules"]["TEM1"]["cov"])
         dA = np.array(doc["modules"]["TEM1"]["linear"]["op1"]["sensitivity"]["K_W_per_K"]["A"])
         states = doc["states"]
+        isd = doc["modules"]["TEM1"]["input_noise"]["current_sd_A"]
+        dy0 = np.array(doc["modules"]["TEM1"]["linear"]["op1"]["sensitivity"]["K_W_per_K"]["y0"])
+        chans = doc["modules"]["TEM1"]["process_noise"]["channels"]
     elif fmt == "npz":
         z = np.load(io.BytesIO(data))
         A, cov = z["modules__TEM1__linear__op1__A"], z["modules__TEM1__cov"]
         dA = z["modules__TEM1__linear__op1__sensitivity__K_W_per_K__A"]
         states = list(z["states"])
+        isd = z["modules__TEM1__input_noise__current_sd_A"]
+        dy0 = z["modules__TEM1__linear__op1__sensitivity__K_W_per_K__y0"]
+        chans = list(z["modules__TEM1__process_noise__channels"])
     else:
         doc = loadmat(io.BytesIO(data), simplify_cells=True)
         A, cov = doc["modules"]["TEM1"]["linear"]["op1"]["A"], doc["modules"]["TEM1"]["cov"]
         dA = doc["modules"]["TEM1"]["linear"]["op1"]["sensitivity"]["K_W_per_K"]["A"]
         states = [str(s).strip() for s in doc["states"]]
         assert doc["schema"] == "tembayes-observer-export/1"
+        isd = doc["modules"]["TEM1"]["input_noise"]["current_sd_A"]
+        dy0 = doc["modules"]["TEM1"]["linear"]["op1"]["sensitivity"]["K_W_per_K"]["y0"]
+        chans = [str(c).strip() for c in doc["modules"]["TEM1"]["process_noise"]["channels"]]
     np.testing.assert_allclose(A, lm.A, rtol=1e-12)
     np.testing.assert_allclose(cov, m["cov"], rtol=1e-12)
     np.testing.assert_allclose(dA, lm.sensitivity["K_W_per_K"]["A"], rtol=1e-12)
     assert states == list(lm.states)
+    assert float(isd) == m["input_noise"]["current_sd_A"] and chans == ["T1_C", "T2_C", "T3_C", "T4_C", "voltage_V"]
+    np.testing.assert_allclose(dy0, lm.sensitivity["K_W_per_K"]["y0"], rtol=1e-12)
 
 
 def test_export_cli_refuses_a_bad_point_and_writes_nothing(run3, tmp_path, capsys):

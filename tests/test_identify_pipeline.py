@@ -35,7 +35,7 @@ def example():
 @pytest.fixture(scope="module")
 def fresh(tmp_path_factory):
     out = tmp_path_factory.mktemp("fresh") / "b"
-    simulate_batch(out, BenchConfig(n_modules=2, seed=21, n_validations=0), progress=lambda m: None)
+    simulate_batch(out, BenchConfig(n_modules=1, seed=21, n_validations=0), progress=lambda m: None)  # a fresh draw
     return _identified(out)
 
 

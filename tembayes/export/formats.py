@@ -14,13 +14,23 @@ in degC).  Keys:
   - ``mean`` ``(p,)``, ``cov`` ``(p, p)``, ``draws`` ``(n, p)``: posterior;
   - ``measurement_noise_cov`` ``(5, 5)``: white sensor noise over the outputs;
   - ``process_noise``: ``sd`` ``(5,)``, ``tau_s`` ``(5,)``, ``q_continuous``
-    ``(5,)`` (``2 sd^2 / tau``), ``source``: one Ornstein-Uhlenbeck
-    disturbance per output;
+    ``(5,)`` (``2 sd^2 / tau``), ``source``, ``channels``: one Ornstein-Uhlenbeck
+    disturbance per output; with held-out runs also ``corr`` ``(5, 5)``
+    (the disturbances' correlation across the outputs: a filter that
+    measures T1, T2 learns T3's disturbance through it) and
+    ``sd_by_time_since_step`` ``(5, b)`` over the bins whose lower edges are
+    ``step_bins_s`` (the discrepancy is larger in the transients after a
+    current step: schedule the disturbance's sd on the time since the step);
+  - ``input_noise``: ``current_sd_A``, ``sample_interval_s`` and
+    ``step_instant`` (a step at an unknown instant within its sampling
+    interval: current variance ``dI^2/12`` over that interval);
   - ``linear`` -> ``op0``, ``op1``, ... -> ``tavg_C``, ``current_A``,
     ``x0`` ``(n,)``, ``u0`` ``(3,)``, ``y0`` ``(5,)``, ``A`` ``(n, n)``,
     ``B`` ``(n, 3)``, ``C`` ``(5, n)``, ``D`` ``(5, 3)`` and
-    ``sensitivity`` -> parameter -> ``A``, ``B``, ``C``, ``D`` (derivatives
-    per unit of the parameter).
+    ``sensitivity`` -> parameter -> ``A``, ``B``, ``C``, ``D``, ``x0``,
+    ``u0``, ``y0`` (derivatives per unit of the parameter; ``x0``, ``u0``,
+    ``y0`` with the operating point's T̄ and I held, the water temperature
+    solved again).
 
 In ``npz``: ``modules__TEM1__linear__op0__A``,
 ``modules__TEM1__linear__op0__sensitivity__K_W_per_K__A``, and the name
@@ -64,8 +74,10 @@ def to_tree(exp, *, matlab_names=False):
         pn = m["process_noise"]
         mods[name(mid)] = {"mean": m["mean"], "cov": m["cov"], "draws": m["draws"],
                            "measurement_noise_cov": m["measurement_noise_cov"],
-                           "process_noise": {"sd": pn["sd"], "tau_s": pn["tau_s"],
-                                             "q_continuous": pn["q_continuous"], "source": pn["source"]},
+                           "process_noise": {k: pn[k] for k in ("sd", "tau_s", "q_continuous", "source", "channels",
+                                                                "corr", "sd_by_time_since_step", "step_bins_s")
+                                             if k in pn},
+                           "input_noise": dict(m["input_noise"]),
                            "linear": ops, "n_posterior": m["n_posterior"]}
         ids[name(mid)] = mid
     return {"schema": SCHEMA, "parameters": list(exp.parameters), "units": dict(exp.units),

@@ -60,8 +60,9 @@ class LinearModel:
         ``(n, n)`` [1/s], ``(n, 3)``, ``(5, n)``, ``(5, 3)``.
     states, inputs, outputs : tuple of str
     sensitivity : dict
-        Parameter -> ``{"A", "B", "C", "D"}``, the derivatives of the
-        matrices per unit of the parameter (SI).
+        Parameter -> ``{"A", "B", "C", "D", "x0", "u0", "y0"}``, the
+        derivatives of the matrices and of the operating point (T̄ and I
+        held, the water temperature solved again) per unit of the parameter (SI).
     """
 
     tavg_C: float
@@ -173,17 +174,17 @@ def linearise(params, rig, tavg_C, current_A, *, t_amb_C=25.0, sensitivity=()):
         r = _Rig(p, rig)
         x0, tw = r.point(tavg, float(current_A), ta)
         u0 = np.array([float(current_A), tw, ta])
-        return r, x0, u0, r.matrices(x0, u0)
+        return r, x0, u0, r.matrices(x0, u0), r.outputs(x0, float(current_A))
 
-    r, x0, u0, (A, B, C, D) = at(params)
+    r, x0, u0, (A, B, C, D), y0 = at(params)
     sens = {}
     for name in sensitivity:
         if name not in params:
             raise ModelError(f"sensitivity to {name!r}: not a parameter of the model ({sorted(params)})")
         v = float(params[name])
         h = REL_STEP * (abs(v) if v != 0 else 1.0)
-        hi = at({**params, name: v + h})[3]
-        lo = at({**params, name: v - h})[3]
-        sens[name] = {k: (a - b) / (2 * h) for k, a, b in zip("ABCD", hi, lo)}
-    return LinearModel(float(tavg_C), float(current_A), x0, u0, r.outputs(x0, float(current_A)), A, B, C, D,
-                       r.nodes, INPUTS, OUTPUTS, sens)
+        _, xh, uh, mh, yh = at({**params, name: v + h})
+        _, xl, ul, ml, yl = at({**params, name: v - h})
+        sens[name] = {k: (a - b) / (2 * h) for k, a, b in zip("ABCD", mh, ml)}
+        sens[name].update({"x0": (xh - xl) / (2 * h), "u0": (uh - ul) / (2 * h), "y0": (yh - yl) / (2 * h)})
+    return LinearModel(float(tavg_C), float(current_A), x0, u0, y0, A, B, C, D, r.nodes, INPUTS, OUTPUTS, sens)

@@ -140,6 +140,77 @@ def _process_noise(t, residual, floor, source):
     return _ou_noise([f[0] for f in fits], [f[1] for f in fits], source)
 
 
+#: Lower edges of the bins of time since the last current step [s] (the last bin is open).
+STEP_BINS_S = (0.0, 10.0, 30.0, 100.0, 300.0)
+
+
+def time_since_step(t, current):
+    """Seconds since the last current step at every sample (inf before the first).
+
+    A step is a change between samples of more than 20 times the current's
+    white-noise level (as in :func:`measurement_noise_cov`).
+    """
+    t, current = np.asarray(t, float), np.asarray(current, float)
+    jumps = np.flatnonzero(np.abs(np.diff(current)) > 20 * max(noise_estimate(current), 1e-6)) + 1
+    last = np.searchsorted(jumps, np.arange(len(t)), side="right") - 1
+    return np.where(last >= 0, t - t[jumps[np.maximum(last, 0)]], np.inf)
+
+
+def disturbance_structure(t, residual, current, R):
+    """How the model discrepancy varies with the time since a step, and across the outputs.
+
+    Parameters
+    ----------
+    t : ndarray, shape (n,)
+    residual : ndarray, shape (5, n)
+        Held-out residuals (measurement minus predictive mean).
+    current : ndarray, shape (n,)
+    R : ndarray, shape (5, 5)
+        White measurement-noise covariance.
+
+    Returns
+    -------
+    dict
+        ``sd_by_time_since_step`` ``(5, len(STEP_BINS_S))``: the residual's
+        RMS beyond the white noise in each bin of time since the last step
+        (NaN with fewer than 30 samples); ``corr`` ``(5, 5)``: correlation of
+        the disturbances across the outputs (residual covariance minus the
+        white noise, made positive semi-definite); ``step_bins_s``.
+    """
+    since = time_since_step(t, current)
+    edges = np.append(np.asarray(STEP_BINS_S, float), np.inf)
+    white = np.diag(R)
+    prof = np.full((len(CHANNELS), len(STEP_BINS_S)), np.nan)
+    for b in range(len(STEP_BINS_S)):
+        sel = (since >= edges[b]) & (since < edges[b + 1])
+        if sel.sum() >= 30:
+            prof[:, b] = np.sqrt(np.maximum(np.mean(residual[:, sel] ** 2, axis=1) - white, 0.0))
+    C = np.cov(residual) - R
+    d = np.sqrt(np.maximum(np.diag(C), 1e-30))
+    corr = np.clip(C / np.outer(d, d), -1.0, 1.0)
+    w, V = np.linalg.eigh(corr)
+    corr = (V * np.maximum(w, 1e-9)) @ V.T  # nearest positive semi-definite, unit diagonal again
+    s = np.sqrt(np.diag(corr))
+    return {"sd_by_time_since_step": prof, "corr": corr / np.outer(s, s), "step_bins_s": np.array(STEP_BINS_S)}
+
+
+def input_noise(exps):
+    """The current's uncertainty as an observer sees it, from the runs given.
+
+    ``current_sd_A``: white noise of the measured current; ``sample_interval_s``:
+    the median sampling interval; ``step_instant``: a step happens at an
+    unknown instant within its sampling interval (uniform), so over the
+    interval that holds a step of size dI the applied current is uncertain
+    by ``dI^2 / 12`` in variance (a filter adds it to the current's variance
+    at that sample).
+    """
+    dts = np.concatenate([np.diff(np.asarray(e.time, float)) for e in exps])
+    return {"current_sd_A": float(np.median([noise_estimate(e.current) for e in exps])),
+            "sample_interval_s": float(np.median(dts)),
+            "step_instant": "uniform within the sampling interval: current variance dI^2/12 over the interval "
+                            "holding a step of dI"}
+
+
 def observer_inputs(run, batch, *, points=DEFAULT_POINTS, t_amb_C=25.0, n_draws=200, seed=0, modules=None,
                     heldout=True, progress=None):
     """Posterior moments, noise and linearised models of a calibration run for observer design.
@@ -195,16 +266,24 @@ def observer_inputs(run, batch, *, points=DEFAULT_POINTS, t_amb_C=25.0, n_draws=
         vals = chosen[mid]
         if vals:
             say(f"{mid}: process noise from the held-out run(s)")
-            ts, rs = [], []
+            ts, rs, cs = [], [], []
             for exp in vals:
                 p = predict(run, exp, mid, batch, n_draws=100, seed=seed, compare_constant=False).linear
                 ts.append(p.time)
                 rs.append(p.residual)
+                cs.append(np.asarray(p.current, float))
             # runs are joined end to end; the one spurious innovation at a seam is negligible
             t = np.concatenate([ts[0]] + [ts[i] - ts[i][0] + ts[i - 1][-1] + 1.0 for i in range(1, len(ts))])
             pn = _process_noise(t, np.concatenate(rs, axis=1), floor,
                                 "held-out posterior-predictive residuals: "
                                 + ", ".join(Path(str(e.path)).name for e in vals))
+            # per run (the time since a step restarts with each run), then pooled by sample count
+            parts = [disturbance_structure(tt, rr, cc, R) for tt, rr, cc in zip(ts, rs, cs)]
+            wts = np.array([len(tt) for tt in ts], float)
+            pn["corr"] = np.average([q["corr"] for q in parts], axis=0, weights=wts)
+            pn["sd_by_time_since_step"] = np.sqrt(np.nanmean([q["sd_by_time_since_step"] ** 2 for q in parts],
+                                                             axis=0))
+            pn["step_bins_s"] = np.array(STEP_BINS_S)
         else:
             pn = _ou_noise(np.sqrt(np.maximum(d.noise_sd[0] ** 2 - floor ** 2, 0.0)), d.noise_tau[0],
                            "identification-run residuals (the module has no held-out run)")
@@ -212,7 +291,8 @@ def observer_inputs(run, batch, *, points=DEFAULT_POINTS, t_amb_C=25.0, n_draws=
         lin = _linear_models(dict(zip(names, mean)), rig, points, t_amb_C, names, say, mid)
         states = lin[0].states
         out[mid] = {"mean": mean, "cov": np.cov(X, rowvar=False), "draws": keep, "measurement_noise_cov": R,
-                    "process_noise": pn, "linear": lin, "n_posterior": len(X)}
+                    "process_noise": pn, "input_noise": input_noise(vals or [module.identification]),
+                    "linear": lin, "n_posterior": len(X)}
     pop = run.population_draws(MODULE_PARAMETERS)
     if pop is not None:
         # a new unit: the population's laws, the rig as the calibrated modules' (their pooled draws)
@@ -226,6 +306,7 @@ def observer_inputs(run, batch, *, points=DEFAULT_POINTS, t_amb_C=25.0, n_draws=
                              "draws": _thin(X, n_draws),
                              "measurement_noise_cov": np.mean([out[m]["measurement_noise_cov"] for m in ids], axis=0),
                              "process_noise": _pool_process_noise([out[m]["process_noise"] for m in ids]),
+                             "input_noise": out[ids[0]]["input_noise"],
                              "linear": _linear_models(dict(zip(names, mean)), rig, points, t_amb_C, names, say,
                                                       "population"),
                              "n_posterior": len(X)}
@@ -264,5 +345,10 @@ def _linear_models(params, rig, points, t_amb_C, names, say, label):
 
 
 def _pool_process_noise(items):
-    return _ou_noise(np.sqrt(np.mean([p["sd"] ** 2 for p in items], axis=0)),
-                     np.mean([p["tau_s"] for p in items], axis=0), "mean over the calibrated modules")
+    pn = _ou_noise(np.sqrt(np.mean([p["sd"] ** 2 for p in items], axis=0)),
+                   np.mean([p["tau_s"] for p in items], axis=0), "mean over the calibrated modules")
+    if all("corr" in p for p in items):
+        pn["corr"] = np.mean([p["corr"] for p in items], axis=0)
+        pn["sd_by_time_since_step"] = np.sqrt(np.nanmean([p["sd_by_time_since_step"] ** 2 for p in items], axis=0))
+        pn["step_bins_s"] = np.array(STEP_BINS_S)
+    return pn
