@@ -105,6 +105,9 @@ def test_disturbance_structure_finds_a_transient_after_steps_and_a_shared_distur
     assert list(out["step_bins_s"]) == list(STEP_BINS_S) and prof.shape == (5, len(STEP_BINS_S))
     assert prof[2, 0] == pytest.approx(0.05, rel=0.15) and np.all(prof[2, 1:] < 0.005)
     assert out["corr"][0, 1] > 0.9 and abs(out["corr"][0, 2]) < 0.2
+    assert out["n_by_time_since_step"].sum() == n - 500  # every sample after the first step, once
+    assert out["corr_by_time_since_step"].shape == (len(STEP_BINS_S), 5, 5)
+    assert out["corr_by_time_since_step"][-1, 0, 1] > 0.9
     assert np.all(np.linalg.eigvalsh(out["corr"]) > -1e-9) and np.allclose(np.diag(out["corr"]), 1.0)
 
 

@@ -5,6 +5,7 @@ R0 and S0 within 2 %, R1 and S1 within 20 % for the corrected method, on the
 shipped example batch and on a fresh bench batch.
 """
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -21,15 +22,17 @@ EXAMPLE = Path(__file__).resolve().parent.parent / "data" / "example"
 TOL = {"R0_ohm": 0.02, "R1_ohm_per_K": 0.20, "S0_V_per_K": 0.02, "S1_V_per_K2": 0.20}
 
 
-def _identified(folder):
+def _identified(folder, modules=None):
     batch = load_batch(folder)
+    if modules:  # a subset keeps the suite fast; every module is checked in the benchmarks
+        batch = dataclasses.replace(batch, modules={m: batch.modules[m] for m in modules})
     truth = json.loads((Path(folder) / "truth.json").read_text())["modules"]
     return batch, identify_batch(batch), truth
 
 
 @pytest.fixture(scope="module")
 def example():
-    return _identified(EXAMPLE)
+    return _identified(EXAMPLE, modules=("TEM1", "TEM2"))  # TEM1 the outlier, TEM2 a regular unit
 
 
 @pytest.fixture(scope="module")
@@ -91,12 +94,12 @@ def test_rig_fit_and_the_papers_validation_point(example):
 
 def test_identify_command_writes_the_contract_json(tmp_path, capsys):
     batch = tmp_path / "b"
-    simulate_batch(batch, BenchConfig(n_modules=2, seed=5, hold=200.0, validation_duration=1200.0,
+    simulate_batch(batch, BenchConfig(n_modules=1, seed=5, hold=200.0, validation_duration=1200.0,
                                       validation_rate=1.0), progress=lambda m: None)
     out = tmp_path / "out"
     assert main(["identify", str(batch), "--out", str(out), "--no-figures"]) == 0
     doc = json.loads((out / "identify.json").read_text())
-    assert set(doc["modules"]) == {"TEM1", "TEM2"}
+    assert set(doc["modules"]) == {"TEM1"}
     for m in doc["modules"].values():
         assert set(LAW_PARAMETERS) <= set(m["fit"]) and set(LAW_PARAMETERS) <= set(m["fit_paper"])
         step = m["steps"][0]

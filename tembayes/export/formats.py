@@ -20,7 +20,9 @@ in degC).  Keys:
     measures T1, T2 learns T3's disturbance through it) and
     ``sd_by_time_since_step`` ``(5, b)`` over the bins whose lower edges are
     ``step_bins_s`` (the discrepancy is larger in the transients after a
-    current step: schedule the disturbance's sd on the time since the step);
+    current step: schedule the disturbance's sd on the time since the step),
+    ``corr_by_time_since_step`` ``(b, 5, 5)`` and ``n_by_time_since_step``
+    ``(b,)`` (samples behind each bin: its sampling error);
   - ``input_noise``: ``current_sd_A``, ``sample_interval_s`` and
     ``step_instant`` (a step at an unknown instant within its sampling
     interval: current variance ``dI^2/12`` over that interval);
@@ -75,7 +77,8 @@ def to_tree(exp, *, matlab_names=False):
         mods[name(mid)] = {"mean": m["mean"], "cov": m["cov"], "draws": m["draws"],
                            "measurement_noise_cov": m["measurement_noise_cov"],
                            "process_noise": {k: pn[k] for k in ("sd", "tau_s", "q_continuous", "source", "channels",
-                                                                "corr", "sd_by_time_since_step", "step_bins_s")
+                                                                "corr", "sd_by_time_since_step", "step_bins_s",
+                                                                "corr_by_time_since_step", "n_by_time_since_step")
                                              if k in pn},
                            "input_noise": dict(m["input_noise"]),
                            "linear": ops, "n_posterior": m["n_posterior"]}

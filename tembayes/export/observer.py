@@ -175,23 +175,37 @@ def disturbance_structure(t, residual, current, R):
         RMS beyond the white noise in each bin of time since the last step
         (NaN with fewer than 30 samples); ``corr`` ``(5, 5)``: correlation of
         the disturbances across the outputs (residual covariance minus the
-        white noise, made positive semi-definite); ``step_bins_s``.
+        white noise, made positive semi-definite) and ``corr_by_time_since_step``
+        ``(len(STEP_BINS_S), 5, 5)`` the same per bin (the transients dominate
+        the pooled one); ``n_by_time_since_step``: samples per bin (the
+        profile's sampling error: a 4-hour run with 20 steps has ~200 samples
+        in the first bin); ``step_bins_s``.
     """
     since = time_since_step(t, current)
     edges = np.append(np.asarray(STEP_BINS_S, float), np.inf)
     white = np.diag(R)
-    prof = np.full((len(CHANNELS), len(STEP_BINS_S)), np.nan)
-    for b in range(len(STEP_BINS_S)):
+    nb, nc = len(STEP_BINS_S), len(CHANNELS)
+    prof = np.full((nc, nb), np.nan)
+    corr_b = np.full((nb, nc, nc), np.nan)
+    counts = np.zeros(nb, int)
+    for b in range(nb):
         sel = (since >= edges[b]) & (since < edges[b + 1])
+        counts[b] = int(sel.sum())
         if sel.sum() >= 30:
             prof[:, b] = np.sqrt(np.maximum(np.mean(residual[:, sel] ** 2, axis=1) - white, 0.0))
-    C = np.cov(residual) - R
+            corr_b[b] = _disturbance_corr(residual[:, sel] @ residual[:, sel].T / sel.sum() - R)
+    return {"sd_by_time_since_step": prof, "corr": _disturbance_corr(np.cov(residual) - R),
+            "corr_by_time_since_step": corr_b, "n_by_time_since_step": counts, "step_bins_s": np.array(STEP_BINS_S)}
+
+
+def _disturbance_corr(C):
+    """Correlation matrix of a disturbance covariance estimate, made positive semi-definite."""
     d = np.sqrt(np.maximum(np.diag(C), 1e-30))
     corr = np.clip(C / np.outer(d, d), -1.0, 1.0)
     w, V = np.linalg.eigh(corr)
     corr = (V * np.maximum(w, 1e-9)) @ V.T  # nearest positive semi-definite, unit diagonal again
     s = np.sqrt(np.diag(corr))
-    return {"sd_by_time_since_step": prof, "corr": corr / np.outer(s, s), "step_bins_s": np.array(STEP_BINS_S)}
+    return corr / np.outer(s, s)
 
 
 def input_noise(exps):
@@ -199,16 +213,20 @@ def input_noise(exps):
 
     ``current_sd_A``: white noise of the measured current; ``sample_interval_s``:
     the median sampling interval; ``step_instant``: a step happens at an
-    unknown instant within its sampling interval (uniform), so over the
-    interval that holds a step of size dI the applied current is uncertain
-    by ``dI^2 / 12`` in variance (a filter adds it to the current's variance
-    at that sample).
+    unknown instant within its sampling interval, uniform a priori, so over
+    the interval that holds a step of size dI the applied current is
+    uncertain by ``dI^2 / 12`` in variance.  The instant's *phase* is common
+    to the steps of one run (one sampling clock), so on a given run the
+    realised error is one draw of it, and the held-out profile
+    ``sd_by_time_since_step`` already holds that run's draw: a filter that
+    adds this prior per step need not subtract it from the profile.
     """
     dts = np.concatenate([np.diff(np.asarray(e.time, float)) for e in exps])
     return {"current_sd_A": float(np.median([noise_estimate(e.current) for e in exps])),
             "sample_interval_s": float(np.median(dts)),
-            "step_instant": "uniform within the sampling interval: current variance dI^2/12 over the interval "
-                            "holding a step of dI"}
+            "step_instant": "uniform within the sampling interval, one phase per run (one clock): current "
+                            "variance dI^2/12 over the interval holding a step of dI; the held-out profile "
+                            "already contains that run's realised phase"}
 
 
 def observer_inputs(run, batch, *, points=DEFAULT_POINTS, t_amb_C=25.0, n_draws=200, seed=0, modules=None,
@@ -283,6 +301,8 @@ def observer_inputs(run, batch, *, points=DEFAULT_POINTS, t_amb_C=25.0, n_draws=
             pn["corr"] = np.average([q["corr"] for q in parts], axis=0, weights=wts)
             pn["sd_by_time_since_step"] = np.sqrt(np.nanmean([q["sd_by_time_since_step"] ** 2 for q in parts],
                                                              axis=0))
+            pn["corr_by_time_since_step"] = np.nanmean([q["corr_by_time_since_step"] for q in parts], axis=0)
+            pn["n_by_time_since_step"] = np.sum([q["n_by_time_since_step"] for q in parts], axis=0)
             pn["step_bins_s"] = np.array(STEP_BINS_S)
         else:
             pn = _ou_noise(np.sqrt(np.maximum(d.noise_sd[0] ** 2 - floor ** 2, 0.0)), d.noise_tau[0],
@@ -349,6 +369,8 @@ def _pool_process_noise(items):
                    np.mean([p["tau_s"] for p in items], axis=0), "mean over the calibrated modules")
     if all("corr" in p for p in items):
         pn["corr"] = np.mean([p["corr"] for p in items], axis=0)
+        pn["corr_by_time_since_step"] = np.nanmean([p["corr_by_time_since_step"] for p in items], axis=0)
+        pn["n_by_time_since_step"] = np.sum([p["n_by_time_since_step"] for p in items], axis=0)
         pn["sd_by_time_since_step"] = np.sqrt(np.nanmean([p["sd_by_time_since_step"] ** 2 for p in items], axis=0))
         pn["step_bins_s"] = np.array(STEP_BINS_S)
     return pn
