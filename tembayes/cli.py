@@ -436,6 +436,12 @@ def _cmd_gap(args):
     return 0
 
 
+def _add_batch_option(p):
+    """``--batch``: the run's batch, when not the one recorded in ``RUN/summary.json`` (see :func:`_run_batch`)."""
+    p.add_argument("--batch", type=Path, metavar="BATCH",
+                   help="the calibrated batch folder (default: the one recorded in RUN/summary.json)")
+
+
 def build_parser():
     """The argument parser of the ``tembayes`` command."""
     parser = argparse.ArgumentParser(
@@ -537,8 +543,7 @@ def build_parser():
     p.add_argument("experiment", type=Path, help="experiment CSV (contract section 2)")
     p.add_argument("--module", required=True, metavar="ID", help="module id of the run, or 'population'")
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder to create")
-    p.add_argument("--batch", type=Path, metavar="BATCH",
-                   help="the calibrated batch folder (default: the one recorded in RUN/summary.json)")
+    _add_batch_option(p)
     p.add_argument("--draws", type=int, default=500, metavar="N", help="predictive draws (default 500)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--no-constant", action="store_true", help="skip the constant-law comparison")
@@ -583,8 +588,7 @@ def build_parser():
     )
     p.add_argument("run", type=Path, help="calibration run folder (tembayes calibrate --out)")
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="folder to create (report.html)")
-    p.add_argument("--batch", type=Path, metavar="BATCH",
-                   help="the calibrated batch folder (default: the one recorded in RUN/summary.json)")
+    _add_batch_option(p)
     p.add_argument("--tolerance", action="append", metavar="SPEC",
                    help="acceptance check (repeatable; replaces the defaults, see below)")
     p.add_argument("--confidence", type=float, default=0.95,
@@ -617,8 +621,7 @@ def build_parser():
     p.add_argument("run", type=Path, help="calibration run folder (tembayes calibrate --out)")
     p.add_argument("--out", type=Path, required=True, metavar="FILE", help="file to write")
     p.add_argument("--format", choices=("json", "npz", "mat"), help="default: FILE's suffix")
-    p.add_argument("--batch", type=Path, metavar="BATCH",
-                   help="the calibrated batch folder (default: the one recorded in RUN/summary.json)")
+    _add_batch_option(p)
     p.add_argument("--point", action="append", metavar="T_AVG_C,CURRENT_A",
                    help="operating point to linearise at (repeatable; default 25,0 25,2 40,4)")
     p.add_argument("--ambient", type=float, default=25.0, metavar="C",
