@@ -19,7 +19,7 @@ from tembayes.calibrate.run import load_run
 from tembayes.cli import main
 from tembayes.constants import MODULE_PARAMETERS
 from tembayes.data import load_batch
-from tembayes.errors import DataError
+from tembayes.errors import DataError, ModelError
 from tembayes.physics.rig import reference_rig
 from tembayes.predict import RunModel, constant_laws, predict, simulate_predictive
 from tembayes.predict.anchor import ResidualProcess, fit_residual_process
@@ -160,6 +160,29 @@ def test_predictions_meet_the_rmse_target_and_cover_on_a_correct_bench(predictio
     # ~0.3-0.6, see the negative control below)
     assert 0.80 <= cov90.mean() <= 0.98
     assert cov50.mean() < cov90.mean()
+
+
+def test_a_draw_the_rig_cannot_simulate_is_left_out_and_counted(run3, validations):
+    """A posterior's far tail may hold a draw the rig cannot simulate (S1 = 0.01 V/K^2, a
+    hundred times a real one, exhausts the integrator's step budget).  One such draw in 40
+    is left out with a warning and counted; the bands come from the other 39.  Past 5 %
+    failed draws the prediction is refused."""
+    _, _, truth = run3
+    rm = RunModel(validations["TEM2"], RIG)
+    p = _truth_params(truth, "TEM2")
+    n = 40
+    rng = np.random.default_rng(3)
+    params = {k: np.full(n, v) * (1 + 0.003 * rng.standard_normal(n)) for k, v in p.items()}
+    params["S1_V_per_K2"][7] = 0.01
+    sd = np.tile([0.004] * 4 + [0.001], (n, 1))
+    with pytest.warns(RuntimeWarning, match="1 of 40 predictive draws failed"):
+        pred = simulate_predictive(rm, PredictiveDraws(params, sd, "TEM2"), np.random.default_rng(1))
+    assert pred.n_failed == 1 and pred.n_draws == 39 and np.all(np.isfinite(pred.bands[90][0]))
+    m = pred.metrics()
+    assert all(np.isfinite(v["rmse"]) and v["coverage90"] > 0.5 for v in m.values())  # the 39 still predict
+    params["S1_V_per_K2"][[3, 11, 19]] = 0.01  # 4 of 40 = 10 % > 5 %
+    with pytest.raises(ModelError, match="failed for 4 of 40 draws"):
+        simulate_predictive(rm, PredictiveDraws(params, sd, "TEM2"), np.random.default_rng(1))
 
 
 def test_negative_control_bands_without_parameter_and_phase_uncertainty_under_cover(run3, batch3, validations):

@@ -27,6 +27,7 @@ channels are in K, which equal degC differences.
 from __future__ import annotations
 
 import time as _time
+import warnings
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from tembayes.constants import KELVIN, MODULE_PARAMETERS, T_REF
-from tembayes.errors import DataError, TembayesError
+from tembayes.errors import DataError, ModelError, TembayesError
 from tembayes.physics import effects as E
 from tembayes.physics.effects import EFFECT_PARAMETERS
 from tembayes.predict.anchor import UNPINNED_FRACTION, anchor_rig, unpinned
@@ -48,6 +49,8 @@ CONSTANT_AT_C = 35.0
 TAVG_BIN_K = 5.0
 #: Draws simulated at once (memory: ~60 MB per 100 draws of a 4 h run at 1 Hz).
 CHUNK = 100
+#: Largest fraction of predictive draws that may fail to simulate; they are left out and counted.
+MAX_FAILED_FRACTION = 0.05
 
 
 @dataclass(frozen=True)
@@ -280,6 +283,9 @@ class Prediction:
         ``keep_draws=True`` for posterior-predictive checks.
     noise_sd, noise_tau : ndarray, shape (M, 5), optional
         The draws' residual processes (kept with ``keep_draws=True``).
+    n_failed : int
+        Draws the rig could not simulate, left out (at most
+        :data:`MAX_FAILED_FRACTION` of them; ``n_draws`` counts the rest).
     """
 
     source: str
@@ -299,6 +305,7 @@ class Prediction:
     deviations: np.ndarray | None = None
     noise_sd: np.ndarray | None = None
     noise_tau: np.ndarray | None = None
+    n_failed: int = 0
 
     @property
     def residual(self):
@@ -370,14 +377,27 @@ def simulate_predictive(model, draws, rng, *, progress=None, keep_draws=False):
     for a in range(0, M, CHUNK):
         b = min(a + CHUNK, M)
         params = {k: np.asarray(v)[a:b] for k, v in draws.params.items()}
-        sens, volt = model.simulate(params, shift[a:b])
+        sens, volt = model.simulate(params, shift[a:b], strict=False)  # a failed draw comes back NaN
         Y[a:b, :4] = sens
         Y[a:b, 4] = volt
         if progress:
             progress(f"  predictive draws {b}/{M}")
+    ok = np.all(np.isfinite(Y), axis=(1, 2))
+    n_failed = int(M - ok.sum())
+    if n_failed > MAX_FAILED_FRACTION * M:
+        raise ModelError(f"the simulation of {exp.path} failed for {n_failed} of {M} draws (no steady start, step "
+                         f"budget exceeded or non-finite values); at most {MAX_FAILED_FRACTION:.0%} may fail")
+    noise_sd, noise_tau = draws.noise_sd, draws.noise_tau
+    if n_failed:
+        # a draw the rig cannot simulate (far in a posterior's tail) is left out and counted,
+        # rather than discarding the other draws' bands
+        warnings.warn(f"{exp.path}: {n_failed} of {M} predictive draws failed to simulate and are left out",
+                      RuntimeWarning, stacklevel=2)
+        Y, noise_sd = Y[ok], noise_sd[ok]
+        noise_tau = None if noise_tau is None else noise_tau[ok]
     mean = Y.mean(axis=0)
     dev = (Y - mean[None]).astype(np.float32) if keep_draws else None
-    Y += rng.standard_normal(Y.shape) * draws.noise_sd[:, :, None]
+    Y += rng.standard_normal(Y.shape) * noise_sd[:, :, None]
     qs = sorted({q for lv in LEVELS for q in (0.5 - lv / 200.0, 0.5 + lv / 200.0)} | {0.5})
     Q = np.quantile(Y, qs, axis=0)
     qi = {q: i for i, q in enumerate(qs)}
@@ -388,10 +408,10 @@ def simulate_predictive(model, draws, rng, *, progress=None, keep_draws=False):
     since = model.time - starts[model.sample_hold]
     return Prediction(source=str(exp.path), label=draws.label, laws=draws.laws, time=model.time.copy(),
                       channels=CHANNELS, measured=measured, mean=mean, median=Q[qi[0.5]], bands=bands, tavg=tavg,
-                      current=np.asarray(exp.current, float), n_draws=M, seconds=_time.perf_counter() - t0,
+                      current=np.asarray(exp.current, float), n_draws=len(Y), seconds=_time.perf_counter() - t0,
                       since_step=since, deviations=dev,
-                      noise_sd=draws.noise_sd if keep_draws else None,
-                      noise_tau=draws.noise_tau if keep_draws else None)
+                      noise_sd=noise_sd if keep_draws else None,
+                      noise_tau=noise_tau if keep_draws else None, n_failed=n_failed)
 
 
 @dataclass(frozen=True)
@@ -426,6 +446,7 @@ class PredictResult:
             "rmse_about": "the posterior-predictive mean",
             "by_Tavg": self.linear.by_tavg(),
             "anchor": self.draws.anchor,
+            "n_failed_draws": self.linear.n_failed,
             "seconds": self.seconds,
         })
         if self.constant is not None:

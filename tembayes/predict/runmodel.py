@@ -201,6 +201,12 @@ class RunModel:
     def _interpolate(self, Y):
         """Grid-sample values ``(nd, nc, n_grid_obs)`` -> every sample ``(nd, nc, n)``."""
         nd, nc = Y.shape[:2]
+        ok = np.all(np.isfinite(Y), axis=(1, 2))
+        if not ok.all():  # failed draws (strict=False) stay NaN; the spline takes the others
+            out = np.full((nd, nc, len(self.time)), np.nan)
+            if ok.any():
+                out[ok] = self._interpolate(Y[ok])
+            return out
         out = np.empty((nd, nc, len(self.time)))
         tg = self.time[self._samples]
         for g, a in self._segments:
