@@ -298,12 +298,7 @@ def observer_inputs(run, batch, *, points=DEFAULT_POINTS, t_amb_C=25.0, n_draws=
             # per run (the time since a step restarts with each run), then pooled by sample count
             parts = [disturbance_structure(tt, rr, cc, R) for tt, rr, cc in zip(ts, rs, cs)]
             wts = np.array([len(tt) for tt in ts], float)
-            pn["corr"] = np.average([q["corr"] for q in parts], axis=0, weights=wts)
-            pn["sd_by_time_since_step"] = np.sqrt(np.nanmean([q["sd_by_time_since_step"] ** 2 for q in parts],
-                                                             axis=0))
-            pn["corr_by_time_since_step"] = np.nanmean([q["corr_by_time_since_step"] for q in parts], axis=0)
-            pn["n_by_time_since_step"] = np.sum([q["n_by_time_since_step"] for q in parts], axis=0)
-            pn["step_bins_s"] = np.array(STEP_BINS_S)
+            pn.update(_pool_structure(parts, weights=wts))
         else:
             pn = _ou_noise(np.sqrt(np.maximum(d.noise_sd[0] ** 2 - floor ** 2, 0.0)), d.noise_tau[0],
                            "identification-run residuals (the module has no held-out run)")
@@ -368,9 +363,14 @@ def _pool_process_noise(items):
     pn = _ou_noise(np.sqrt(np.mean([p["sd"] ** 2 for p in items], axis=0)),
                    np.mean([p["tau_s"] for p in items], axis=0), "mean over the calibrated modules")
     if all("corr" in p for p in items):
-        pn["corr"] = np.mean([p["corr"] for p in items], axis=0)
-        pn["corr_by_time_since_step"] = np.nanmean([p["corr_by_time_since_step"] for p in items], axis=0)
-        pn["n_by_time_since_step"] = np.sum([p["n_by_time_since_step"] for p in items], axis=0)
-        pn["sd_by_time_since_step"] = np.sqrt(np.nanmean([p["sd_by_time_since_step"] ** 2 for p in items], axis=0))
-        pn["step_bins_s"] = np.array(STEP_BINS_S)
+        pn.update(_pool_structure(items))
     return pn
+
+
+def _pool_structure(parts, weights=None):
+    """The :func:`disturbance_structure` keys pooled over runs or modules (``corr`` weighted)."""
+    return {"corr": np.average([q["corr"] for q in parts], axis=0, weights=weights),
+            "sd_by_time_since_step": np.sqrt(np.nanmean([q["sd_by_time_since_step"] ** 2 for q in parts], axis=0)),
+            "corr_by_time_since_step": np.nanmean([q["corr_by_time_since_step"] for q in parts], axis=0),
+            "n_by_time_since_step": np.sum([q["n_by_time_since_step"] for q in parts], axis=0),
+            "step_bins_s": np.array(STEP_BINS_S)}

@@ -418,20 +418,22 @@ def writable(a, dtype=None):
     return np.require(a, dtype=dtype, requirements=("C", "W"))
 
 
-def integrate(t, i_meas, tw, ta, A, Bb, Cinv, tem, P, rec, Y0, steady_start, atol, hmax):
+def _kernel_args(t, i_meas, tw, ta, A, Bb, Cinv, tem, P, rec, Y0, steady_start, atol, hmax):
+    """The integrators' arguments as their one compiled signature takes them (see :func:`writable`)."""
+    f, i = np.float64, np.int64
+    return (writable(t, f), writable(i_meas, f), writable(tw, f), writable(ta, f), writable(A), writable(Bb),
+            writable(Cinv), writable(tem, i), writable(P), writable(rec, i), writable(Y0, f), bool(steady_start),
+            float(atol), float(hmax))
+
+
+def integrate(*args):
     """Simulate ``nd`` parameter draws of one experiment (see :func:`_integrate`)."""
-    w = writable
-    return _integrate(w(t, np.float64), w(i_meas, np.float64), w(tw, np.float64), w(ta, np.float64), w(A), w(Bb),
-                      w(Cinv), w(tem, np.int64), w(P), w(rec, np.int64), w(Y0, np.float64), bool(steady_start),
-                      float(atol), float(hmax))
+    return _integrate(*_kernel_args(*args))
 
 
-def integrate_grids(T, I, TW, TA, A, Bb, Cinv, tem, P, rec, Y0, steady_start, atol, hmax):
+def integrate_grids(*args):
     """:func:`integrate` with a time grid and inputs of its own for every draw (see :func:`_integrate_grids`)."""
-    w = writable
-    return _integrate_grids(w(T, np.float64), w(I, np.float64), w(TW, np.float64), w(TA, np.float64), w(A), w(Bb),
-                            w(Cinv), w(tem, np.int64), w(P), w(rec, np.int64), w(Y0, np.float64),
-                            bool(steady_start), float(atol), float(hmax))
+    return _integrate_grids(*_kernel_args(*args))
 
 
 @njit(cache=True)
