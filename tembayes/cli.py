@@ -43,7 +43,10 @@ examples:
   tembayes calibrate data/example --out runs/example --seed 0
   tembayes calibrate data/example --out runs/example --seed 0 --resume   # after an interruption
   tembayes calibrate runs/demo --out runs/demo-cal --max-steps 20000 --no-figures
-  tembayes calibrate data/example --out runs/one-by-one --jobs 1   # one module at a time, with stage messages
+  tembayes calibrate data/example --out runs/one-by-one --workers 1   # in this process, with stage messages
+  tembayes calibrate factory/lot42 --out runs/lot42 --workers 8 --quiet   # a local Dask cluster of 8 processes
+  tembayes calibrate factory/lot42 --out runs/lot42 --scheduler tcp://10.0.0.5:8786   # a running Dask cluster
+  tembayes calibrate factory/lot42 --out runs/lot42 --scheduler tcp://10.0.0.5:8786 --resume   # only missing modules
 
 writes RUN/summary.json (contract section 4: per module R0, R1, S0, S1 and K
 with mean, sd and 90 % interval, outlier_prob, convergence diagnostics; the
@@ -237,11 +240,24 @@ def _cmd_calibrate(args):
     from tembayes.data import load_batch
     from tembayes.data.write import _refuse_existing
 
-    if args.jobs < 1:  # before anything is touched
-        print(f"tembayes calibrate: --jobs must be at least 1, got {args.jobs}", file=sys.stderr)
+    workers = args.workers if args.jobs is None else args.jobs
+    if workers < 1:  # before anything is touched
+        print(f"tembayes calibrate: --workers must be at least 1, got {workers}", file=sys.stderr)
         return 2
+    if args.scheduler:
+        try:  # a wrong address is refused before anything is written
+            from distributed import Client
+
+            Client(args.scheduler if not os.path.isfile(args.scheduler) else None,
+                   scheduler_file=args.scheduler if os.path.isfile(args.scheduler) else None, timeout="10s").close()
+        except (OSError, TimeoutError, ValueError) as exc:
+            print(f"tembayes calibrate: cannot reach the Dask scheduler {args.scheduler!r} ({exc}); start one "
+                  "with `dask scheduler` and workers with `dask worker ADDRESS --nworkers N --nthreads 1`",
+                  file=sys.stderr)
+            return 2
     opt = CalibrationOptions(max_steps=args.max_steps, nwalkers=args.walkers)
-    batch = load_batch(args.batch)  # refused input: nothing is written
+    # every file validated, then only paths kept: memory independent of the batch size
+    batch = load_batch(args.batch, lazy=True)  # refused input: nothing is written
     if not args.resume:
         _refuse_existing(args.out, args.overwrite)
         if args.out.exists():
@@ -253,14 +269,26 @@ def _cmd_calibrate(args):
         print(msg, file=sys.stderr, flush=True)
 
     summ = calibrate_batch(batch, args.out, seed=args.seed, options=opt, resume=args.resume, progress=progress,
-                           progress_bar=not args.quiet, argv=args.argv, figures=not args.no_figures, jobs=args.jobs)
-    for mid, m in summ["modules"].items():
+                           progress_bar=not args.quiet, argv=args.argv, figures=not args.no_figures, workers=workers,
+                           scheduler=args.scheduler, keep_unconverged=args.keep_unconverged)
+    mods = summ["modules"]
+    shown = list(mods)
+    if len(mods) > 20:  # a factory batch: the likeliest outliers and the failures, then the counts
+        shown = sorted(mods, key=lambda k: -(mods[k]["outlier_prob"] or 0.0))[:10]
+    for mid in shown:
+        m = mods[mid]
         op = m["outlier_prob"]
         print(f"{mid}: R0 {m['R0_ohm']['mean']:.4f}+-{m['R0_ohm']['sd']:.4f} ohm  "
               f"S0 {1e3 * m['S0_V_per_K']['mean']:.3f}+-{1e3 * m['S0_V_per_K']['sd']:.3f} mV/K  "
               f"K {m['K_W_per_K']['mean']:.4f}+-{m['K_W_per_K']['sd']:.4f} W/K  "
               f"outlier_prob {'-' if op is None else f'{op:.2f}'}  "
               f"{'converged' if m['diagnostics']['converged'] else 'NOT CONVERGED'}")
+    if len(shown) < len(mods):
+        n_conv = sum(bool(m["diagnostics"]["converged"]) for m in mods.values())
+        print(f"... the {len(shown)} likeliest outliers of {len(mods)} calibrated modules shown; "
+              f"{n_conv} converged")
+    for mid, why in (summ.get("population_excluded") or {}).items():
+        print(f"{mid}: left out of the population: {why}")
     print(f"wrote {args.out / 'summary.json'} and {args.out / 'posterior.nc'}")
     return 0 if summ["converged"] else 1
 
@@ -524,9 +552,17 @@ def build_parser():
                    help="emcee walkers (default 2 x parameters + 2)")
     p.add_argument("--no-figures", action="store_true", help="skip the corner plots")
     p.add_argument("--quiet", action="store_true", help="no progress bars (stage messages only)")
-    p.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), metavar="N",
-                   help="modules calibrated at once in worker processes (default: %(default)s, at most the "
-                        "cores); the results do not depend on it")
+    p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), metavar="N",
+                   help="modules calibrated at once, on a local Dask cluster of N single-threaded processes "
+                        "(default: %(default)s; 1: in this process, with stage messages); the results do not "
+                        "depend on it")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="calibrate the modules on a running dask.distributed cluster (tcp://host:8786, or a "
+                        "scheduler file) instead; its workers need tembayes installed")
+    p.add_argument("--jobs", type=int, default=None, help=argparse.SUPPRESS)  # the old name of --workers
+    p.add_argument("--keep-unconverged", action="store_true",
+                   help="let modules that did not converge into the population (default: left out, with the "
+                        "reason in summary.json)")
     p.set_defaults(func=_cmd_calibrate)
 
     p = sub.add_parser(

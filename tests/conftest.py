@@ -115,6 +115,17 @@ def batch3(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def batch4(tmp_path_factory):
+    """Four bench modules with a short staircase (60 s holds at 1 Hz: 24 min)."""
+    from tembayes.bench import BenchConfig, simulate_batch
+
+    path = tmp_path_factory.mktemp("b4") / "batch"
+    simulate_batch(path, BenchConfig(n_modules=4, seed=7, hold=60.0, rate=1.0, n_validations=0),
+                   progress=lambda msg: None)
+    return path
+
+
+@pytest.fixture(scope="session")
 def run3(batch3, tmp_path_factory):
     """``batch3`` calibrated: ``(run folder, summary, truth)``."""
     from tembayes.calibrate import calibrate_batch

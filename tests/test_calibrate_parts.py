@@ -259,6 +259,33 @@ def test_sampler_is_reproducible_and_resumes_bit_identically(tmp_path):
     assert not np.array_equal(a.chain, d.chain)
 
 
+def test_sampler_stop_ends_the_run_at_the_same_check_straight_or_resumed(tmp_path):
+    p = 3
+    log_prob = _gauss_target(np.zeros(p), np.eye(p))
+    p0 = np.random.default_rng(0).normal(size=(8, p))
+    kw = dict(seed=11, monitor=range(p), thin_by=2, check_every=40, max_steps=2000)
+    asked = []
+
+    def stop(post, steps):
+        asked.append(steps)
+        return steps >= 240
+
+    with pytest.warns(RuntimeWarning):
+        a = smp.sample(log_prob, p0, stop=stop, **kw)
+    assert asked == [80, 160, 240] and a.steps == 240 and not a.converged
+    # the run up to the stop is the run without one (the stop draws nothing)
+    with pytest.warns(RuntimeWarning):
+        b = smp.sample(log_prob, p0, **{**kw, "max_steps": 240})
+    assert np.array_equal(a.chain, b.chain)
+    # interrupted at 160 steps and resumed: it stops at the same check
+    with pytest.warns(RuntimeWarning):
+        smp.sample(log_prob, p0, checkpoint=tmp_path / "c", **{**kw, "max_steps": 160})
+    with pytest.warns(RuntimeWarning):
+        c = smp.sample(log_prob, p0, checkpoint=tmp_path / "c", resume=True, stop=lambda post, steps: steps >= 240,
+                       **kw)
+    assert c.resumed and c.steps == 240 and np.array_equal(a.chain, c.chain)
+
+
 def _example_model(module="TEM1"):
     """The calibration's step-response model of an example module."""
     from pathlib import Path

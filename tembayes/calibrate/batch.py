@@ -1,34 +1,46 @@
 """Calibrate a batch: every module, then the population (``tembayes calibrate``).
 
 Modules are independent (each has its own random stream from the run seed
-and its id), so the batch is a loop over :func:`calibrate_module` -- over
-``jobs`` worker processes at once, with identical results -- whose results
-are written to ``RUN/modules/<id>.nc`` as they finish; a resumed run reuses
-finished modules and continues interrupted ones from their sampler
-checkpoints.  The population stage
-(:func:`tembayes.calibrate.population.fit_population`) reuses the modules'
-posterior draws, under the spreads ``batch.toml``'s optional ``[population]``
-table states; ``summary.json`` records them (``population_prior``) and the
-spreads this batch learned in that table's format (``population_spreads``).
+and its id), so the batch is a loop over
+:func:`~tembayes.calibrate.module.calibrate_module` -- in this process, or on
+a local or remote Dask cluster (:mod:`tembayes.calibrate.scaleout`), with
+identical results -- whose results are written to ``RUN/modules/<id>.nc`` as
+they finish; a resumed run reuses finished modules and continues interrupted
+ones from their sampler checkpoints.  A module whose calibration fails is
+recorded in ``RUN/modules/<id>.failed.json`` and the batch goes on (a resumed
+run retries it).
+
+:func:`finish_run` then reads the module files one at a time: their
+``summary.json`` entries, and (evenly thinned) law draws of the converged ones
+for the population stage
+(:func:`tembayes.calibrate.population.fit_population`), under the spreads
+``batch.toml``'s optional ``[population]`` table states; modules that did
+not converge are left out of it, with the reason in ``summary.json``
+(``population_excluded``).  ``posterior.nc`` is assembled from the module
+files without holding them all (:func:`~tembayes.calibrate.results.write_run_posterior`),
+so memory stays bounded for batches of thousands of modules.
 """
 
 from __future__ import annotations
 
-import multiprocessing
+import glob
+import io
+import json
 import shlex
 import sys
 import time
 import warnings
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
 
 import tembayes
 from tembayes.calibrate import results as res
-from tembayes.calibrate.module import CalibrationOptions, calibrate_module, module_seed
+from tembayes.calibrate import sampler as smp
+from tembayes.calibrate.module import CalibrationOptions, module_seed
 from tembayes.calibrate.priors import law_priors
-from tembayes.data.write import write_json
+from tembayes.data.write import atomic_write_bytes, to_jsonable, write_json
+from tembayes.errors import ModelError
 
 
 def _versions():
@@ -54,131 +66,261 @@ def spread_prior(population_table):
     return {"tau" + k[len("spread"):]: v for k, v in population_table.items()} or None
 
 
-def _calibrate_to_file(module, datasheet, rig_config, seed, options, checkpoint, resume, done):
-    """One module in a worker process: calibrate, write ``done``, return the
-    diagnostics and the warnings raised (re-issued by the parent)."""
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", RuntimeWarning)
-        r = calibrate_module(module, datasheet, rig_config=rig_config, seed=seed, options=options,
-                             checkpoint=checkpoint, resume=resume)
-    res.write_netcdf(res.to_inference_data([r]), done)
-    return r.diagnostics, [str(w.message) for w in caught if issubclass(w.category, RuntimeWarning)]
-
-
 def _module_line(mid, d):
     return (f"    {mid}: {'converged' if d['converged'] else 'NOT converged'} in {d['steps']} steps "
             f"(R-hat {d['rhat_max']:.4f}, ESS {d['ess_bulk_min']:.0f}, k_hat {d['psis'][-1]['k_hat']:.2f}, "
             f"{d['timings']['total_s']:.0f} s)")
 
 
+#: Law draws per module (evenly thinned) handed to the population stage: its
+#: Gaussian terms need the moments, its importance check 1000 draws at most;
+#: 40 kB per module whatever the sampler kept.
+POPULATION_DRAWS = 1000
+
+
 def calibrate_batch(batch, out, *, seed=0, options=None, resume=False, population=True, progress=None,
-                    progress_bar=False, argv=None, figures=True, jobs=1):
+                    progress_bar=False, argv=None, figures=True, workers=1, scheduler=None, client=None,
+                    jobs=None, keep_unconverged=False):
     """Calibrate every module of a batch and the batch population.
 
     Parameters
     ----------
     batch : tembayes.data.Batch
-        A loaded (hence validated) batch folder.
+        A loaded (hence validated) batch folder; ``load_batch(path, lazy=True)``
+        for large batches.
     out : str or Path
         The run folder (created).
     seed : int
         Run seed.
     options : CalibrationOptions, optional
     resume : bool
-        Reuse finished modules and sampler checkpoints in ``out``.
+        Reuse finished modules and sampler checkpoints in ``out``; modules
+        that failed before are tried again.
     population : bool
-        Fit the population (needs >= 2 modules).
+        Fit the population (needs >= 2 converged modules).
     progress : callable, optional
         ``progress(message)``.
     progress_bar : bool
-        Sampler progress bars.
+        Sampler progress bars (in-process only).
     argv : list of str, optional
         The command line, recorded in the outputs.
     figures : bool
         Write the corner plots to ``RUN/figures``.
-    jobs : int
-        Modules calibrated at once, in worker processes (stage messages and
-        progress bars only with 1); the results do not depend on it.
+    workers : int
+        1: in this process, one module after the other (stage messages).
+        More: a local Dask cluster of that many single-threaded processes.
+        The results do not depend on it.
+    scheduler : str, optional
+        Address (or scheduler file) of a running ``dask.distributed``
+        scheduler to use instead of a local cluster.
+    client : distributed.Client, optional
+        An open Dask client to use.
+    jobs : int, optional
+        Old name of ``workers``.
+    keep_unconverged : bool
+        Let modules that did not converge into the population stage.
 
     Returns
     -------
     dict
         The summary (also written to ``RUN/summary.json``).
     """
+    from tembayes.calibrate.scaleout import calibrate_modules
+
     say = progress or (lambda msg: None)
     opt = options or CalibrationOptions()
+    workers = int(jobs if jobs is not None else workers)
     out = Path(out)
     (out / "modules").mkdir(parents=True, exist_ok=True)
     (out / "checkpoints").mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     n = len(batch.modules)
+    order = {mid: i for i, mid in enumerate(batch.modules)}
     todo = []
-    for i, (mid, module) in enumerate(batch.modules.items()):
+    for mid, module in batch.modules.items():
         if resume and (out / "modules" / f"{mid}.nc").exists():
-            say(f"[{i + 1}/{n}] {mid}: finished earlier, reused")
+            say(f"[{order[mid] + 1}/{n}] {mid}: finished earlier, reused")
         else:
-            todo.append((i, mid, module))
-    if jobs > 1 and len(todo) > 1:
-        # spawn, not fork: the compiled kernels' OpenMP runtime is not fork-safe
-        ctx = multiprocessing.get_context("spawn")
-        workers = min(jobs, len(todo))
-        say(f"{len(todo)} modules in {workers} worker processes (per-module stage messages and bars off)")
-        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as ex:
-            futures = {ex.submit(_calibrate_to_file, module, batch.datasheet, batch.rig_config, seed, opt,
-                                 out / "checkpoints" / mid, resume, out / "modules" / f"{mid}.nc"): (i, mid)
-                       for i, mid, module in todo}
-            for fut in as_completed(futures):
-                i, mid = futures[fut]
-                d, caught = fut.result()
-                for msg in caught:
-                    warnings.warn(msg, RuntimeWarning, stacklevel=2)
-                say(f"[{i + 1}/{n}] {mid} done")
-                say(_module_line(mid, d))
-    else:
-        for i, mid, module in todo:
-            say(f"[{i + 1}/{n}] {mid}")
-            r = calibrate_module(module, batch.datasheet, rig_config=batch.rig_config, seed=seed, options=opt,
-                                 checkpoint=out / "checkpoints" / mid, resume=resume, progress=say,
-                                 progress_bar=progress_bar)
-            res.write_netcdf(res.to_inference_data([r]), out / "modules" / f"{mid}.nc")
-            say(_module_line(mid, r.diagnostics))
-    results = [res.read_module(out / "modules" / f"{mid}.nc") for mid in batch.modules]
+            todo.append(module)
+    inline = client is None and scheduler is None and (workers <= 1 or len(todo) <= 1)
+    where = ("in this process" if inline else
+             f"on the Dask scheduler {scheduler}" if scheduler else
+             "on the given Dask client" if client is not None else f"on {workers} local Dask workers")
+    if todo:
+        say(f"{len(todo)} module(s) to calibrate {where}")
+    done = 0
+    for oc in calibrate_modules(todo, batch.datasheet, batch.rig_config, seed=seed, options=opt,
+                                checkpoints=out / "checkpoints", resume=resume, workers=workers,
+                                scheduler=scheduler, client=client, progress=say if inline else None,
+                                progress_bar=progress_bar and inline):
+        done += 1
+        for msg in oc.warnings:
+            warnings.warn(msg, RuntimeWarning, stacklevel=2)
+        failed = out / "modules" / f"{oc.module_id}.failed.json"
+        head = f"[{order[oc.module_id] + 1}/{n}] {oc.module_id}"
+        if oc.error is not None:
+            write_json(failed, {"module": oc.module_id, "error": oc.error, "traceback": oc.detail})
+            warnings.warn(f"{oc.module_id}: calibration failed ({oc.error}); the batch goes on without it "
+                          f"(details in {failed})", RuntimeWarning, stacklevel=2)
+            say(f"{head}: FAILED ({oc.error})")
+        else:
+            nc = res.write_netcdf(res.to_inference_data([oc.result]), out / "modules" / f"{oc.module_id}.nc")
+            _write_digest(nc, oc.result)
+            failed.unlink(missing_ok=True)
+            # the module is safe on disk: its sampler checkpoints (up to ~20 MB) are not needed again
+            for f in (out / "checkpoints").glob(f"{glob.escape(oc.module_id)}.*"):
+                f.unlink(missing_ok=True)
+            say(f"{head} done ({done}/{len(todo)} this run, {_eta(t0, done, len(todo))})\n"
+                + _module_line(oc.module_id, oc.result.diagnostics))
+        oc.result = None  # written: not kept
+    return finish_run(batch, out, seed=seed, options=opt, population=population, progress=say, argv=argv,
+                      figures=figures, keep_unconverged=keep_unconverged, seconds=time.perf_counter() - t0,
+                      executor={"where": where, "workers": workers, "scheduler": scheduler})
+
+
+def _eta(t0, done, total):
+    el = time.perf_counter() - t0
+    left = el / done * (total - done)
+    return f"{el / 60:.1f} min, about {left / 60:.1f} min left"
+
+
+def exclusion_reason(diagnostics):
+    """Why a module is left out of the population (None: it is not).
+
+    A module enters the population only if it converged: the sampler's
+    targets (R-hat, bulk ESS, chain length in autocorrelation times) and the
+    expansion's PSIS check.
+    """
+    d = diagnostics
+    if d.get("converged"):
+        return None
+    bits = []
+    if d.get("rhat_max") is not None and d["rhat_max"] > smp.RHAT_MAX:
+        bits.append(f"R-hat {d['rhat_max']:.3f} > {smp.RHAT_MAX}")
+    if d.get("ess_bulk_min") is not None and d["ess_bulk_min"] < smp.ESS_MIN:
+        bits.append(f"bulk ESS {d['ess_bulk_min']:.0f} < {smp.ESS_MIN:.0f}")
+    if d.get("chain_over_tau") is not None and d["chain_over_tau"] < smp.MIN_TAU_MULTIPLE:
+        bits.append(f"chain {d['chain_over_tau']:.0f} autocorrelation times < {smp.MIN_TAU_MULTIPLE:.0f}")
+    k = (d.get("psis") or [{}])[-1].get("k_hat")
+    if k is not None and k >= 0.7:
+        bits.append(f"expansion PSIS k_hat {k:.2f} >= 0.7")
+    return "not converged" + (f" ({', '.join(bits)})" if bits else "") + \
+        f" after {d.get('steps', '?')} steps; rerun with a larger --max-steps, or --keep-unconverged"
+
+
+def _thin(x, n):
+    return x if len(x) <= n else x[np.linspace(0, len(x) - 1, n).round().astype(int)]
+
+
+def _digest_path(nc):
+    return nc.with_name(nc.stem + ".digest.npz")
+
+
+def _write_digest(nc, r):
+    """What the batch stage needs of a module, next to its file: its summary entry, the reason it
+    would be left out of the population, its thinned law draws (reading the ``.nc`` back through
+    arviz costs ~0.3 s a module, 50 min for 10^4)."""
+    st = nc.stat()
+    buf = io.BytesIO()
+    np.savez(buf, entry=json.dumps(to_jsonable(res.module_entry(r))), why=exclusion_reason(r.diagnostics) or "",
+             law=_thin(r.law_draws(), POPULATION_DRAWS), rig=r.rig, source=np.array([st.st_size, st.st_mtime_ns]))
+    atomic_write_bytes(_digest_path(nc), buf.getvalue())
+
+
+def _read_digest(nc):
+    """``(entry, why, law, rig)`` of a module file: from its digest if it is the file's, else from the file."""
+    d = _digest_path(nc)
+    if d.exists():
+        st = nc.stat()
+        with np.load(d) as z:
+            if list(z["source"]) == [st.st_size, st.st_mtime_ns]:
+                return json.loads(str(z["entry"])), str(z["why"]) or None, z["law"].copy(), str(z["rig"])
+    r = res.read_module(nc)  # an older run, or a module file replaced since
+    return res.module_entry(r), exclusion_reason(r.diagnostics), _thin(r.law_draws(), POPULATION_DRAWS), r.rig
+
+
+def finish_run(batch, out, *, seed=0, options=None, population=True, progress=None, argv=None, figures=True,
+               keep_unconverged=False, seconds=None, executor=None):
+    """The batch stage of a run whose modules are in ``RUN/modules``.
+
+    Reads the module files one at a time (their summary entries and thinned
+    law draws), fits the population on the converged modules, writes
+    ``summary.json``, ``posterior.nc`` (all calibrated modules) and the figures.
+
+    Returns
+    -------
+    dict
+        The summary.
+
+    Raises
+    ------
+    ModelError
+        No module of the batch has a result.
+    """
+    say = progress or (lambda msg: None)
+    opt = options or CalibrationOptions()
+    out = Path(out)
+    t0 = time.perf_counter()
+    entries, law, excluded, failed, files, rig = {}, {}, {}, {}, [], None
+    for mid in batch.modules:
+        f = out / "modules" / f"{mid}.nc"
+        if not f.exists():
+            rec = out / "modules" / f"{mid}.failed.json"
+            failed[mid] = (json.loads(rec.read_text()).get("error") if rec.exists() else None) or "no result"
+            continue
+        entries[mid], why, draws, r_rig = _read_digest(f)
+        rig = rig or r_rig
+        files.append(f)
+        if why and not keep_unconverged:
+            excluded[mid] = why
+        else:
+            law[mid] = draws
+    if not files:
+        raise ModelError(f"no module of the batch {batch.path} could be calibrated: "
+                         + "; ".join(f"{m}: {e}" for m, e in failed.items()))
+    for mid, why in failed.items():
+        excluded[mid] = f"calibration failed: {why}"
     pop = None
-    if population and len(results) >= 2:
+    if population and len(law) >= 2:
         from tembayes.calibrate.population import fit_population
 
-        say("population")
-        draws = {r.module_id: r.law_draws() for r in results}
+        say(f"population ({len(law)} modules"
+            + (f"; left out: {', '.join(excluded)}" if excluded and len(excluded) <= 10 else
+               f"; {len(excluded)} left out" if excluded else "") + ")")
         _, rng = module_seed(seed, "__population__")
-        pop = fit_population(draws, batch.datasheet, rng=rng, spread_prior=spread_prior(batch.population))
+        pop = fit_population(law, batch.datasheet, rng=rng, spread_prior=spread_prior(batch.population))
     elif population:
-        say("population: skipped (a single module has no batch)")
+        say(f"population: skipped ({len(law)} module(s) to fit it on; it needs 2)")
+    del law
     argv = list(argv) if argv is not None else None
     extra = {
-        "batch": {"path": str(batch.path), "module_type": batch.datasheet.name, "n_modules": len(results)},
+        "batch": {"path": str(batch.path), "module_type": batch.datasheet.name, "n_modules": len(batch.modules),
+                  "n_calibrated": len(files)},
         # the spreads stated in batch.toml, and those learned here, in the
         # [population] table's format for the next batch of the type
         "population_prior": {k: {"median": m, "log_sd": sd} for k, (m, sd) in batch.population.items()},
         "population_spreads": None if pop is None else {
             "spread" + k[3:]: {"median": m, "log_sd": sd} for k, (m, sd) in pop.spread_prior().items()},
+        "population_excluded": excluded,
+        "failed_modules": failed,
         "calibration": {
-            "seed": int(seed), "rig": results[0].rig, "options": dict(opt.__dict__), "versions": _versions(),
+            "seed": int(seed), "rig": rig, "options": dict(opt.__dict__), "versions": _versions(),
             "command": None if argv is None else "tembayes " + " ".join(shlex.quote(a) for a in argv),
-            "seconds": time.perf_counter() - t0,
+            "seconds": (seconds or 0.0) + time.perf_counter() - t0, "executor": executor,
         },
     }
-    summ = res.summary(results, pop, extra=extra)
-    idata = res.to_inference_data(results, population=pop, prior_draws=prior_draws(batch.datasheet, seed),
-                                  attrs={"tembayes_seed": int(seed), "tembayes_versions": _versions(),
-                                         "tembayes_command": extra["calibration"]["command"] or ""})
-    res.write_netcdf(idata, out / "posterior.nc")
+    summ = res.summary([], pop, entries=entries, extra=extra)
+    if failed:
+        summ["converged"] = False
+    say(f"posterior.nc ({len(files)} modules)")
+    res.write_run_posterior(out / "posterior.nc", files, population=pop, prior_draws=prior_draws(batch.datasheet, seed),
+                            attrs={"tembayes_seed": int(seed), "tembayes_versions": _versions(),
+                                   "tembayes_command": extra["calibration"]["command"] or ""},
+                            progress=say)
     write_json(out / "summary.json", summ)
     if figures:
-        try:
-            from tembayes.plots.calibrate import save_calibration_figures
-        except ImportError:  # the plotting module arrives with its own change
-            save_calibration_figures = None
-        if save_calibration_figures is not None:
-            say("figures")
-            save_calibration_figures(out)
+        from tembayes.plots.calibrate import save_calibration_figures
+
+        say("figures")
+        save_calibration_figures(out)
     return summ

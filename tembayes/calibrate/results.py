@@ -6,6 +6,7 @@ A run folder::
       summary.json            contract section 4
       posterior.nc            arviz InferenceData, all modules
       modules/<id>.nc         one module's posterior, written when it finishes
+      modules/<id>.failed.json  a module whose calibration raised (error, traceback)
       checkpoints/<id>.*      sampler checkpoints (resume)
       figures/                corner plots
 
@@ -33,6 +34,7 @@ JSON in the attributes, so a module file alone restores its
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import tempfile
@@ -118,9 +120,7 @@ def to_inference_data(results, *, population=None, prior_draws=None, attrs=None)
     groups = {"posterior": post, "log_likelihood": loglik, "sample_stats": stats, "observed_data": observed,
               "constant_data": const}
     if prior_draws is not None:
-        n = len(next(iter(prior_draws.values())))
-        groups["prior"] = xr.Dataset({k: (("chain", "draw"), np.asarray(v)[None, :]) for k, v in prior_draws.items()},
-                                     coords={"chain": [0], "draw": np.arange(n)})
+        groups["prior"] = prior_dataset(prior_draws)
     if population is not None:
         groups["population"] = population_dataset(population)
     with warnings.catch_warnings():
@@ -133,6 +133,13 @@ def to_inference_data(results, *, population=None, prior_draws=None, attrs=None)
     idata.posterior.attrs.update({k: json.dumps(to_jsonable(v)) if not isinstance(v, str) else v
                                   for k, v in (attrs or {}).items()})
     return idata
+
+
+def prior_dataset(prior_draws):
+    """The ``prior`` group: ``name -> (n,)`` draws as one chain [chain, draw]."""
+    n = len(next(iter(prior_draws.values())))
+    return xr.Dataset({k: (("chain", "draw"), np.asarray(v)[None, :]) for k, v in prior_draws.items()},
+                      coords={"chain": [0], "draw": np.arange(n)})
 
 
 def population_dataset(pop):
@@ -156,8 +163,9 @@ def population_dataset(pop):
     return ds
 
 
-def write_netcdf(idata, path):
-    """Write an InferenceData atomically (temporary file, then rename)."""
+@contextlib.contextmanager
+def _atomic(path):
+    """A temporary file next to ``path`` (yielded), renamed onto it if the block succeeds."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.tmp-", dir=path.parent)
@@ -166,14 +174,19 @@ def write_netcdf(idata, path):
     os.umask(umask)
     os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            idata.to_netcdf(tmp, engine="h5netcdf")
+        yield tmp
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
-    return path
+
+
+def write_netcdf(idata, path):
+    """Write an InferenceData atomically (temporary file, then rename)."""
+    with _atomic(path) as tmp, warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        idata.to_netcdf(tmp, engine="h5netcdf")
+    return Path(path)
 
 
 def read_module(path):
@@ -219,28 +232,50 @@ def stats(x):
     return {"mean": float(np.mean(x)), "sd": float(np.std(x, ddof=1)), "q05": float(q05), "q95": float(q95)}
 
 
-def summary(results, population=None, *, extra=None):
+def module_entry(r, outlier_prob=None):
+    """One module's ``summary.json`` entry (contract section 4, plus extras).
+
+    The five parameters, ``outlier_prob`` (null without a population fit or
+    for a module left out of it), ``diagnostics`` (``rhat_max``,
+    ``ess_bulk_min``, ``converged`` plus ``tau_max_steps``, ``steps``,
+    ``psis_k``); extras: ``hysteresis``, ``nuisance`` (rig parameters, step
+    shift, noise).
+    """
+    d = r.diagnostics
+    entry = {k: stats(r.draws[k]) for k in MODULE_PARAMETERS}
+    entry["outlier_prob"] = None if outlier_prob is None else float(outlier_prob)
+    entry["diagnostics"] = {
+        "rhat_max": d["rhat_max"], "ess_bulk_min": d["ess_bulk_min"], "converged": bool(d["converged"]),
+        "tau_max_steps": d["tau_max_steps"], "chain_over_tau": d["chain_over_tau"], "steps": d["steps"],
+        "psis_k": d["psis"][-1]["k_hat"], "sampler_converged": d["sampler_converged"],
+        "seconds": d["timings"]["total_s"],
+    }
+    entry["hysteresis"] = r.hysteresis
+    entry["nuisance"] = {k: stats(r.draws[k]) for k in r.names if k not in MODULE_PARAMETERS}
+    return entry
+
+
+def summary(results, population=None, *, extra=None, entries=None):
     """``summary.json`` content (contract section 4, plus documented extras).
 
-    Per module: the five parameters, ``outlier_prob`` (null without a
-    population fit), ``diagnostics`` (``rhat_max``, ``ess_bulk_min``,
-    ``converged`` plus ``tau_max_steps``, ``steps``, ``psis_k``); extras:
-    ``hysteresis``, ``nuisance`` (rig parameters, step shift, noise).
+    Parameters
+    ----------
+    results : list of ModuleCalibration
+        Modules held in memory (small batches); or empty with ``entries``.
+    population : PopulationResult, optional
+    extra : dict, optional
+        Top-level keys added (batch, calibration, ...).
+    entries : dict, optional
+        ``module id -> module_entry(...)`` made one module at a time (large
+        batches); their ``outlier_prob`` is filled from ``population``.
     """
-    mods = {}
+    mods = dict(entries or {})
     for r in results:
-        d = r.diagnostics
-        entry = {k: stats(r.draws[k]) for k in MODULE_PARAMETERS}
-        entry["outlier_prob"] = None if population is None else float(population.outlier_prob[r.module_id])
-        entry["diagnostics"] = {
-            "rhat_max": d["rhat_max"], "ess_bulk_min": d["ess_bulk_min"], "converged": bool(d["converged"]),
-            "tau_max_steps": d["tau_max_steps"], "chain_over_tau": d["chain_over_tau"], "steps": d["steps"],
-            "psis_k": d["psis"][-1]["k_hat"], "sampler_converged": d["sampler_converged"],
-            "seconds": d["timings"]["total_s"],
-        }
-        entry["hysteresis"] = r.hysteresis
-        entry["nuisance"] = {k: stats(r.draws[k]) for k in r.names if k not in MODULE_PARAMETERS}
-        mods[r.module_id] = entry
+        mods[r.module_id] = module_entry(r)
+    if population is not None:
+        for mid, p in population.outlier_prob.items():
+            if mid in mods:
+                mods[mid]["outlier_prob"] = float(p)
     out = {"tref_C": T_REF - KELVIN, "modules": mods}
     if population is not None:
         out["population"] = population.summary()
@@ -252,3 +287,129 @@ def summary(results, population=None, *, extra=None):
     if extra:
         out.update(extra)
     return to_jsonable(out)
+
+
+# -- posterior.nc for any number of modules -----------------------------------
+#: Padding of the ragged (step, obs) variables other than NaN, as
+#: :func:`to_inference_data` writes it.
+_PADDING = {"obs_step": -1.0, "step_direction": 0.0}
+
+
+def _module_layout(path):
+    """Shapes and names of one per-module file, without reading its arrays."""
+    import h5netcdf
+
+    with h5netcdf.File(path, "r") as f:
+        post = f["posterior"]
+        names = [k for k in post.variables if k not in ("chain", "draw", "module")]
+        ns = int(np.sum(np.isfinite(f["constant_data"]["step_time_s"][0, :])))
+        nobs = int(np.sum(np.isfinite(f["observed_data"][CHANNELS[0]][0, :])))
+        mid = post["module"][0]
+        return {"names": names, "nw": post.dimensions["chain"].size, "nk": post.dimensions["draw"].size,
+                "ns": ns, "nobs": nobs, "module": mid.decode() if isinstance(mid, bytes) else str(mid)}
+
+
+def write_run_posterior(path, module_files, *, population=None, prior_draws=None, attrs=None, progress=None):
+    """Write ``posterior.nc`` of a batch from its per-module files, one module at a time.
+
+    The result is the file :func:`to_inference_data` of all the modules would
+    give (same groups, variables, padding and attributes), but memory holds
+    one module's arrays at a time, so it scales to thousands of modules.
+    Written to a temporary file, then renamed.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``RUN/posterior.nc``.
+    module_files : list of Path
+        ``RUN/modules/<id>.nc`` in the batch's order; same parameters and
+        draws per module.
+    population : PopulationResult, optional
+    prior_draws : dict, optional
+        ``name -> ndarray (n,)``.
+    attrs : dict, optional
+        Run attributes on the posterior group (seed, command, versions).
+    progress : callable, optional
+        ``progress(message)`` every 500 modules.
+    """
+    import h5netcdf
+
+    path = Path(path)
+    lay = [_module_layout(p) for p in module_files]
+    if not lay:
+        raise ValueError("no module files to write")
+    names, nw, nk = lay[0]["names"], lay[0]["nw"], lay[0]["nk"]
+    for p, m in zip(module_files, lay):
+        if m["names"] != names or (m["nw"], m["nk"]) != (nw, nk):
+            raise ValueError(f"{p}: parameters {m['names']} and draws {(m['nw'], m['nk'])} differ from "
+                             f"the first module's {names}, {(nw, nk)}")
+    mods = [m["module"] for m in lay]
+    n, ns, nobs = len(mods), max(m["ns"] for m in lay), max(m["nobs"] for m in lay)
+    tref = T_REF - KELVIN
+    with _atomic(path) as tmp:
+        with h5netcdf.File(tmp, "w") as f:
+            sizes = {"chain": nw, "draw": nk, "module": n, "step": ns, "obs": nobs, "channel": len(CHANNELS)}
+            coord = {"chain": np.arange(nw), "draw": np.arange(nk), "module": mods, "step": np.arange(ns),
+                     "obs": np.arange(nobs), "channel": list(CHANNELS)}
+            layout = {  # group -> variable -> dims (the to_inference_data layout)
+                "posterior": {k: ("chain", "draw", "module") for k in names},
+                "log_likelihood": {"step_response": ("chain", "draw", "module", "step")},
+                "sample_stats": {"lp": ("chain", "draw", "module")},
+                "observed_data": {c: ("module", "obs") for c in CHANNELS},
+                "constant_data": {"obs_time_s": ("module", "obs"), "obs_step": ("module", "obs"),
+                                  "step_time_s": ("module", "step"), "step_dI_A": ("module", "step"),
+                                  "step_direction": ("module", "step"), "step_Tavg_C": ("module", "step"),
+                                  "noise_sd": ("module", "channel")},
+            }
+            groups = {}
+            for g, variables in layout.items():
+                grp = f.create_group(g)
+                used = [d for d in sizes if any(d in dims for dims in variables.values())]
+                grp.dimensions = {d: sizes[d] for d in used}
+                for d in used:
+                    data = coord[d]
+                    if d in ("module", "channel"):
+                        grp.create_variable(d, (d,), dtype=_vlen_str(), data=np.array(data, dtype=object))
+                    else:
+                        grp.create_variable(d, (d,), data=np.asarray(data, dtype=np.int64))
+                for k, dims in variables.items():
+                    chunks = tuple(1 if d == "module" else sizes[d] for d in dims)
+                    v = grp.create_variable(k, dims, dtype="f8", chunks=chunks, fillvalue=np.nan)
+                    v.attrs["_FillValue"] = np.nan
+                grp.attrs["tembayes_tref_C"] = tref
+                groups[g] = grp
+            for i, (p, m) in enumerate(zip(module_files, lay)):
+                with h5netcdf.File(p, "r") as src:
+                    for g, variables in layout.items():
+                        for k, dims in variables.items():
+                            a = np.asarray(src[g][k][...], dtype=float)
+                            tgt = groups[g][k]
+                            mi = dims.index("module")
+                            a = np.take(a, 0, axis=mi)  # the file's single module
+                            if dims[-1] in ("step", "obs"):  # ragged: pad to the batch's longest
+                                full = np.full(a.shape[:-1] + (sizes[dims[-1]],), _PADDING.get(k, np.nan))
+                                full[..., : a.shape[-1]] = a
+                                a = full
+                            tgt[tuple(i if d == "module" else slice(None) for d in dims)] = a
+                    groups["posterior"].attrs[f"module_{m['module']}"] = src["posterior"].attrs[f"module_{m['module']}"]
+                if progress and (i + 1) % 500 == 0:
+                    progress(f"posterior.nc: {i + 1}/{n} modules")
+            for k, v in (attrs or {}).items():
+                groups["posterior"].attrs[k] = v if isinstance(v, str) else json.dumps(to_jsonable(v))
+        extra = {}
+        if prior_draws is not None:
+            extra["prior"] = prior_dataset(prior_draws)
+        if population is not None:
+            extra["population"] = population_dataset(population)
+        for g, ds in extra.items():
+            ds.attrs["tembayes_tref_C"] = tref
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                ds.to_netcdf(tmp, mode="a", group=g, engine="h5netcdf")
+    return path
+
+
+def _vlen_str():
+    import h5py
+
+    return h5py.string_dtype()

@@ -240,7 +240,7 @@ def _burn(n):
 
 
 def sample(log_prob, p0, *, seed, monitor, checkpoint=None, resume=False, thin_by=10, check_every=100,
-           max_steps=60000, progress=False, label="", proposal=None):
+           max_steps=60000, progress=False, label="", proposal=None, stop=None):
     """Run emcee until the convergence targets are met or the budget runs out.
 
     Parameters
@@ -273,6 +273,11 @@ def sample(log_prob, p0, *, seed, monitor, checkpoint=None, resume=False, thin_b
         Mean ``(p,)`` and covariance ``(p, p)`` of an earlier run: half the
         moves are then :class:`IndependenceMove` proposals from it, half
         differential evolution.
+    stop : callable, optional
+        ``stop(chain, steps) -> bool``, asked at every convergence check with
+        the chain after burn-in ``(n, nw, p)`` and the steps so far; True ends
+        the run there (not converged).  Asked at the same step counts in a
+        resumed run, so a resumed run stops where a straight one does.
 
     Returns
     -------
@@ -324,6 +329,8 @@ def sample(log_prob, p0, *, seed, monitor, checkpoint=None, resume=False, thin_b
             long_enough = thin_by * len(post) >= MIN_TAU_MULTIPLE * np.max(tau[mon])
             converged = bool(long_enough and np.all(rhat[mon] <= RHAT_MAX) and np.all(ess_b[mon] >= ESS_MIN))
             if converged or sampler.iteration >= max_iter:
+                break
+            if stop is not None and stop(post, int(sampler.iteration * thin_by)):
                 break
         done = sampler.iteration
         target = min(max_iter, (done // check_every + 1) * check_every)

@@ -15,6 +15,7 @@ from .experiment import Experiment, load_experiment
 __all__ = [
     "Datasheet",
     "Module",
+    "LazyModule",
     "Batch",
     "load_batch",
     "load_batch_toml",
@@ -202,6 +203,43 @@ class Module:
 
 
 @dataclass(frozen=True, eq=False)
+class LazyModule:
+    """A module folder that reads its experiments when asked (large batches).
+
+    Same attributes as :class:`Module`; each access of ``identification`` or
+    ``validations`` reads the CSVs again and nothing is kept, so a batch of
+    thousands of modules holds only their paths.  :func:`load_batch` with
+    ``lazy=True`` has read (validated) every file once before it returns one.
+
+    Attributes
+    ----------
+    id : str
+    path : Path
+        The module folder.
+    imax : float
+        The datasheet's maximum current [A] (the CSVs' current check).
+    """
+
+    id: str
+    path: Path
+    imax: float
+    validation_files: tuple = ()
+
+    @property
+    def identification(self) -> Experiment:
+        return load_experiment(self.path / IDENTIFICATION_CSV, imax=self.imax)
+
+    @property
+    def validations(self) -> tuple:
+        return tuple(load_experiment(p, imax=self.imax) for p in self.validation_files)
+
+    def load(self) -> Module:
+        """The module with its experiments in memory."""
+        return Module(id=self.id, path=self.path, identification=self.identification,
+                      validations=self.validations)
+
+
+@dataclass(frozen=True, eq=False)
 class Batch:
     """A loaded batch folder.
 
@@ -362,7 +400,7 @@ def _check_rig(path: Path, rig_config: dict) -> None:
                         column="rig") from None
 
 
-def load_batch(path) -> Batch:
+def load_batch(path, *, lazy=False) -> Batch:
     """Load and validate a batch folder (contract section 1).
 
     Parameters
@@ -371,6 +409,10 @@ def load_batch(path) -> Batch:
         The batch folder: ``batch.toml`` and one sub-folder per module, each
         with ``identification.csv`` and zero or more ``validation*.csv``.
         Hidden folders and ``__pycache__`` are not modules.
+    lazy : bool
+        Validate every file, then keep only the paths: the modules are
+        :class:`LazyModule` and read their CSVs when used (memory independent
+        of the batch size).
 
     Returns
     -------
@@ -411,11 +453,14 @@ def load_batch(path) -> Batch:
             (p for p in folder.glob("validation*.csv") if p.is_file()),
             key=lambda p: natural_key(p.stem),
         )
-        modules[folder.name] = Module(
+        module = Module(
             id=folder.name,
             path=folder,
             identification=load_experiment(ident, imax=datasheet.imax),
             validations=tuple(load_experiment(p, imax=datasheet.imax) for p in validation_files),
         )
+        # lazy: the files were read (validated) above, and are dropped here
+        modules[folder.name] = (LazyModule(id=folder.name, path=folder, imax=datasheet.imax,
+                                           validation_files=tuple(validation_files)) if lazy else module)
     return Batch(path=path, datasheet=datasheet, rig_config=rig_config, modules=modules,
                  population=_population(*toml))

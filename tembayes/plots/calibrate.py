@@ -63,6 +63,8 @@ DISPLAY_UNITS = {
     "K_W_per_K": (r"$K$", "W/K", 1.0),
 }
 
+#: Most per-module corner plots a run writes (a factory batch has thousands).
+MAX_CORNER_MODULES = 24
 #: Most modules drawn individually in an overlay; the others are summarised.
 MAX_OVERLAY_MODULES = 12
 
@@ -202,9 +204,11 @@ def _pick_modules(run, max_n, key=None):
         def key(m):
             p = run.outlier_prob(m)
             return (-(p if p is not None else -1.0), 0 if run.converged(m) is False else 1)
-    ranked = sorted(mods, key=lambda m: (key(m), mods.index(m)))
+    pos = {m: i for i, m in enumerate(mods)}
+    ranked = sorted(mods, key=lambda m: (key(m), pos[m]))
     shown = ranked[:max_n]
-    return shown, [m for m in mods if m not in shown]
+    picked = set(shown)
+    return shown, [m for m in mods if m not in picked]
 
 
 def _check_params(run, params):
@@ -760,11 +764,13 @@ def _save(fig, path, fmt, dpi):
     return atomic_write_bytes(path, buf.getvalue())
 
 
-def save_calibration_figures(run_dir, *, fmt="png", dpi=DPI):
+def save_calibration_figures(run_dir, *, fmt="png", dpi=DPI, max_corner_modules=MAX_CORNER_MODULES):
     """Write the figures of a calibration run into ``RUN/figures``.
 
     Files, each written atomically (replacing older ones): ``corner_<id>``
-    per module (:func:`plot_corner_module`), ``corner_population``,
+    per module (:func:`plot_corner_module`; in a batch of more than
+    ``max_corner_modules``, for that many: the highest outlier probabilities
+    first, as in the overlays), ``corner_population``,
     ``laws``, ``hysteresis`` and ``step_loglike``, with the extension
     ``fmt``.  Module ids are made file-name safe (characters other than
     letters, digits, ``.``, ``_``, ``-`` become ``_``).
@@ -777,6 +783,8 @@ def save_calibration_figures(run_dir, *, fmt="png", dpi=DPI):
         A matplotlib output format ("png", "pdf", "svg").
     dpi : float
         Resolution [dots per inch].
+    max_corner_modules : int
+        Most per-module corner plots.
 
     Returns
     -------
@@ -786,7 +794,7 @@ def save_calibration_figures(run_dir, *, fmt="png", dpi=DPI):
     run = load_run(run_dir)
     out = run.path / "figures"
     written = []
-    for m in run.module_ids:
+    for m in _pick_modules(run, max_corner_modules)[0]:
         written.append(_save(plot_corner_module(run, m), out / f"corner_{_safe_name(m)}.{fmt}", fmt, dpi))
     written.append(_save(plot_corner_population(run), out / f"corner_population.{fmt}", fmt, dpi))
     written.append(_save(plot_laws(run), out / f"laws.{fmt}", fmt, dpi))
