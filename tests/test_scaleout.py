@@ -98,7 +98,7 @@ def test_two_workers_and_a_scheduler_give_the_serial_bits(batch4, serial4, tmp_p
                         figures=False, keep_unconverged=True)
         _same_run(out_ref, tmp_path / "w2")
         # an existing cluster, reached by its address (what --scheduler does)
-        with LocalCluster(n_workers=1, threads_per_worker=2, processes=True, dashboard_address=":0") as cl:
+        with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cl:
             s = calibrate_batch(load_batch(batch4, lazy=True), tmp_path / "sch", seed=5, options=CHEAP,
                                 scheduler=cl.scheduler_address, figures=False, keep_unconverged=True)
     assert s["calibration"]["executor"]["scheduler"].startswith("tcp://")

@@ -75,8 +75,9 @@ def calibrate_one(module, datasheet, rig_config, seed, options, checkpoint, resu
         As :func:`~tembayes.calibrate.module.calibrate_module`; a checkpoint
         whose folder this process cannot see is not used.
     threads : int, optional
-        Compiled-kernel threads (a worker task runs with 1: the parallelism is
-        over modules); the results do not depend on it.
+        Compiled-kernel threads (1 for a worker task of a batch that keeps
+        every worker busy: the parallelism is over modules); default: leave
+        them as they are.  The results do not depend on it.
 
     Returns
     -------
@@ -187,6 +188,10 @@ def _on_dask(client, todo, datasheet, rig_config, seed, options, checkpoints, re
 
     n_slots = max(1, sum(client.nthreads().values()))
     window = 2 * n_slots  # in flight: every worker busy, one more queued each
+    # one kernel thread per task when the modules keep every worker busy; a
+    # batch of a few modules per worker ends with idle workers, so its tasks
+    # keep the machine's threads (what the earlier process pool measured best)
+    threads = 1 if len(todo) >= 4 * n_slots else None
     # the shared inputs go to the workers once, not with every task
     shared = client.scatter([datasheet, rig_config, options], broadcast=True)
     pending = iter(todo)
@@ -197,7 +202,7 @@ def _on_dask(client, todo, datasheet, rig_config, seed, options, checkpoints, re
         if module is None:
             return None
         fut = client.submit(calibrate_one, _materialise(module), *shared[:2], seed, shared[2],
-                            checkpoints / module.id, resume, threads=1,
+                            checkpoints / module.id, resume, threads=threads,
                             key=f"calibrate-{module.id}-{uuid.uuid4().hex}")  # unique on a shared scheduler
         ids[fut.key] = module.id
         return fut
