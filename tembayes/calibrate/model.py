@@ -222,7 +222,19 @@ class LinearisedModel:
             X[1 + 2 * p + k, i] += h[i]
             X[1 + 2 * p + k, j] += h[j]
         X = space.clip(X)
-        Y = model.predict(space.params(X))
+        Y = model.predict(space.params(X), strict=False)
+        # a probe the rig cannot simulate (an open coordinate pushed where a
+        # plate or paste is unphysical) is pulled halfway back, up to 5 times;
+        # the formulas below use the points actually simulated
+        for _ in range(5):
+            bad = ~np.all(np.isfinite(Y), axis=(1, 2))
+            if not bad[1:].any() or bad[0]:
+                break
+            X[bad] = self.x0 + 0.5 * (X[bad] - self.x0)
+            Y[bad] = model.predict(space.params(X[bad]), strict=False)
+        if not np.all(np.isfinite(Y)):
+            raise ModelError("the step-response simulation failed at the expansion point or next to it (no steady "
+                             "start, step budget exceeded or non-finite values)")
         self.f0 = Y[0]
         jj = np.arange(p)
         Xp, Xm = X[1:1 + 2 * p:2], X[2:2 + 2 * p:2]
