@@ -347,7 +347,7 @@ class Prediction:
         return out
 
 
-def simulate_predictive(model, draws, rng, *, progress=None, keep_draws=False):
+def simulate_predictive(model, draws, rng, *, progress=None, keep_draws=False, shift=None):
     """Simulate every draw through an experiment and form the bands.
 
     Parameters
@@ -362,6 +362,10 @@ def simulate_predictive(model, draws, rng, *, progress=None, keep_draws=False):
     keep_draws : bool
         Keep the draws' predictions in the result (``deviations``), for
         posterior-predictive checks (:mod:`tembayes.gap`).
+    shift : float, optional
+        The run's step phase [s] for every draw (e.g. taken from the run by
+        :meth:`RunModel.fit_phase`); default: unknown, one drawn per draw.
+        ``rng`` is advanced the same either way.
 
     Returns
     -------
@@ -372,8 +376,9 @@ def simulate_predictive(model, draws, rng, *, progress=None, keep_draws=False):
     M = draws.n
     n = len(model.time)
     Y = np.empty((M, len(CHANNELS), n))
-    # one phase per draw, common to the run's steps (see RunModel)
-    shift = rng.uniform(-1.0, 1.0, M) * model.shift_bound
+    # one phase per draw, common to the run's steps (see RunModel), unless the run's is given
+    drawn = rng.uniform(-1.0, 1.0, M) * model.shift_bound
+    shift = drawn if shift is None else np.full(M, float(shift))
     for a in range(0, M, CHUNK):
         b = min(a + CHUNK, M)
         params = {k: np.asarray(v)[a:b] for k, v in draws.params.items()}
