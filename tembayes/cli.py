@@ -106,9 +106,11 @@ writes DIR/gap.json (contract section 4: verdict, where, ranking with the
 held-out evidence and the gap before/after and its shrink, best; plus the
 screen, the range conflicts, the best group of effects the data cannot tell
 apart and the settings) and the figures ranking.png, gap_map_*.png and
-residuals_*.png.  The gap is the excess RMSE over T1..T4 [K] of the held-out
-runs beyond the predictive's own uncertainty; the evidence the held-out ELPD
-difference [nats] in 300 s blocks.
+residuals_*.png.  Held out are the validation runs and, one at a time, the
+identification run's step windows.  The gap is the excess RMSE over T1..T4
+[K] of the validation runs beyond the predictive's own uncertainty (or,
+when only the identification windows show one, their excess RMS in noise
+sds: gap.json's "metric"); the evidence the held-out ELPD difference [nats].
 """
 
 _EPILOG_PREDICT = """\
@@ -452,12 +454,19 @@ def _cmd_gap(args):
         print(f"  the data cannot tell apart: {', '.join(diag.best_group)}")
     for w in diag.where[:5]:
         print(f"  where: {w['channel']}, {w['regime']} (score {w['score']:.2f})")
+    if diag.gap_in:
+        print(f"  gap in: {', '.join(diag.gap_in)}")
+    for r in diag.screen[:3]:
+        if r.get("log_bayes_factor") is not None:
+            print(f"  screen: {r['effect']:20s} log Bayes factor {r['log_bayes_factor']:+.4g} on the identification "
+                  f"run (chi2 per sample {r['chi2']:.3f}; the base model's {diag.base['refits'][r['module']]['chi2']:.3f})")
+    scale, unit = (1e3, "mK") if diag.primary == "validation" else (1.0, "noise sd (identification windows)")
     for r in diag.ranking:
         if r.get("evidence") is None:
             print(f"  {r['effect']:20s} failed: {r.get('failed')}")
         elif r.get("evidence_kind") == "heldout_elpd":
             print(f"  {r['effect']:20s} evidence {r['evidence']:+.4g} +- {r['evidence_se']:.3g} nats  "
-                  f"gap {1e3 * r['gap_before']:.1f} -> {1e3 * r['gap_after']:.1f} mK (shrink {r['shrink']:.0%})")
+                  f"gap {scale * r['gap_before']:.3g} -> {scale * r['gap_after']:.3g} {unit} (shrink {r['shrink']:.0%})")
         elif r.get("dropped"):
             print(f"  {r['effect']:20s} dropped: {r['dropped']}")
     print(f"wrote {args.out / 'gap.json'}")
@@ -591,9 +600,9 @@ def build_parser():
         "gap",
         help="diagnose the sim-to-real gap of a calibrated batch on its held-out runs",
         description="Where the calibrated model and the held-out measurements (validation*.csv) part "
-        "(a gap map per channel and operating regime), which catalogue effect causes it (a linear screen "
-        "of the catalogue, the rig parameters calibrated outside their documented range, then the "
-        "strongest candidates recalibrated with the effect added and ranked by held-out evidence), and how "
+        "(a gap map per channel and operating regime), which catalogue effect causes it (every effect "
+        "refitted on the identification run with the base model as control, the rig parameters calibrated "
+        "outside their documented range, then the strongest candidates recalibrated with the effect added and ranked by held-out evidence), and how "
         "far the gap shrinks with it; a verdict no_gap / explained / partially_explained / unexplained.",
         epilog=_EPILOG_GAP,
         formatter_class=argparse.RawDescriptionHelpFormatter,

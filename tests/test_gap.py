@@ -85,60 +85,29 @@ def test_gap_figures_draw_the_map_and_the_patterns():
     assert {f"rms:{ch}" for ch in CHANNELS} <= gids
 
 
-# --------------------------------------------------------------------------- which: the effect screen
+# --------------------------------------------------------------------------- which: the refit screen
 
 
-@pytest.fixture(scope="module")
-def tem1_draws(run3, batch3):
+def test_refit_of_a_correct_model_sits_at_the_noise_floor_and_an_absent_effect_stays_near_zero(batch3, run3):
+    """Negative control of the screen: batch3's TEM1 is correctly specified (no effect on the bench).
+    The base model refitted on its identification run fits to the sensors' noise (chi2 per sample
+    ~1; the bench resolves the rig more finely than the model, 1.3 allows for that), and a joule
+    split added to it comes out within 3 of its Laplace sds of zero, with no evidence for it."""
     from tembayes.calibrate.run import load_run
     from tembayes.data import load_batch
-    from tembayes.physics.rig import reference_rig
-    from tembayes.predict.predictive import module_draws
+    from tembayes.gap.which import refit
 
-    out, _, truth = run3
     batch = load_batch(batch3)
-    return module_draws(load_run(out), "TEM1", batch.modules["TEM1"].identification, reference_rig(4, 6)), truth
-
-
-def _screen(tem1_draws, effect, seed=7):
-    from tembayes.bench import bench as B
-    from tembayes.bench import hifi
-    from tembayes.bench.protocols import validation_cycle
-    from tembayes.gap.which import screen_effects
-    from tembayes.physics import effects as E
-    from tembayes.physics.rig import reference_rig
-    from tembayes.predict.anchor import ResidualProcess
-    from tembayes.predict.runmodel import RunModel
-
-    d, truth = tem1_draws
-    flat = {k: v for p in E.parse_effects([effect] if effect else []).values() for k, v in p.items()}
-    rng = np.random.default_rng(seed)
-    exp = B.run_experiment(validation_cycle(rng, 6.4, duration=2 * 3600.0), truth["modules"]["TEM1"], flat, rng,
-                           rate=1.0, rig=hifi.hifi_rig(), t0=50.0)
-    vm = RunModel(exp, reference_rig(4, 6))
-    procs = {ch: ResidualProcess(float(d.noise_sd[0, c]), float(d.noise_tau[0, c]), 0.0)
-             for c, ch in enumerate(CHANNELS)}
-    return screen_effects(vm, d.params, vm.shift_bound / np.sqrt(3), procs)
-
-
-@pytest.mark.parametrize("effect, param, true", [("k_temperature", "K1_per_K", 0.0015),
-                                                 ("sensor_lag", "sensor_tau_s", 6.0),
-                                                 ("ambient_leak", "extra_leak_W_per_K", 0.06)])
-def test_screen_names_the_effect_behind_a_held_out_gap_and_its_size(tem1_draws, effect, param, true):
-    # the module calibrated without the effect; a held-out run with it at the bench default
-    r = _screen(tem1_draws, effect)
-    assert r.ranking[0]["effect"] == effect
-    assert r.ranking[0]["log_bayes_factor"] > 100.0
-    est = r.ranking[0]["size"][param][0]
-    assert est == pytest.approx(true, rel=0.35)  # the linear screen's size: ~20 % on the example module
-    assert r.ranking[0]["rmse_after"] < 0.5 * r.base_rmse
-
-
-def test_screen_finds_nothing_strong_without_an_effect(tem1_draws):
-    r = _screen(tem1_draws, None)
-    assert r.base_rmse < 0.01  # K: the sensors' noise is 4 mK
-    assert r.ranking[0]["log_bayes_factor"] < 50.0
-    assert all(x["rmse_after"] > 0.9 * r.base_rmse for x in r.ranking)
+    module = batch.modules["TEM1"]
+    raw = load_run(run3[0]).draws("TEM1", ["R0_ohm", "R1_ohm_per_K", "S0_V_per_K", "S1_V_per_K2", "K_W_per_K"])
+    start = dict(zip(["R0_ohm", "R1_ohm_per_K", "S0_V_per_K", "S1_V_per_K2", "K_W_per_K"], np.median(raw, axis=0)))
+    base = refit(module, batch.datasheet, None, start=start)
+    split = refit(module, batch.datasheet, "joule_split", start=start)
+    assert base.effect is None and base.size() == {}
+    assert 0.8 < base.chi2_total < 1.3
+    size = split.size()["joule_hot_excess"]
+    assert abs(size["mode"]) < 3 * size["sd"] + 1e-3
+    assert split.log_evidence - base.log_evidence < 5.0  # the Occam factor of an unneeded parameter
 
 
 # --------------------------------------------------------------------------- prior-posterior conflicts
@@ -238,18 +207,27 @@ def lag_case(tmp_path_factory):
     return b, root / "r_lag"
 
 
-def test_gap_names_a_sensor_lag_recovers_its_size_and_shrinks_the_gap(lag_case, tmp_path):
-    """End to end through the command: the lag is found where it acts (the block sensors), named,
-    its time constant recovered within its interval, the gap shrunk by more than half; gap.json has
-    the contract's keys.  The batch has no truth.json (the fixture moved it away): nothing to peek at."""
+@pytest.fixture(scope="module")
+def lag_gap(lag_case, tmp_path_factory):
+    """``tembayes gap`` on the lag case, as a user runs it: ``(gap.json, output folder)``.  The batch
+    has no truth.json (the fixture moved it away): nothing to peek at.  Three effects are withheld
+    to keep the screen short (CI time); the five screened include the lag and a range-conflict suspect."""
     from tembayes.cli import main
 
     batch, run = lag_case
     assert not (batch / "truth.json").exists()
-    out = tmp_path / "gap"
+    out = tmp_path_factory.mktemp("lag_gap") / "gap"
     with pytest.warns(RuntimeWarning):  # short recalibration budgets: not converged
-        assert main(["gap", str(run), str(batch), "--out", str(out), "--candidates", "1", "--draws", "80"]) == 0
-    doc = __import__("json").loads((out / "gap.json").read_text())
+        assert main(["gap", str(run), str(batch), "--out", str(out), "--candidates", "1", "--draws", "80",
+                     "--exclude", "thomson", "--exclude", "quadratic_laws", "--exclude", "ambient_leak"]) == 0
+    return __import__("json").loads((out / "gap.json").read_text()), out
+
+
+def test_gap_names_a_sensor_lag_recovers_its_size_and_shrinks_the_gap(lag_gap):
+    """End to end through the command: the lag is found where it acts (the block sensors), named,
+    its time constant recovered within its interval, the gap shrunk by more than half; gap.json has
+    the contract's keys."""
+    doc, out = lag_gap
     assert set(doc) >= {"verdict", "where", "ranking", "best"}
     assert doc["verdict"] == "explained" and doc["best"] == "sensor_lag"
     assert {w["channel"] for w in doc["where"][:5]} & {"T1_C", "T4_C"}
@@ -259,6 +237,23 @@ def test_gap_names_a_sensor_lag_recovers_its_size_and_shrinks_the_gap(lag_case, 
     size = top["size"]["TEM1"]["sensor_tau_s"]
     assert size["q05"] - 0.3 <= 6.0 <= size["q95"] + 0.3
     assert (out / "ranking.png").is_file() and list(out.glob("gap_map_TEM1_*.png"))
+    # every screened effect is ranked, the ones not recalibrated by their refit's held-out evidence
+    assert {r["effect"] for r in doc["ranking"]} == {"k_temperature", "sensor_lag", "contact_resistance",
+                                                     "joule_split", "current_offset"}
+    assert {r["evidence_kind"] for r in doc["ranking"][1:]} <= {"heldout_elpd", "heldout_elpd_laplace"}
+
+
+def test_screen_puts_the_true_effect_first_at_the_noise_floor(lag_gap):
+    """The screen's refits of the identification run (known answer): with the lag added the fit
+    drops to the sensors' noise (chi2 ~1) from far above it with the base model, the time constant
+    at its mode is the bench's 6 s, and its Laplace evidence beats every other effect's."""
+    doc, _ = lag_gap
+    screen = doc["screen"]
+    assert screen[0]["effect"] == "sensor_lag"
+    assert screen[0]["chi2"] < 1.3 < 3.0 < doc["base"]["refits"]["TEM1"]["chi2"]
+    assert screen[0]["size"]["sensor_tau_s"]["mode"] == pytest.approx(6.0, rel=0.1)
+    assert screen[0]["log_bayes_factor"] > 100.0 + max(r["log_bayes_factor"] for r in screen[1:])
+    assert all(r["chi2"] > 1.5 for r in screen[1:])
 
 
 def test_gap_is_quiet_without_an_effect_and_refuses_a_batch_without_held_out_runs(batch3, run3, tmp_path):

@@ -3,9 +3,9 @@
 - :mod:`~tembayes.gap.where`: the gap map -- standardised held-out residuals per
   channel and operating regime, with a posterior-predictive significance;
   whiteness and cross-correlation with the input;
-- :mod:`~tembayes.gap.which`: a linear-Gaussian screen of the effect catalogue
-  (log Bayes factor of each effect's sensitivity pattern against the base
-  parameters', with the effect's size);
+- :mod:`~tembayes.gap.which`: the screen -- the base model and every
+  catalogue effect refitted on the identification run (posterior mode and
+  Laplace evidence, the effect's size);
 - :mod:`~tembayes.gap.conflicts`: rig parameters whose posterior lies outside
   their documented range (an effect absorbed by the base model);
 - :mod:`~tembayes.gap.diagnose`: the whole diagnosis -- the strongest

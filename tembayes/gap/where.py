@@ -28,6 +28,11 @@ Regimes (a sample can be in several families):
 - ``after_step``: transient (< 120 s after a step), settling (120-600 s),
   steady (> 600 s).
 
+The identification run gets a map of its own (:func:`identification_map`):
+each step window predicted from the others by a refit of the base model
+(held-out blocks of time), whitened, so that its significance needs no
+replicates.
+
 Plus the classic residual tests on the residual sampled every 30 s:
 whiteness (Ljung-Box Q over 10 lags) and the largest cross-correlation with
 the current over lags 0-10 (the input), each with its replicate p-value.
@@ -208,3 +213,61 @@ def gap_map(pred, rng):
         for fam, lab, mask in regs:
             cells.append({"channel": ch, "family": fam, "regime": lab, **cell(mask)})
     return GapMap(cells=cells, channels=chans, n_replicates=M, source=pred.source)
+
+
+#: Phases after a step of the identification map [s]: the voltage jump and the
+#: plates (R), the blocks' response, the steady state (S and K).
+ID_PHASES_S = (20.0, 120.0)
+#: Fewest samples of an identification-map cell (a step window keeps ~50).
+ID_MIN_SAMPLES = 20
+
+
+def identification_map(refit):
+    """The gap map of an identification run's held-out step windows.
+
+    Each step window of the identification run, predicted from the others
+    by a refit of the base model (:class:`~tembayes.gap.which.Refit`:
+    leave-one-window-out, its residuals whitened by their predictive
+    covariance, so N(0, 1) under the model).  Cells: every window, the phases
+    after a step (:data:`ID_PHASES_S`) and 10 K bands of T-bar, per channel of
+    the step likelihood (voltage, sensor dT, sensor mean).  ``score`` is the
+    RMS whitened residual and ``p`` its chi-square tail (no replicates
+    needed: the residuals are white by construction).
+
+    Returns
+    -------
+    GapMap
+    """
+    from tembayes.calibrate.stepdata import CHANNELS as STEP_CHANNELS
+
+    w = refit.windows
+    z = np.asarray(refit.cv_z, float)
+    step, since, tc = w["step"], np.asarray(w["since"], float), np.asarray(w["tmean_C"], float)
+    levels, st = w["levels"], w["step_time"]
+    regs = []
+    for k in range(len(st)):
+        m = step == k
+        regs.append(("window", f"step {k + 1} at {st[k]:.0f} s ({levels[k]:+.2f} -> {levels[k + 1]:+.2f} A, "
+                               f"T_avg {np.mean(tc[m]):.0f} C)", m))
+    t1, t2 = ID_PHASES_S
+    regs += [("after_step", f"transient (< {t1:.0f} s after a step)", since < t1),
+             ("after_step", f"settling ({t1:.0f}-{t2:.0f} s)", (since >= t1) & (since < t2)),
+             ("after_step", f"steady (> {t2:.0f} s)", since >= t2)]
+    lo = np.floor(tc.min() / TAVG_BAND_K) * TAVG_BAND_K
+    for a in np.arange(lo, tc.max(), TAVG_BAND_K):
+        regs.append(("Tavg", f"T_avg {a:.0f}-{a + TAVG_BAND_K:.0f} C", (tc >= a) & (tc < a + TAVG_BAND_K)))
+    regs = [r for r in regs if r[2].sum() >= ID_MIN_SAMPLES]
+
+    def cell(zc, mask):
+        t = float(np.sum(zc[mask] ** 2))
+        n = int(mask.sum())
+        return {"n": n, "score": float(np.sqrt(t / n)), "p": float(stats.chi2.sf(t, n)),
+                "outside90": float(np.mean(np.abs(zc[mask]) > 1.645))}
+
+    cells, chans = [], {}
+    for c, ch in enumerate(STEP_CHANNELS):
+        chans[ch] = cell(z[c], np.ones(z.shape[1], bool))
+        for fam, lab, mask in regs:
+            cells.append({"channel": ch, "family": fam, "regime": lab, **cell(z[c], mask)})
+    return GapMap(cells=cells, channels=chans, n_replicates=0,
+                  source=f"{w['source']} (each step window predicted from the others)")

@@ -83,7 +83,7 @@ def plot_residual_patterns(pred, fig=None):
 
 
 def plot_ranking(diag, fig=None):
-    """The recalibrated candidates: held-out evidence (with 2 se) and the gap before and after.
+    """The candidates: held-out evidence (with 2 se) and the gap before and after, best first.
 
     Parameters
     ----------
@@ -97,8 +97,13 @@ def plot_ranking(diag, fig=None):
     if rows and rows[0].get("evidence_kind") == "heldout_elpd":
         ev = np.array([r["evidence"] for r in rows][::-1])
         se = np.array([r.get("evidence_se", 0.0) for r in rows][::-1])
-        ax1.barh(y, ev, xerr=2 * se, color=["C2" if r["effect"] == diag.best else "C0" for r in rows][::-1])
-        ax1.set_xlabel("held-out ELPD difference to the base model [nats], ±2 se")
+        # recalibrated on every module (blue, the best green); on the lead module only, or only
+        # screened (its refit's Laplace posterior): grey
+        colour = ["C2" if r["effect"] == diag.best else "C0" if r["evidence_kind"] == "heldout_elpd" else "0.65"
+                  for r in rows][::-1]
+        ax1.barh(y, ev, xerr=2 * se, color=colour)
+        ax1.set_xlabel("held-out ELPD difference to the base model [nats], ±2 se\n"
+                       "(grey: the lead module only, recalibrated or screened)")
         ax1.set_xscale("symlog", linthresh=max(1.0, float(np.min(np.abs(se[se > 0])) if np.any(se > 0) else 1.0)))
         before = np.array([r["gap_before"] for r in rows][::-1]) * 1e3
         after = np.array([r["gap_after"] for r in rows][::-1]) * 1e3
@@ -107,11 +112,9 @@ def plot_ranking(diag, fig=None):
         ax2.set_xlabel("held-out gap (excess RMSE over T1..T4) [mK]")
         ax2.legend(fontsize=8)
     else:
-        ev = np.array([r["evidence"] for r in rows][::-1])
-        ax1.barh(y, ev, color="C0")
-        ax1.set_xlabel("screen: log Bayes factor against the base parameters")
-        ax2.axis("off")
-        ax2.text(0.5, 0.5, "no gap: nothing recalibrated", ha="center", va="center", transform=ax2.transAxes)
+        for ax in (ax1, ax2):
+            ax.axis("off")
+        ax1.text(0.5, 0.5, f"{diag.verdict}: nothing recalibrated", ha="center", va="center", transform=ax1.transAxes)
     for ax in (ax1, ax2):
         ax.set_yticks(y, names if ax is ax1 else [""] * len(names))
         ax.grid(axis="x", alpha=0.3)
