@@ -345,3 +345,31 @@ def test_a_wild_parameter_draw_fails_fast_instead_of_hanging():
     assert sim["steps"][1] <= K.MAX_STEPS_PER_POINT * n + K.MIN_STEP_BUDGET + 1
     with pytest.raises(ModelError, match="step budget"):
         model.simulate(ms.params(X))
+
+
+def test_expansion_pulls_a_probe_the_model_cannot_simulate_back_and_stays_exact():
+    """A probe where the model fails (here: a > 0.7, as a plate or paste pushed where the rig
+    cannot be simulated) is pulled halfway back to the expansion point; the expansion of a
+    quadratic model is still exact there (the parabola through the points actually simulated)
+    and fails loudly only when the expansion point itself cannot be simulated."""
+    from tembayes.calibrate.model import LinearisedModel
+    from tembayes.errors import ModelError
+
+    t = np.linspace(0.0, 1.0, 7)
+
+    class Quadratic:
+        def predict(self, params, strict=True):
+            a, b = np.atleast_1d(params["a"])[:, None, None], np.atleast_1d(params["b"])[:, None, None]
+            y = np.broadcast_to(1.0 + 2.0 * a + 3.0 * a * a * t + b - 0.5 * b * b, (len(a), 2, len(t))).copy()
+            y[a[:, 0, 0] > 0.7] = np.nan
+            return y
+
+    sp = ParameterSpace((ParameterPrior("a", "normal", 0.0, 1.0), ParameterPrior("b", "normal", 0.0, 1.0)))
+    x0 = np.array([0.5, 0.1])
+    lin = LinearisedModel(Quadratic(), sp, x0, np.array([0.4, 0.2]))  # a + 0.4 = 0.9 fails, 0.7 does not
+    X = np.array([[0.3, 0.0], [0.65, 0.25], [0.9, -0.1]])
+    want = Quadratic().predict(sp.params(X), strict=False)
+    want[2] = (1.0 + 2.0 * 0.9 + 3.0 * 0.81 * t - 0.1 - 0.005)  # the model fails there; the parabola does not
+    assert lin.predict(X) == pytest.approx(want, rel=1e-9, abs=1e-9)
+    with pytest.raises(ModelError, match="expansion point"):
+        LinearisedModel(Quadratic(), sp, np.array([0.8, 0.0]), np.array([0.1, 0.1]))
