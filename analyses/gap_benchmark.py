@@ -146,15 +146,16 @@ def summarise(cases):
         r = _true_row(doc, effect)
         if r is None or r.get("evidence") is None:
             continue
-        held_out = {"validation", "identification"} & set(doc.get("gap_in", ()))
-        if held_out and r.get("shrink") is not None:
+        gap_in = set(doc.get("gap_in", ()))
+        if gap_in & {"validation", "identification"} and r.get("shrink") is not None:
             shrinks.setdefault(effect, []).append(r["shrink"])
-        elif "parameters" in doc.get("gap_in", ()):
+        elif "parameters" in gap_in:
             resolved.setdefault(effect, []).append(bool(r.get("conflicts_resolved")))
         first = CATALOGUE[effect].parameters[0]
         for m, sz in (r.get("size") or {}).items():
             est = sz[first.name].get("median", sz[first.name].get("mode"))
             sizes.setdefault(effect, []).append(est / first.default)
+    all_shrinks = [x for v in shrinks.values() for x in v]
     null = [d["gap"]["verdict"] for (e, _), d in cases.items() if not e]
     held = [d["gap_withheld"]["verdict"] for (e, _), d in cases.items() if e and "gap_withheld" in d]
     return {
@@ -169,8 +170,8 @@ def summarise(cases):
         "n_withheld": len(held),
         "shrink_true_effect": {k: {"median": float(np.median(v)), "min": float(np.min(v)), "n": len(v)}
                                for k, v in shrinks.items()},
-        "shrink_true_effect_all": float(np.median([x for v in shrinks.values() for x in v])) if shrinks else None,
-        "shrink_true_effect_min": float(np.min([x for v in shrinks.values() for x in v])) if shrinks else None,
+        "shrink_true_effect_all": float(np.median(all_shrinks)) if all_shrinks else None,
+        "shrink_true_effect_min": float(np.min(all_shrinks)) if all_shrinks else None,
         "conflicts_resolved_true_effect": {k: {"fraction": float(np.mean(v)), "n": len(v)} for k, v in resolved.items()},
         "size_over_truth": {k: {"median": float(np.median(v)), "min": float(np.min(v)), "max": float(np.max(v)),
                                 "n": len(v)} for k, v in sizes.items()},

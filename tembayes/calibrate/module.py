@@ -292,6 +292,22 @@ def fit_map(model, space, data, x0, *, max_nfev=60):
     return sol.x, cov, sol
 
 
+def start_point(space, start=None):
+    """Coordinates where a mode search starts: the prior centres, the step
+    shift at the middle of its interval, every effect at zero (the base
+    model), overridden by ``start`` (``name -> value``, SI; names not in
+    ``space`` ignored)."""
+    x0 = np.array([pr.to_unconstrained(pr.center) for pr in space.priors])
+    x0[space.index(SHIFT)] = 0.0
+    for name in EFFECT_PARAMETERS:
+        if name in space.names:
+            x0[space.index(name)] = 0.0
+    for name, value in (start or {}).items():
+        if name in space.names:
+            x0[space.index(name)] = space.priors[space.index(name)].to_unconstrained(value)
+    return x0
+
+
 def _initial_walkers(rng, space, model_space, x_map, cov, data, nw):
     """Walkers from the Laplace approximation (model) and near-prior noise."""
     p = model_space.ndim
@@ -323,8 +339,8 @@ def hysteresis(lin, like, x_mean, data, space, level_response=None):
     """Up- minus down-step difference of R and S (GLS on the expansion).
 
     The model gets two extra terms: R and S raised by ``h/2`` in the windows
-    after up-steps and lowered by ``h/2`` after down-steps (their effect taken
-    from the expansion's R0 and S0 columns, window by window).  Fitted with
+    after up-steps and lowered by ``h/2`` after down-steps (their effect taken from
+    the expansion's R0 and S0 columns, window by window).  Fitted with
     the other coordinates free at the posterior mean's noise, and the hold
     currents' errors (``level_response``, ``(nh, 3, n)``) as further
     columns under their ``N(0, level_sd^2)`` prior.
@@ -427,14 +443,7 @@ def _calibrate_module(module, datasheet, *, rig_config=None, seed=0, options=Non
         state = json.loads(open(state_file).read())
     if state is None:
         say(f"{module.id}: posterior mode")
-        x0 = np.array([pr.to_unconstrained(pr.center) for pr in model_space.priors])
-        x0[model_space.index(SHIFT)] = 0.0
-        for name in EFFECT_PARAMETERS:
-            if name in model_space.names:  # start at the base model
-                x0[model_space.index(name)] = 0.0
-        for name, value in (start or {}).items():
-            if name in model_space.names and name != SHIFT:
-                x0[model_space.index(name)] = model_space.priors[model_space.index(name)].to_unconstrained(value)
+        x0 = start_point(model_space, {k: v for k, v in (start or {}).items() if k != SHIFT})
         x_map, cov, sol = fit_map(model, model_space, data, x0)
         state = {"x_map": x_map.tolist(), "cov": cov.tolist(), "x_lin": x_map.tolist(), "x_level": x_map.tolist(),
                  "stage": 0, "map_nfev": int(sol.nfev)}

@@ -138,8 +138,8 @@ likelihood terms give in closed form (importance sums for that method), with
 a Monte Carlo se from the arviz ESS of those per-draw values.  The
 predictive describes a new module of the type that is a *member*:
 ``x ~ N(mu, tau^2)`` per hyper draw, back in SI (``predictive``, what
-``summary()`` reports as the contract's ``population``); a new unit drawn
-from the whole mixture, outliers included, is ``predictive_with_outliers``.
+``summary()`` reports as the contract's ``population``); a new unit drawn from
+the whole mixture, outliers included, is ``predictive_with_outliers``.
 
 Sampling: emcee with differential-evolution moves (the posterior of a small
 batch can be bimodal: "tight spread plus one outlier" vs "wider spread"),

@@ -44,8 +44,8 @@ run from them and continues bit-identically, losing at most one check
 interval.  (emcee's ``HDFBackend`` is not safe for this: it writes the random
 state before the iteration counter, so a kill inside a write resumes with a
 random state one stored iteration ahead of the chain.)  Seeding follows
-``shared/notes/api-notes.md``: the sampler's private ``RandomState`` is set
-from the run's seed, never from the global one.
+``shared/notes/api-notes.md``: the sampler's private ``RandomState`` is set from
+the run's seed, never from the global one.
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@ For every calibrated module with held-out runs (``validation*.csv``):
 
 1. **Where** -- the base posterior's predictive of each held-out run, its
    bands made of the parameter uncertainty and the run's *measurement noise*
-   (white, its level read off the run itself: :func:`sensor_noise`), and the
+   (white, its level read off the run itself: ``RunModel.noise``), and the
    gap map of :mod:`~tembayes.gap.where`; and the rig parameters whose
    posterior sits outside the documented range (:mod:`~tembayes.gap.conflicts`;
    :data:`SUSPECTS` maps them to the effects they can stand for).
@@ -12,8 +12,8 @@ For every calibrated module with held-out runs (``validation*.csv``):
    :mod:`~tembayes.gap.which`: the base model and every catalogue effect
    refitted on the identification run (posterior mode and Laplace
    approximation, all from the same start), ranked by their Laplace
-   evidence against the base refit, each also predicting the held-out runs
-   from its Laplace posterior.
+   evidence against the base refit, each refit's Laplace posterior also
+   predicting the held-out runs.
 3. **How far** -- the strongest candidates are *recalibrated*: the
    identification run sampled again with the effect's parameters added
    (:func:`~tembayes.calibrate.module.calibrate_module` with ``effects``),
@@ -71,7 +71,13 @@ import multiprocessing
 import time as _time
 import warnings
 import zlib
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, as_completed, wait
+from concurrent.futures import (
+    FIRST_COMPLETED,
+    Future,
+    ProcessPoolExecutor,
+    as_completed,
+    wait,
+)
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -79,13 +85,17 @@ import numpy as np
 from scipy.special import logsumexp
 
 from tembayes.constants import MODULE_PARAMETERS
-from tembayes.data.quality import noise_estimate
 from tembayes.errors import DataError
 from tembayes.gap.conflicts import range_conflicts
 from tembayes.gap.where import gap_map, identification_map
 from tembayes.physics import effects as E
-from tembayes.predict.predictive import (PredictiveDraws, module_raw_draws, posterior_draws, simulate_predictive,
-                                         subsample)
+from tembayes.predict.predictive import (
+    PredictiveDraws,
+    module_raw_draws,
+    posterior_draws,
+    simulate_predictive,
+    subsample,
+)
 from tembayes.predict.runmodel import CHANNELS, RunModel
 
 #: The held-out gap, one unit for every effect (contract section 4).
@@ -148,17 +158,6 @@ SUSPECTS = {
     ("g_paste_hot", "low"): ("contact_resistance",),
     ("g_paste_cold", "low"): ("contact_resistance",),
 }
-
-def sensor_noise(exp):
-    """White measurement noise of each channel of an experiment, ``(5,)`` (K, V).
-
-    Read off the run (:func:`~tembayes.data.quality.noise_estimate`: second
-    differences, robust), so a model's misfit never enters it.
-    """
-    ys = [np.asarray(exp.sensors[c], float) for c in range(4)] + [np.asarray(exp.voltage, float)]
-    sd = np.array([noise_estimate(y) for y in ys])
-    return np.where(np.isfinite(sd) & (sd > 0), sd, 1e-4)
-
 
 def _with_noise(draws, sd):
     """The draws with white noise ``sd`` ``(5,)`` instead of their residual processes."""
@@ -263,7 +262,7 @@ def evaluate_run(model, draws, rng_draws, rng_run, *, n_draws=N_DRAWS, alpha=ALP
     RunEvaluation
     """
     sub = subsample(draws, rng_draws, n_draws)
-    noise = sensor_noise(model.exp)
+    noise = model.noise
     # the run's step phase is its clocks', not the model's: every model is
     # compared at the phase that fits it best (unconditioned, the phase's
     # heat impulse alone leaves a correct model ~90 mK/A off for minutes)
@@ -278,14 +277,19 @@ def evaluate_run(model, draws, rng_draws, rng_run, *, n_draws=N_DRAWS, alpha=ALP
     r = pred.residual[:4]
     expected = float(np.sum(pred.deviations[:, :4].astype(float).var(axis=0) + noise[:4, None] ** 2))
     return RunEvaluation(module_id=draws.label, source=str(model.exp.path), sse=float(np.sum(r * r)),
-                         n=int(r.size), expected=expected, elpd_blocks=heldout_elpd(L), significant=material(gm.significant(alpha)),
-                         gap_map=gm, prediction=pred if keep_prediction else None, phase=phase)
+                         n=int(r.size), expected=expected, elpd_blocks=heldout_elpd(L),
+                         significant=material(gm.significant(alpha)), gap_map=gm,
+                         prediction=pred if keep_prediction else None, phase=phase)
 
 
-def material(cells, score_min=None):
+def material(cells):
     """The cells whose score exceeds :data:`SCORE_MIN` (significant *and* large enough to matter)."""
-    s = SCORE_MIN if score_min is None else score_min
-    return [c for c in cells if c["score"] > s]
+    return [c for c in cells if c["score"] > SCORE_MIN]
+
+
+def _blocks(evals):
+    """The block ELPDs of some evaluations, end to end."""
+    return np.concatenate([e.elpd_blocks for e in evals])
 
 
 def _rmse(evals):
@@ -635,8 +639,7 @@ def _shrink(before, after):
 
 def _evidence(v_diff, i_diff):
     """Held-out evidence of the validation blocks' and the identification windows' differences [nats]."""
-    v = {"value": float(np.sum(v_diff)), "se": _block_se(v_diff)} if len(v_diff) else {"value": 0.0, "se": 0.0}
-    i = {"value": float(np.sum(i_diff)), "se": _block_se(i_diff)} if len(i_diff) else {"value": 0.0, "se": 0.0}
+    v, i = ({"value": float(np.sum(d)), "se": _block_se(d) if len(d) else 0.0} for d in (v_diff, i_diff))
     return {"evidence": v["value"] + i["value"], "evidence_se": float(np.hypot(v["se"], i["se"])),
             "evidence_validation": v, "evidence_identification": i}
 
@@ -729,7 +732,7 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
         ident = {mid: _identification([base_rf[mid]], alpha) for mid in ids}
         suspects = _suspects(conflicts, allowed)
         gap_before = held_out_gap(base_evals)
-        base_elpd = np.concatenate([e.elpd_blocks for e in base_evals])
+        base_elpd = _blocks(base_evals)
         id_before = _identification(list(base_rf.values()))["gap"]
         where_v = _where(base_evals)
         where_i = sorted(({"channel": c["channel"], "regime": f"{c['family']}: {c['regime']}", "score": c["score"],
@@ -765,7 +768,7 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
         lead = max(ids, key=lambda m: score[m])
         rest = [m for m in ids if m != lead]
         lead_evals = [e for e in base_evals if e.module_id == lead]
-        lead_base = np.concatenate([e.elpd_blocks for e in lead_evals])
+        lead_base = _blocks(lead_evals)
         base_conflicting = {mid: {r["parameter"] for r in conflicts[mid] if r["conflict"]} for mid in ids}
 
         # 2. which: every allowed effect refitted on the lead's identification run, the base refit the control
@@ -810,7 +813,7 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
             if not gapped:
                 why[r["effect"]] = f"its range conflicts stay on {lead}"
                 return [(m, r["effect"]) for m in rest] if not r["conflicts"] else []
-            terms = {e: (np.concatenate([ev.elpd_blocks for ev in x["evals"]]), x["refit"].cv_lpd)
+            terms = {e: (_blocks(x["evals"]), x["refit"].cv_lpd)
                      for e, x in lead_done.items() if not x["failed"]}
             v, i = terms[r["effect"]]
             ev = _evidence(v - lead_base, i - base_rf[lead].cv_lpd)
@@ -844,7 +847,7 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
             (r,) = rs
             after = held_out_gap(r["evals"])
             id_after = _identification([r["refit"]])["gap"]
-            failed.append({"effect": e, **_evidence(np.concatenate([ev.elpd_blocks for ev in r["evals"]]) - lead_base,
+            failed.append({"effect": e, **_evidence(_blocks(r["evals"]) - lead_base,
                                                     r["refit"].cv_lpd - base_rf[lead].cv_lpd),
                            "evidence_kind": "heldout_elpd_lead_module", "module": lead,
                            **_gaps(primary, lead_before, after, lead_id_before, id_after),
@@ -861,7 +864,7 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
         evs = [evs[k] for k in order]
         refits = [by[mid]["refit"] for mid in ids]
         id_after = _identification(refits, alpha)
-        v = np.concatenate([ev.elpd_blocks for ev in evs])
+        v = _blocks(evs)
         per_effect[e] = (v, id_after["lpd"])
         after = held_out_gap(evs)
         ranking.append({"effect": e, **_evidence(v - base_elpd,
@@ -951,7 +954,7 @@ def _screen_rows(results, base_key, lead_base):
         rf = r["refit"]
         rows.append({**rf.summary(), "module": rf.module_id, "log_bayes_factor": rf.log_evidence - base.log_evidence,
                      "conflicts": r["conflicts"],
-                     **_evidence(np.concatenate([ev.elpd_blocks for ev in r["evals"]]) - lead_base,
+                     **_evidence(_blocks(r["evals"]) - lead_base,
                                  rf.cv_lpd - base.cv_lpd),
                      "gap_after": held_out_gap(r["evals"]), "identification_gap_after": _identification([rf])["gap"]})
     return sorted(rows, key=lambda r: (r["log_bayes_factor"] is None, -(r["log_bayes_factor"] or 0.0)))

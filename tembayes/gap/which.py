@@ -46,7 +46,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tembayes.calibrate.model import SHIFT, StepResponseModel
+from tembayes.calibrate.model import StepResponseModel
 from tembayes.calibrate.stepdata import CHANNELS as STEP_CHANNELS
 from tembayes.calibrate.stepdata import step_data
 from tembayes.constants import KELVIN
@@ -185,7 +185,13 @@ def refit(module, datasheet, effect=None, *, rig_config=None, start=None, option
     """
     from threadpoolctl import threadpool_limits
 
-    from tembayes.calibrate.module import CalibrationOptions, calibration_rig, fit_map, parameter_space
+    from tembayes.calibrate.module import (
+        CalibrationOptions,
+        calibration_rig,
+        fit_map,
+        parameter_space,
+        start_point,
+    )
 
     t0 = time.perf_counter()
     opt = options or CalibrationOptions()
@@ -194,14 +200,7 @@ def refit(module, datasheet, effect=None, *, rig_config=None, start=None, option
     model = StepResponseModel(data, rig)
     effects = () if effect is None else (E.get(effect).name,)
     space, _ = parameter_space(rig, datasheet, data, model.shift_bound, effects)
-    x0 = np.array([pr.to_unconstrained(pr.center) for pr in space.priors])
-    x0[space.index(SHIFT)] = 0.0
-    for e in effects:
-        for p in E.get(e).parameters:
-            x0[space.index(p.name)] = 0.0
-    for name, value in (start or {}).items():
-        if name in space.names:
-            x0[space.index(name)] = space.priors[space.index(name)].to_unconstrained(value)
+    x0 = start_point(space, start)
     with threadpool_limits(limits=1, user_api="blas"):
         x, _, sol = fit_map(model, space, data, x0, max_nfev=max_nfev)
         r = (data.obs - model.predict(space.params(x[None]), strict=False)[0]) / data.noise[:, None]

@@ -26,10 +26,13 @@ interval.  A validation run's phase is unknown: the predictive draws it.
 
 from __future__ import annotations
 
+from functools import cached_property
+
 import numpy as np
 from scipy.interpolate import CubicSpline
 
 from tembayes.calibrate.stepdata import _smooth, hold_levels, step_grid
+from tembayes.data.quality import noise_estimate
 from tembayes.errors import DataError, ModelError
 from tembayes.identify.steps import detect_steps
 from tembayes.physics import effects
@@ -193,6 +196,18 @@ class RunModel:
             raise ValueError(f"at must be 'samples' or 'grid', got {at!r}")
         return self._interpolate(sensors), self._interpolate(volt[:, None, :])[:, 0]
 
+    @cached_property
+    def noise(self):
+        """White measurement noise of T1..T4 and the voltage, ``(5,)`` (K, V).
+
+        Read off the run (:func:`~tembayes.data.quality.noise_estimate`:
+        second differences, robust), so a model's misfit never enters it; a
+        channel without any gets 1e-4.
+        """
+        ys = [np.asarray(self.exp.sensors[c], float) for c in range(4)] + [np.asarray(self.exp.voltage, float)]
+        sd = np.array([noise_estimate(y) for y in ys])
+        return np.where(np.isfinite(sd) & (sd > 0), sd, 1e-4)
+
     def fit_phase(self, params, n=21):
         """The run's step phase that fits one parameter point best [s].
 
@@ -215,8 +230,6 @@ class RunModel:
         -------
         float
         """
-        from tembayes.data.quality import noise_estimate
-
         b = self.shift_bound
         if b <= 0:
             return 0.0
@@ -225,6 +238,8 @@ class RunModel:
         sens, volt = self.simulate(P, s, at="grid", strict=False)
         idx = self.grid_samples
         y = np.vstack([np.asarray(self.exp.sensors, float)[:, idx], np.asarray(self.exp.voltage, float)[idx][None]])
+        # the weights from the samples compared (the grid's), as the benchmark ran;
+        # there second differences see some of the blocks' response on T3/T4
         sd = np.array([noise_estimate(np.asarray(y[c], float)) for c in range(len(y))])
         sd = np.where(np.isfinite(sd) & (sd > 0), sd, 1e-3)
         F = np.concatenate([sens, volt[:, None]], axis=1)
