@@ -128,6 +128,7 @@ def test_contract_outputs(run3):
     assert "corner_TEM1.png" in figs and "corner_population.png" in figs
 
 
+@pytest.mark.slow  # two full-budget calibrations (worker and in-process runs bit-identical under CHEAP options: test_scaleout)
 def test_same_seed_same_module_result(run3, batch3, tmp_path):
     out, summ, truth = run3
     from tembayes.calibrate.module import calibrate_module
@@ -164,6 +165,7 @@ def _cli(*args, **kw):
                             stderr=subprocess.PIPE, text=True, **kw)
 
 
+@pytest.mark.slow  # two full calibrations through the CLI (the sampler's resume is test_calibrate_parts', the batch's test_scaleout's)
 def test_resume_after_kill_9_continues_the_stored_chain(batch1, tmp_path):
     straight = tmp_path / "a"
     p = _cli("calibrate", str(batch1), "--out", str(straight), "--seed", "4", "--quiet", "--no-figures")
@@ -233,6 +235,7 @@ def test_calibrate_help_has_an_example(capsys):
     assert "tembayes calibrate data/example --out runs/example --seed 0" in capsys.readouterr().out
 
 
+@pytest.mark.slow  # a full calibration on the reference protocol
 def test_another_module_type_needs_no_code_change(tmp_path):
     # a smaller 71-couple module (TEC1-07103 class): other R, S, K and Imax, on
     # the reference protocol (600 s holds; with half-length holds its steady

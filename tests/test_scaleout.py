@@ -87,6 +87,7 @@ def test_lazy_batch_validates_every_file_and_keeps_paths(batch4, tmp_path):
         load_batch(bad, lazy=True)
 
 
+@pytest.mark.slow  # a LocalCluster and two worker pools: ~2 min
 def test_two_workers_and_a_scheduler_give_the_serial_bits(batch4, serial4, tmp_path):
     from distributed import LocalCluster
 

@@ -363,11 +363,16 @@ def _refit_job(module, datasheet, rig_config, leg_cells, block_cells, effect, st
 
 
 def _candidate_job(module, datasheet, rig_config, leg_cells, block_cells, effect, seed, options, n_draws, alpha,
-                   start, refitted=None):
+                   start, refitted=None, warm=None):
     """One module recalibrated with ``effect`` and scored on its held-out runs (a worker's job).
 
     The sampler starts at the refit's mode (``refitted``, the screen's, or
-    one made here); the identification run's share of the evidence are the
+    one made here).  With ``warm`` (``name -> value`` of the effect's
+    parameters, the lead module's refit) and no ``refitted``, no refit is
+    made first: the recalibration's own mode search starts from ``start``
+    with the effect at ``warm`` (modules of a batch are alike, so the lead's
+    effect size is a start as good as a refit's, one mode search
+    cheaper).  The identification run's share of the evidence are the
     held-out step windows of the refit polished from the recalibration's
     posterior median.  A recalibration whose model
     fails (the effect drives the rig somewhere it cannot be simulated) is a
@@ -386,10 +391,14 @@ def _candidate_job(module, datasheet, rig_config, leg_cells, block_cells, effect
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", RuntimeWarning)
         try:
-            rf = refitted or refit(module, datasheet, effect, rig_config=rig_config, start=start,
-                                   options=CalibrationOptions(leg_cells=leg_cells, block_cells=block_cells))
+            if refitted is None and warm is not None:
+                at = {**start, **warm}
+            else:
+                rf = refitted or refit(module, datasheet, effect, rig_config=rig_config, start=start,
+                                       options=CalibrationOptions(leg_cells=leg_cells, block_cells=block_cells))
+                at = {**start, **rf.mode()}
             cal = calibrate_module(module, datasheet, rig_config=rig_config, seed=seed, options=options,
-                                   effects=(effect,), start={**start, **rf.mode()})
+                                   effects=(effect,), start=at)
             raw = {k: np.asarray(v).ravel() for k, v in cal.draws.items()}
             # the identification windows judged at the recalibration's own fit: the mode search
             # again, from its posterior median (a screen refit may have stopped short of the mode)
@@ -457,6 +466,28 @@ def _collect(futures, cache, say, label):
             cache[key] = out[key]
             say(f"  {label} {key[-2]} with {key[-1] or 'the base model'} ({out[key]['seconds']:.0f} s)")
     return out
+
+
+def _in_order(order, lead, decide):
+    """A ``follow`` for :func:`_race` that decides on the ``lead`` module's results in the candidates'
+    ``order``, not in the order they finish: ``decide(result)`` (the jobs to carry on) runs for a candidate
+    once it and every candidate before it are in, so the same seed gives the same diagnosis on any machine."""
+    arrived, done = {}, set()
+
+    def follow(r):
+        if r["module"] != lead:
+            return []
+        arrived[r["effect"]] = r
+        out = []
+        for e in order:
+            if e not in arrived:
+                break
+            if e not in done:
+                done.add(e)
+                out += decide(arrived[e])
+        return out
+
+    return follow
 
 
 def _race(first, follow, job, jobs, cache, say, work=_candidate_job, ex=None):
@@ -797,16 +828,17 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
         # candidate on the lead module first, only those that gain held-out
         # evidence there go on to the other modules
         def job(mid, e):
-            r = screened.get(("refit", mid, e)) if mid == lead else None
+            r = screened[("refit", lead, e)]
+            rf = None if r["failed"] else r["refit"]
+            # the lead starts at its screen refit; the others at their base posterior with the lead's effect size
             return (batch.modules[mid], batch.datasheet, batch.rig_config, leg, blk, e, seed, options, n_draws, alpha,
-                    starts[mid], None if r is None or r["failed"] else r["refit"])
+                    starts[mid], rf if mid == lead else None,
+                    None if rf is None or mid == lead else {k: v["mode"] for k, v in rf.size().items()})
 
         lead_done, why = {}, {}
 
-        def carry(r):
-            """The other modules for a lead result that gains evidence and is not beaten so far."""
-            if r["module"] != lead:
-                return []
+        def decide(r):
+            """The other modules for a lead result that gains evidence and is not beaten by an earlier candidate."""
             lead_done[r["effect"]] = r
             if r["failed"]:
                 return []
@@ -820,7 +852,7 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
             if ev["evidence"] <= EVIDENCE_Z * ev["evidence_se"]:
                 why[r["effect"]] = f"no significant held-out gain on {lead}"
                 return []
-            for e, (v2, i2) in terms.items():  # beaten by a candidate already in: the race is lost
+            for e, (v2, i2) in terms.items():  # beaten by an earlier candidate: the race is lost
                 d = _evidence(v2 - v, i2 - i)
                 if e != r["effect"] and d["evidence"] > EVIDENCE_Z * d["evidence_se"]:
                     why[r["effect"]] = f"beaten by {e} on {lead}"
@@ -829,7 +861,7 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
 
         # one candidate: no race to run, every module at once (the cores would idle)
         first = [(m, e) for e in chosen for m in ([lead] + rest if len(chosen) == 1 else [lead])]
-        results = _race(first, carry, job, jobs, cache, say, ex=ex)
+        results = _race(first, _in_order(chosen, lead, decide), job, jobs, cache, say, ex=ex)
     dropped = {e for e in chosen if any((m, e) not in results for m in rest)}
     results = list(results.values())
     for r in results:
