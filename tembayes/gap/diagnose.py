@@ -363,16 +363,11 @@ def _refit_job(module, datasheet, rig_config, leg_cells, block_cells, effect, st
 
 
 def _candidate_job(module, datasheet, rig_config, leg_cells, block_cells, effect, seed, options, n_draws, alpha,
-                   start, refitted=None, warm=None):
+                   start, refitted=None):
     """One module recalibrated with ``effect`` and scored on its held-out runs (a worker's job).
 
     The sampler starts at the refit's mode (``refitted``, the screen's, or
-    one made here).  With ``warm`` (``name -> value`` of the effect's
-    parameters, the lead module's refit) and no ``refitted``, no refit is
-    made first: the recalibration's own mode search starts from ``start``
-    with the effect at ``warm`` (modules of a batch are alike, so the lead's
-    effect size is a start as good as a refit's, one mode search
-    cheaper).  The identification run's share of the evidence are the
+    one made here); the identification run's share of the evidence are the
     held-out step windows of the refit polished from the recalibration's
     posterior median.  A recalibration whose model
     fails (the effect drives the rig somewhere it cannot be simulated) is a
@@ -391,14 +386,10 @@ def _candidate_job(module, datasheet, rig_config, leg_cells, block_cells, effect
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", RuntimeWarning)
         try:
-            if refitted is None and warm is not None:
-                at = {**start, **warm}
-            else:
-                rf = refitted or refit(module, datasheet, effect, rig_config=rig_config, start=start,
-                                       options=CalibrationOptions(leg_cells=leg_cells, block_cells=block_cells))
-                at = {**start, **rf.mode()}
+            rf = refitted or refit(module, datasheet, effect, rig_config=rig_config, start=start,
+                                   options=CalibrationOptions(leg_cells=leg_cells, block_cells=block_cells))
             cal = calibrate_module(module, datasheet, rig_config=rig_config, seed=seed, options=options,
-                                   effects=(effect,), start=at)
+                                   effects=(effect,), start={**start, **rf.mode()})
             raw = {k: np.asarray(v).ravel() for k, v in cal.draws.items()}
             # the identification windows judged at the recalibration's own fit: the mode search
             # again, from its posterior median (a screen refit may have stopped short of the mode)
@@ -828,12 +819,9 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
         # candidate on the lead module first, only those that gain held-out
         # evidence there go on to the other modules
         def job(mid, e):
-            r = screened[("refit", lead, e)]
-            rf = None if r["failed"] else r["refit"]
-            # the lead starts at its screen refit; the others at their base posterior with the lead's effect size
+            r = screened.get(("refit", mid, e)) if mid == lead else None
             return (batch.modules[mid], batch.datasheet, batch.rig_config, leg, blk, e, seed, options, n_draws, alpha,
-                    starts[mid], rf if mid == lead else None,
-                    None if rf is None or mid == lead else {k: v["mode"] for k, v in rf.size().items()})
+                    starts[mid], None if r is None or r["failed"] else r["refit"])
 
         lead_done, why = {}, {}
 
