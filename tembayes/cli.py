@@ -615,7 +615,8 @@ def build_parser():
     p.add_argument("--candidates", type=int, default=2, metavar="K",
                    help="candidates recalibrated (default 2, plus one a range conflict points at)")
     p.add_argument("--draws", type=int, default=200, metavar="N", help="predictive draws per held-out run (default 200)")
-    p.add_argument("--jobs", type=int, default=2, metavar="N", help="recalibrations at once (default 2)")
+    p.add_argument("--jobs", type=int, default=None, metavar="N",
+                   help="refits and recalibrations at once, in worker processes (default: the cores + 1)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--no-figures", action="store_true", help="write gap.json only")
     p.add_argument("--overwrite", action="store_true", help="replace DIR if it exists")
