@@ -56,7 +56,7 @@ def _validation(truth_module, datasheet, seed, path):
                                t0=float(np.round(rng.uniform(0, 1000), 3)))
         path.parent.mkdir(parents=True, exist_ok=True)
         write_experiment_csv(path, exp)
-    return load_experiment(path, imax=datasheet.imax)
+    return load_experiment(path, datasheet=datasheet)
 
 
 def _new_unit(truth, rng):

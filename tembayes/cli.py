@@ -150,11 +150,14 @@ def _effects_table():
 def _cmd_simulate(args):
     from tembayes.bench import TEC1_12706, BenchConfig, simulate_batch
     from tembayes.data import load_batch_toml
+    from tembayes.data.outputs import check_output
     from tembayes.physics.effects import parse_effects
 
     datasheet = TEC1_12706
     if args.datasheet:
         datasheet, _ = load_batch_toml(args.datasheet)
+    check_output(args.out, kind="simulate", overwrite=args.overwrite,
+                 inputs=[(args.datasheet, "datasheet file")] if args.datasheet else ())
     config = BenchConfig(
         n_modules=args.modules,
         effects=parse_effects(args.effect),
@@ -176,9 +179,11 @@ def _cmd_simulate(args):
 
 def _cmd_inspect(args):
     from tembayes.data import load_batch, summarize_experiment
+    from tembayes.data.preflight import ERROR
 
-    batch = load_batch(args.batch)
+    batch = load_batch(args.batch, strict=False)
     ds = batch.datasheet
+    errors = [f for f in batch.findings if f.severity == ERROR]
     report = {
         "batch": str(batch.path),
         "module_type": ds.to_table(),
@@ -188,11 +193,12 @@ def _cmd_inspect(args):
             mid: {e.path.name: summarize_experiment(e) for e in (m.identification, *m.validations)}
             for mid, m in batch.modules.items()
         },
+        "findings": [f.to_json() for f in batch.findings],
     }
     if args.json:
         json.dump(report, sys.stdout, indent=2)
         print()
-        return 0
+        return 2 if errors else 0
     print(f"batch {batch.path}  type {ds.name or '?'}  rig {batch.rig_config.get('preset', 'reference')}")
     print(f"  datasheet -> S {ds.seebeck():.4g} V/K, R {ds.resistance():.4g} ohm, K {ds.conductance():.4g} W/K")
     for mid, files in report["modules"].items():
@@ -202,45 +208,50 @@ def _cmd_inspect(args):
                 f"dt {q['dt_median_s']:.3g} s  I {q['current_min_A']:+.2f}..{q['current_max_A']:+.2f} A  "
                 f"T3 {q['T3_C_min']:.1f}..{q['T3_C_max']:.1f} C  noise T3 {1e3 * q['T3_C_noise']:.1f} mK"
             )
+    for f in batch.findings:
+        print(f"  {f.severity.upper()}: {f}")
+    if errors:
+        more = f" (and {len(errors) - 1} more problem(s), listed above)" if len(errors) > 1 else ""
+        print(f"tembayes: error: {errors[0]}{more}", file=sys.stderr)
+        return 2
+    print("  no problems found" if not batch.findings else f"  {len(batch.findings)} warning(s), no errors")
     return 0
 
 
 def _cmd_identify(args):
-    from tembayes.data import load_batch, write_json
+    from tembayes.data import load_batch
+    from tembayes.data.outputs import check_output
     from tembayes.identify.pipeline import identify_batch, to_json
     from tembayes.physics.rig import reference_rig
 
     reference_rig(args.leg_cells)  # refuse a bad option before any work
+    check_output(args.out, kind="identify", inputs=[(args.batch, "batch folder")], overwrite=args.overwrite)
     batch = load_batch(args.batch)  # refused input: nothing is written
+    _say_findings(batch.findings)
 
-    def progress(msg):
-        print(msg, file=sys.stderr, flush=True)
+    results = identify_batch(batch, leg_cells=args.leg_cells, progress=_progress)
 
-    results = identify_batch(batch, leg_cells=args.leg_cells, progress=progress)
-    args.out.mkdir(parents=True, exist_ok=True)
-    doc = to_json(results, batch)
-    doc["command"] = "tembayes " + " ".join(args.argv)
-    doc["tembayes_version"] = tembayes.__version__
-    write_json(args.out / "identify.json", doc)
-    written = [args.out / "identify.json"]
-    if not args.no_figures:
+    def figures(tmp):
         from tembayes.plots.identify import save_identify_figures
 
-        written += save_identify_figures(results, batch, args.out)
+        save_identify_figures(results, batch, tmp)
+
+    _write_result(args, "identify.json", to_json(results, batch), figures)
     for mid, r in results.items():
         f = r.fit
         print(f"{mid}: R0 {f['R0_ohm']:.4f} ohm  R1 {1e3 * f['R1_ohm_per_K']:.2f} mohm/K  "
               f"S0 {1e3 * f['S0_V_per_K']:.3f} mV/K  S1 {1e6 * f['S1_V_per_K2']:.1f} uV/K2  "
               f"K {r.rig_fit.values['K_W_per_K']:.3f} W/K")
-    print(f"wrote {len(written)} files to {args.out}")
+    print(f"wrote {args.out / 'identify.json'}" + ("" if args.no_figures else " and the figures"))
     return 0
 
 
 def _cmd_calibrate(args):
     from tembayes.calibrate.batch import calibrate_batch
     from tembayes.calibrate.module import CalibrationOptions
+    from tembayes.calibrate.runfolder import bytes_needed
     from tembayes.data import load_batch
-    from tembayes.data.write import _refuse_existing
+    from tembayes.data.outputs import check_output
 
     workers = args.workers if args.jobs is None else args.jobs
     if workers < 1:  # before anything is touched
@@ -258,21 +269,15 @@ def _cmd_calibrate(args):
                   file=sys.stderr)
             return 2
     opt = CalibrationOptions(max_steps=args.max_steps, nwalkers=args.walkers)
+    check_output(args.out, kind="calibrate", inputs=[(args.batch, "batch folder")],
+                 overwrite=args.overwrite or args.resume, need_bytes=bytes_needed(1, workers))
     # every file validated, then only paths kept: memory independent of the batch size
     batch = load_batch(args.batch, lazy=True)  # refused input: nothing is written
-    if not args.resume:
-        _refuse_existing(args.out, args.overwrite)
-        if args.out.exists():
-            import shutil
-
-            shutil.rmtree(args.out)
-
-    def progress(msg):
-        print(msg, file=sys.stderr, flush=True)
-
-    summ = calibrate_batch(batch, args.out, seed=args.seed, options=opt, resume=args.resume, progress=progress,
-                           progress_bar=not args.quiet, argv=args.argv, figures=not args.no_figures, workers=workers,
-                           scheduler=args.scheduler, keep_unconverged=args.keep_unconverged)
+    _say_findings(batch.findings)
+    summ = calibrate_batch(batch, args.out, seed=args.seed, options=opt, resume=args.resume,
+                           overwrite=args.overwrite, progress=_progress, progress_bar=not args.quiet, argv=args.argv,
+                           figures=not args.no_figures, workers=workers, scheduler=args.scheduler,
+                           keep_unconverged=args.keep_unconverged)
     mods = summ["modules"]
     shown = list(mods)
     if len(mods) > 20:  # a factory batch: the likeliest outliers and the failures, then the counts
@@ -300,7 +305,7 @@ def _write_result(args, name, doc, figures):
     from tembayes.data import write_json
     from tembayes.data.write import atomic_directory
 
-    with atomic_directory(args.out, overwrite=args.overwrite) as tmp:
+    with atomic_directory(args.out, overwrite=args.overwrite, kind=args.command) as tmp:
         doc["command"] = "tembayes " + " ".join(args.argv)
         doc["tembayes_version"] = tembayes.__version__
         write_json(tmp / name, doc)
@@ -309,23 +314,36 @@ def _write_result(args, name, doc, figures):
 
 
 def _run_batch(args, run):
-    """The batch of ``--batch``, or the one recorded in ``RUN/summary.json``."""
-    from tembayes.data import load_batch
+    """The batch of ``--batch``, or the one recorded in ``RUN/summary.json``, checked against the run's digests."""
+    from tembayes.calibrate.run import load_run_batch
 
-    batch_path = args.batch
-    if batch_path is None:
-        recorded = (run.summary.get("batch") or {}).get("path")
-        candidates = [Path(recorded), args.run.parent / recorded] if recorded else []
-        batch_path = next((c for c in candidates if (c / "batch.toml").is_file()), None)
-        if batch_path is None:
-            raise DataError(args.run / "summary.json", f"names batch folder {recorded!r}, which is not there",
-                            "Give the batch the run was calibrated on with --batch BATCH.", column="batch.path")
-    return load_batch(batch_path)
+    batch, notes = load_run_batch(run, args.batch)
+    for note in notes:
+        print(f"note: {note}", file=sys.stderr)
+    _say_findings(batch.findings)
+    return batch
+
+
+def _progress(msg):
+    print(msg, file=sys.stderr, flush=True)
+
+
+def _say_findings(findings):
+    """The preflight's warnings on the batch, one line each on stderr."""
+    for f in findings:
+        print(f"warning: {f}", file=sys.stderr)
+
+
+def _check_out(args, kind, *inputs):
+    """``check_output`` for a command reading a run (and more): the run and the other inputs are never touched."""
+    from tembayes.data.outputs import check_output
+
+    check_output(args.out, kind=kind, overwrite=args.overwrite,
+                 inputs=[(args.run, "run folder"), *((p, r) for p, r in inputs if p is not None)])
 
 
 def _cmd_export(args):
     from tembayes.calibrate.run import load_run
-    from tembayes.data.write import _refuse_existing
     from tembayes.export.formats import write_export
     from tembayes.export.observer import DEFAULT_POINTS, observer_inputs
 
@@ -343,15 +361,12 @@ def _cmd_export(args):
                   file=sys.stderr)
             return 2
         points.append((tavg, current))
+    _check_out(args, "export", (args.batch, "batch folder"))
     run = load_run(args.run)  # refused inputs: nothing is written
     batch = _run_batch(args, run)
-    _refuse_existing(args.out, args.overwrite)
-
-    def progress(msg):
-        print(msg, file=sys.stderr, flush=True)
-
+    _check_out(args, "export", (batch.path, "batch folder"))
     exp = observer_inputs(run, batch, points=points, t_amb_C=args.ambient, n_draws=args.draws, seed=args.seed,
-                          modules=args.module, heldout=args.heldout or True, progress=progress)
+                          modules=args.module, heldout=args.heldout or True, progress=_progress)
     write_export(exp, args.out, fmt)
     for mid, m in exp.modules.items():
         pn = m["process_noise"]
@@ -364,7 +379,6 @@ def _cmd_export(args):
 
 def _cmd_report(args):
     from tembayes.calibrate.run import load_run
-    from tembayes.data.write import _refuse_existing
     from tembayes.report import build_report, write_report
     from tembayes.report.tolerances import DEFAULT_TOLERANCES, parse_tolerance
 
@@ -378,17 +392,15 @@ def _cmd_report(args):
     if not 0.5 <= args.confidence < 1.0:
         print(f"tembayes report: --confidence must be in [0.5, 1), got {args.confidence}", file=sys.stderr)
         return 2
+    _check_out(args, "report", (args.batch, "batch folder"), *((d, "gap folder") for d in args.gap or ()),
+               *((d, "predict folder") for d in args.predict or ()))
     run = load_run(args.run)  # refused inputs: nothing is written
     batch = _run_batch(args, run)
-    _refuse_existing(args.out, args.overwrite)
-
-    def progress(msg):
-        print(msg, file=sys.stderr, flush=True)
-
+    _check_out(args, "report", (batch.path, "batch folder"))
     rep = build_report(run, batch, tolerances=tolerances, confidence=args.confidence,
                        validate=not args.no_validation, predict_dirs=args.predict or (), gap_dirs=args.gap or (),
                        n_draws=args.draws, seed=args.seed, max_figure_modules=args.max_figure_modules,
-                       command="tembayes " + " ".join(args.argv), progress=progress)
+                       command="tembayes " + " ".join(args.argv), progress=_progress)
     path = write_report(rep, args.out, overwrite=args.overwrite)
     for m in rep.modules:
         failed = [c["check"] for c in m["acceptance"]["checks"] if not c["passed"]]
@@ -400,25 +412,25 @@ def _cmd_report(args):
 def _cmd_predict(args):
     from tembayes.calibrate.run import load_run
     from tembayes.data import load_experiment
-    from tembayes.data.write import _refuse_existing
+    from tembayes.data.preflight import check_experiment, raise_first_error
     from tembayes.predict.predictive import predict
 
     if args.draws < 10:
         print(f"tembayes predict: --draws must be at least 10, got {args.draws}", file=sys.stderr)
         return 2
+    _check_out(args, "predict", (args.batch, "batch folder"), (args.experiment, "experiment file"))
     run = load_run(args.run)  # refused inputs: nothing is written
     if args.module != "population" and args.module not in run.module_ids:
         raise DataError(args.run / "posterior.nc", f"has no module '{args.module}'",
                         f"Choose one of {list(run.module_ids)} or 'population'.")
     batch = _run_batch(args, run)
-    exp = load_experiment(args.experiment, imax=batch.datasheet.imax)
-    _refuse_existing(args.out, args.overwrite)
-
-    def progress(msg):
-        print(msg, file=sys.stderr, flush=True)
-
+    _check_out(args, "predict", (batch.path, "batch folder"), (args.experiment, "experiment file"))
+    exp = load_experiment(args.experiment, datasheet=batch.datasheet)
+    findings = check_experiment(exp, datasheet=batch.datasheet)
+    raise_first_error(findings)
+    _say_findings(findings)
     result = predict(run, exp, args.module, batch, n_draws=args.draws, seed=args.seed,
-                     compare_constant=not args.no_constant, progress=progress)
+                     compare_constant=not args.no_constant, progress=_progress)
     from tembayes.plots.predict import save_predict_figures
 
     _write_result(args, "metrics.json", result.to_json(), lambda tmp: save_predict_figures(result, tmp))
@@ -433,19 +445,13 @@ def _cmd_predict(args):
 
 def _cmd_gap(args):
     from tembayes.calibrate.run import load_run
-    from tembayes.data import load_batch
-    from tembayes.data.write import _refuse_existing
     from tembayes.gap.diagnose import diagnose
 
+    _check_out(args, "gap", (args.batch, "batch folder"))
     run = load_run(args.run)  # refused inputs: nothing is written
-    batch = load_batch(args.batch)
-    _refuse_existing(args.out, args.overwrite)
-
-    def progress(msg):
-        print(msg, file=sys.stderr, flush=True)
-
+    batch = _run_batch(args, run)
     diag = diagnose(run, batch, exclude=args.exclude or (), candidates=args.candidates, n_draws=args.draws,
-                    seed=args.seed, jobs=args.jobs, progress=progress)
+                    seed=args.seed, jobs=args.jobs, progress=_progress)
     from tembayes.plots.gap import save_gap_figures
 
     _write_result(args, "gap.json", diag.to_json(), lambda tmp: save_gap_figures(diag, tmp))
@@ -532,11 +538,12 @@ def build_parser():
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("batch", type=Path, help="batch folder")
-    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder (created if missing)")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder to create")
     p.add_argument("--leg-cells", type=int, default=0, metavar="N",
                    help="resolve the module's legs into N cells in the rig fit and validation (default 0: "
                         "the paper's lumped module)")
     p.add_argument("--no-figures", action="store_true", help="write identify.json only")
+    p.add_argument("--overwrite", action="store_true", help="replace DIR if it is an earlier identify output")
     p.set_defaults(func=_cmd_identify)
 
     p = sub.add_parser(
@@ -706,6 +713,19 @@ def main(argv=None):
     except TembayesError as err:
         print(f"tembayes: error: {err}", file=sys.stderr)
         return 2
+    except OSError as err:  # the file system refused mid-way (no space, permissions): say so, no traceback
+        print(f"tembayes: error: {_os_error(err)}", file=sys.stderr)
+        return 2
+
+
+def _os_error(err):
+    import errno
+
+    what = f"{err.filename}: {err.strerror or err}" if err.filename else str(err)
+    hint = {errno.ENOSPC: "Free some space and run again (calibrate: --resume continues where it stopped)",
+            errno.EACCES: "Choose an --out you can write to", errno.EROFS: "Choose an --out you can write to",
+            errno.EDQUOT: "Free some space (disk quota) and run again"}.get(err.errno, "Check the path and run again")
+    return f"{what}. {hint}"
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -33,7 +33,7 @@ class DataError(TembayesError, ValueError):
         self.path = Path(path)
         self.problem = problem
         self.hint = hint
-        self.line = line
+        self.line = None if line is None else int(line)
         self.column = column
         where = str(self.path)
         if line is not None:

@@ -52,7 +52,7 @@ def test_same_seed_same_bytes(short_batches):
     fa = _files(short_batches["a"][0])
     fb = _files(short_batches["b"][0])
     assert set(fa) == {"batch.toml", "truth.json", "TEM1/identification.csv", "TEM1/validation.csv",
-                       "TEM2/identification.csv", "TEM2/validation.csv"}
+                       "TEM2/identification.csv", "TEM2/validation.csv", ".tembayes-output.json"}
     assert fa == fb
 
 

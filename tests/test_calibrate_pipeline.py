@@ -26,6 +26,7 @@ from tembayes.bench import BenchConfig, simulate_batch
 from tembayes.calibrate import CalibrationOptions, calibrate_batch
 from tembayes.calibrate import results as res
 from tembayes.calibrate.module import calibrate_module, sample_prior_only
+from tembayes.calibrate.runfolder import partial_path
 from tembayes.cli import main
 from tembayes.constants import MODULE_PARAMETERS
 from tembayes.data import load_batch
@@ -174,14 +175,14 @@ def test_resume_after_kill_9_continues_the_stored_chain(batch1, tmp_path):
     a = res.read_module(straight / "modules" / "TEM1.nc")
     killed = tmp_path / "b"
     p = _cli("calibrate", str(batch1), "--out", str(killed), "--seed", "4", "--quiet", "--no-figures")
-    ck = killed / "checkpoints"
+    ck = partial_path(killed) / "checkpoints"  # a run is built in RUN.partial until it is complete
     t0 = time.time()
     while not (ck / "TEM1.stage1.00001.npz").exists() and time.time() - t0 < 300:
         time.sleep(0.1)
     time.sleep(0.7)  # inside the next check interval
     p.send_signal(signal.SIGKILL)
     p.communicate()
-    assert not (killed / "summary.json").exists()
+    assert not killed.exists() and not (partial_path(killed) / "summary.json").exists()
     # only whole chunks: every stored one is readable and continues the last
     stored = {f.name: f.read_bytes() for f in ck.glob("TEM1.stage1.*.npz")}
     assert len(stored) >= 2

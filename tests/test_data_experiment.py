@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from tembayes.constants import CSV_COLUMNS, KELVIN
-from tembayes.data import Experiment, load_experiment
+from tembayes.data import Datasheet, Experiment, load_experiment
 from tembayes.errors import DataError
 
 # ---------------------------------------------------------------- accepted
@@ -93,11 +93,15 @@ def test_spaces_around_fields_accepted(data_factory):
     assert load_experiment(data_factory.write_csv(header=header, rows=rows)).n == 50
 
 
+def _sheet(imax):
+    return Datasheet(name="x", th=298.15, imax=imax, vmax=14.4, dtmax=66.0, qmax=50.0 * imax / 6.4)
+
+
 def test_imax_allows_large_currents_of_big_modules(data_factory):
     rows = data_factory.rows()
     rows[10][1] = "25.00000"
     path = data_factory.write_csv(rows=rows)
-    assert load_experiment(path, imax=12.0).current.max() == 25.0  # 25 < 3*12
+    assert load_experiment(path, datasheet=_sheet(12.0)).current.max() == 25.0  # 25 < 3*12
     assert load_experiment(path).current.max() == 25.0  # no datasheet: 100 A limit
 
 
@@ -247,7 +251,7 @@ CASES = {
         r"\|current\| up to 20\d\.\d+ \(more than 100 A\) looks like mA", int, "current_A",
         r"convert to A \(divide by 1000\)"),
     "current_in_mA_with_imax": (
-        lambda f: (f.write_csv(rows=_rows_with(f, 30, "current_A", "-25.0")), {"imax": 6.4}),
+        lambda f: (f.write_csv(rows=_rows_with(f, 30, "current_A", "-25.0")), {"datasheet": _sheet(6.4)}),
         r"up to 25 \(more than 3 x Imax = 6\.4 A\) looks like mA", 30, "current_A", r"convert to A"),
     "voltage_in_mV": (
         lambda f: (f.write_csv(rows=[r[:2] + [f"{float(r[2]) * 10000:.1f}"] + r[3:] for r in f.rows()]), {}),
@@ -301,4 +305,4 @@ def test_unreadable_file_refused(data_factory):
 
 def test_bad_imax_is_a_programming_error(data_factory):
     with pytest.raises(ValueError, match="imax"):
-        load_experiment(data_factory.write_csv(), imax=0.0)
+        load_experiment(data_factory.write_csv(), datasheet=_sheet(0.0))

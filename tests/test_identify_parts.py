@@ -8,7 +8,7 @@ from tembayes.bench.protocols import identification_staircase
 from tembayes.errors import ModelError
 from tembayes.identify.estimates import Steady, jump_resistance, junction_temperatures
 from tembayes.identify.fits import fit_line, hysteresis
-from tembayes.identify.steps import detect_steps
+from tembayes.data.steps import detect_steps
 from tembayes.physics import Inputs, simulate
 from tembayes.physics.rig import REFERENCE
 from tembayes.physics.simulate import build

@@ -81,7 +81,7 @@ def _images(html):
 
 def test_report_is_one_self_contained_file_with_every_section(report):
     out, html, doc = report
-    assert sorted(p.name for p in out.iterdir()) == ["report.html", "report.json"]
+    assert sorted(p.name for p in out.iterdir()) == [".tembayes-output.json", "report.html", "report.json"]
     for sid in SECTIONS:
         assert f"<section id='{sid}'>" in html
     # nothing outside the file: no external source, link, script or stylesheet

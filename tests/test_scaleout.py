@@ -28,6 +28,7 @@ from tembayes.calibrate import calibrate_batch
 from tembayes.calibrate import results as res
 from tembayes.calibrate.batch import exclusion_reason, finish_run
 from tembayes.calibrate.module import CalibrationOptions
+from tembayes.calibrate.runfolder import partial_path
 from tembayes.calibrate.run import load_run
 from tembayes.constants import MODULE_PARAMETERS
 from tembayes.data import LazyModule, load_batch
@@ -148,8 +149,8 @@ def test_a_killed_worker_is_replaced_and_a_killed_run_resumes_with_the_missing_m
     # 1. a worker killed mid-module: Dask reruns its module, the batch finishes with the same bits
     out = tmp_path / "killed_worker"
     proc, log = _start(tmp_path, batch4, out, "fresh")
-    # a sampler checkpoint: the workers are inside their first modules
-    _wait(lambda: any((out / "checkpoints").glob("*.json")), 120, "a module under way")
+    # a sampler checkpoint: the workers are inside their first modules (the run is built in RUN.partial)
+    _wait(lambda: any((partial_path(out) / "checkpoints").glob("*.json")), 120, "a module under way")
     victims = _workers(proc.pid)
     assert len(victims) >= 2, [p.cmdline() for p in victims]
     victims[0].send_signal(signal.SIGKILL)
@@ -159,12 +160,13 @@ def test_a_killed_worker_is_replaced_and_a_killed_run_resumes_with_the_missing_m
 
     # 2. the whole run killed after its first modules: --resume calibrates only the others
     out = tmp_path / "killed_run"
+    part = partial_path(out)
     proc, log = _start(tmp_path, batch4, out, "first")
-    _wait(lambda: len(list((out / "modules").glob("*.nc"))) >= 1, 300, "a first module")
+    _wait(lambda: len(list((part / "modules").glob("*.nc"))) >= 1, 300, "a first module")
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
-    done = sorted(p.stem for p in (out / "modules").glob("*.nc"))
-    assert 1 <= len(done) < 4 and not (out / "summary.json").exists()
+    done = sorted(p.stem for p in (part / "modules").glob("*.nc"))
+    assert 1 <= len(done) < 4 and not (part / "summary.json").exists() and not out.exists()
     proc, log = _start(tmp_path, batch4, out, "resume")
     assert proc.wait(timeout=300) == 0, log.read_text()
     text = log.read_text()

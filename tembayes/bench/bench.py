@@ -228,7 +228,7 @@ def simulate_batch(out, config, *, overwrite=False, progress=None):
     eff_flat = {k: v for params in config.effects.values() for k, v in params.items()}
     ds = config.datasheet
     rig = hifi.hifi_rig()
-    with atomic_directory(out, overwrite=overwrite) as tmp:
+    with atomic_directory(out, overwrite=overwrite, kind="simulate") as tmp:
         write_batch_toml(tmp / "batch.toml", ds, {"preset": "reference"})
         for (mid, module), mss in zip(truth["modules"].items(), module_ss):
             mrng = np.random.default_rng(mss)

@@ -26,6 +26,7 @@ from __future__ import annotations
 import glob
 import io
 import json
+import os
 import shlex
 import sys
 import time
@@ -39,6 +40,8 @@ from tembayes.calibrate import results as res
 from tembayes.calibrate import sampler as smp
 from tembayes.calibrate.module import CalibrationOptions, module_seed
 from tembayes.calibrate.priors import law_priors
+from tembayes.calibrate.runfolder import RunFolder, module_usable
+from tembayes.data.digest import batch_inputs
 from tembayes.data.write import atomic_write_bytes, to_jsonable, write_json
 from tembayes.errors import ModelError
 
@@ -78,9 +81,9 @@ def _module_line(mid, d):
 POPULATION_DRAWS = 1000
 
 
-def calibrate_batch(batch, out, *, seed=0, options=None, resume=False, population=True, progress=None,
-                    progress_bar=False, argv=None, figures=True, workers=1, scheduler=None, client=None,
-                    jobs=None, keep_unconverged=False):
+def calibrate_batch(batch, out, *, seed=0, options=None, resume=False, overwrite=False, population=True,
+                    progress=None, progress_bar=False, argv=None, figures=True, workers=1, scheduler=None,
+                    client=None, jobs=None, keep_unconverged=False):
     """Calibrate every module of a batch and the batch population.
 
     Parameters
@@ -89,13 +92,20 @@ def calibrate_batch(batch, out, *, seed=0, options=None, resume=False, populatio
         A loaded (hence validated) batch folder; ``load_batch(path, lazy=True)``
         for large batches.
     out : str or Path
-        The run folder (created).
+        The run folder.  It is built as ``out.partial`` and renamed to
+        ``out`` when complete (:mod:`tembayes.calibrate.runfolder`): a
+        failed or killed run leaves an existing ``out`` as it was.
     seed : int
         Run seed.
     options : CalibrationOptions, optional
     resume : bool
-        Reuse finished modules and sampler checkpoints in ``out``; modules
-        that failed before are tried again.
+        Continue ``out.partial`` (or the finished ``out``): reuse finished
+        modules and sampler checkpoints; modules that failed before, or whose
+        file is damaged, are tried again.  Refused for another seed or a
+        changed batch.
+    overwrite : bool
+        Replace an existing ``out`` (a calibration run holding nothing else)
+        when the new run is complete.
     population : bool
         Fit the population (needs >= 2 converged modules).
     progress : callable, optional
@@ -125,12 +135,25 @@ def calibrate_batch(batch, out, *, seed=0, options=None, resume=False, populatio
     dict
         The summary (also written to ``RUN/summary.json``).
     """
+    say = progress or (lambda msg: None)
+    workers = int(jobs if jobs is not None else workers)
+    folder = RunFolder(out, batch=batch, seed=seed, resume=resume, overwrite=overwrite, workers=workers,
+                       progress=say)
+    with folder as work:
+        summ = _calibrate_in(batch, work, folder.record(), seed=seed, options=options or CalibrationOptions(),
+                             resume=resume, population=population, say=say, progress_bar=progress_bar, argv=argv,
+                             figures=figures, workers=workers, scheduler=scheduler, client=client,
+                             keep_unconverged=keep_unconverged)
+        folder.commit()
+    return summ
+
+
+def _calibrate_in(batch, out, record, *, seed, options, resume, population, say, progress_bar, argv, figures,
+                  workers, scheduler, client, keep_unconverged):
+    """:func:`calibrate_batch` inside the run folder being built (``out``)."""
     from tembayes.calibrate.scaleout import calibrate_modules
 
-    say = progress or (lambda msg: None)
-    opt = options or CalibrationOptions()
-    workers = int(jobs if jobs is not None else workers)
-    out = Path(out)
+    opt = options
     (out / "modules").mkdir(parents=True, exist_ok=True)
     (out / "checkpoints").mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -138,7 +161,12 @@ def calibrate_batch(batch, out, *, seed=0, options=None, resume=False, populatio
     order = {mid: i for i, mid in enumerate(batch.modules)}
     todo = []
     for mid, module in batch.modules.items():
-        if resume and (out / "modules" / f"{mid}.nc").exists():
+        nc = out / "modules" / f"{mid}.nc"
+        if resume and nc.exists() and not module_usable(nc):
+            nc.replace(nc.with_name(nc.name + ".damaged"))
+            say(f"[{order[mid] + 1}/{n}] {mid}: {nc} cannot be read (damaged?); kept as {nc.name}.damaged, "
+                "calibrated again")
+        if resume and nc.exists():
             say(f"[{order[mid] + 1}/{n}] {mid}: finished earlier, reused")
         else:
             todo.append(module)
@@ -175,7 +203,7 @@ def calibrate_batch(batch, out, *, seed=0, options=None, resume=False, populatio
         oc.result = None  # written: not kept
     return finish_run(batch, out, seed=seed, options=opt, population=population, progress=say, argv=argv,
                       figures=figures, keep_unconverged=keep_unconverged, seconds=time.perf_counter() - t0,
-                      executor={"where": where, "workers": workers, "scheduler": scheduler})
+                      executor={"where": where, "workers": workers, "scheduler": scheduler}, batch_record=record)
 
 
 def _eta(t0, done, total):
@@ -233,24 +261,37 @@ def _digest_of(r):
     return res.module_entry(r), exclusion_reason(r.diagnostics), _thin(r.law_draws(), POPULATION_DRAWS), r.rig
 
 
+def digest_matches(nc) -> bool:
+    """Whether the module file ``nc`` is the one its digest was written for (same size and time)."""
+    d = _digest_path(Path(nc))
+    if not d.exists():
+        return False
+    st = Path(nc).stat()
+    try:
+        with np.load(d) as z:
+            return list(z["source"]) == [st.st_size, st.st_mtime_ns]
+    except (OSError, ValueError, KeyError):
+        return False
+
+
 def _read_digest(nc):
     """``(entry, why, law, rig)`` of a module file: from its digest if it is the file's, else from the file."""
-    d = _digest_path(nc)
-    if d.exists():
-        st = nc.stat()
-        with np.load(d) as z:
-            if list(z["source"]) == [st.st_size, st.st_mtime_ns]:
-                return json.loads(str(z["entry"])), str(z["why"]) or None, z["law"].copy(), str(z["rig"])
+    if digest_matches(nc):
+        with np.load(_digest_path(nc)) as z:
+            return json.loads(str(z["entry"])), str(z["why"]) or None, z["law"].copy(), str(z["rig"])
     return _digest_of(res.read_module(nc))  # an older run, or a module file replaced since
 
 
 def finish_run(batch, out, *, seed=0, options=None, population=True, progress=None, argv=None, figures=True,
-               keep_unconverged=False, seconds=None, executor=None):
+               keep_unconverged=False, seconds=None, executor=None, batch_record=None):
     """The batch stage of a run whose modules are in ``RUN/modules``.
 
     Reads the module files one at a time (their summary entries and thinned
     law draws), fits the population on the converged modules, writes
     ``summary.json``, ``posterior.nc`` (all calibrated modules) and the figures.
+    ``batch_record`` (:meth:`RunFolder.record`: the batch's absolute path
+    and the digests of its files) goes into ``summary.json``'s ``batch``;
+    computed here when not given.
 
     Returns
     -------
@@ -299,8 +340,8 @@ def finish_run(batch, out, *, seed=0, options=None, population=True, progress=No
     del law
     argv = list(argv) if argv is not None else None
     extra = {
-        "batch": {"path": str(batch.path), "module_type": batch.datasheet.name, "n_modules": len(batch.modules),
-                  "n_calibrated": len(files)},
+        "batch": {**(batch_record or {"path": os.path.abspath(batch.path), "inputs": batch_inputs(batch)}),
+                  "module_type": batch.datasheet.name, "n_modules": len(batch.modules), "n_calibrated": len(files)},
         # the spreads stated in batch.toml, and those learned here, in the
         # [population] table's format for the next batch of the type
         "population_prior": {k: {"median": m, "log_sd": sd} for k, (m, sd) in batch.population.items()},

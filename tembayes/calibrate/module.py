@@ -421,6 +421,18 @@ def calibrate_module(module, datasheet, **kw):
         return _calibrate_module(module, datasheet, **kw)
 
 
+def _read_state(path):
+    """A module's resume state, or None (set aside as ``*.damaged``, with a warning) if it cannot be read."""
+    try:
+        with open(path) as f:
+            return json.load(f)
+    except (OSError, ValueError) as exc:
+        os.replace(path, path + ".damaged")
+        warnings.warn(f"resume state {path} cannot be read ({exc}); renamed {os.path.basename(path)}.damaged, the "
+                      "module starts again from its posterior mode", RuntimeWarning, stacklevel=3)
+        return None
+
+
 def _calibrate_module(module, datasheet, *, rig_config=None, seed=0, options=None, checkpoint=None, resume=False,
                       progress=None, progress_bar=False, effects=(), start=None):
     opt = options or CalibrationOptions()
@@ -440,7 +452,7 @@ def _calibrate_module(module, datasheet, *, rig_config=None, seed=0, options=Non
     state_file = None if checkpoint is None else f"{checkpoint}.json"
     state = None
     if resume and state_file and os.path.exists(state_file):
-        state = json.loads(open(state_file).read())
+        state = _read_state(state_file)
     if state is None:
         say(f"{module.id}: posterior mode")
         x0 = start_point(model_space, {k: v for k, v in (start or {}).items() if k != SHIFT})

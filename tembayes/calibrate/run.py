@@ -289,3 +289,66 @@ def load_run(run_dir) -> CalibrationRun:
                         "The two files come from different runs; rerun the calibration.")
     meta = {m: _json_attr(idata.posterior.attrs, f"module_{m}", {}) for m in mods}
     return CalibrationRun(path=run, idata=idata, summary=summary, module_ids=mods, _meta=meta)
+
+
+def load_run_batch(run, path=None) -> tuple:
+    """The batch a run was calibrated on, checked against the digests the run recorded.
+
+    Parameters
+    ----------
+    run : CalibrationRun
+    path : str or Path, optional
+        The batch folder (``--batch``); default the absolute path the run
+        recorded.
+
+    Returns
+    -------
+    batch : tembayes.data.Batch
+    notes : list of str
+        What a user should know: the batch moved, validation runs were added
+        or changed since, or the run is too old to have recorded digests.
+
+    Raises
+    ------
+    DataError
+        The recorded batch is not there, or ``batch.toml`` or an
+        identification run of the run's modules differs from what the run
+        was calibrated on (the message names the files).
+    """
+    from tembayes.data import load_batch
+    from tembayes.data.digest import batch_inputs, compare_inputs
+
+    rec = run.summary.get("batch") or {}
+    recorded = rec.get("path")
+    notes = []
+    if path is None:
+        candidates = [Path(recorded)] if recorded and Path(recorded).is_absolute() else \
+            [Path(recorded), run.path.parent / recorded] if recorded else []
+        path = next((c for c in candidates if (c / "batch.toml").is_file()), None)
+        if path is None:
+            raise DataError(run.path / "summary.json", f"names batch folder {recorded!r}, which is not there "
+                            "(moved?)", "Give the batch the run was calibrated on with --batch BATCH.",
+                            column="batch.path")
+    batch = load_batch(path)
+    inputs = rec.get("inputs")
+    if not inputs:
+        notes.append(f"the run records no digest of its batch (an older run): make sure {path} is the batch it was "
+                     "calibrated on")
+        return batch, notes
+    ids = set(run.module_ids)
+    key = lambda k: k == "batch.toml" or (k.endswith("/identification.csv") and k.split("/")[0] in ids)  # noqa: E731
+    now = batch_inputs(batch)
+    diff = compare_inputs(inputs, now, only=key)
+    if diff.changed or diff.missing:
+        what = ", ".join([*(f"{k} changed" for k in diff.changed), *(f"{k} missing" for k in diff.missing)][:4])
+        raise DataError(path, f"is not the batch the run was calibrated on ({what})",
+                        "Give the original batch with --batch, or calibrate this one")
+    if recorded and Path(recorded).resolve() != Path(path).resolve():
+        notes.append(f"the batch moved from {recorded} to {path} (its files are the ones the run was calibrated on)")
+    later = compare_inputs(inputs, now, only=lambda k: not key(k))
+    if not later.same:
+        notes.append("validation runs " + "; ".join(f"{label} since the calibration: {', '.join(files[:3])}" for
+                                                     label, files in (("changed", later.changed),
+                                                                      ("added", later.added),
+                                                                      ("removed", later.missing)) if files))
+    return batch, notes

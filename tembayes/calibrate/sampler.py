@@ -53,6 +53,7 @@ from __future__ import annotations
 import glob
 import os
 import warnings
+import zipfile
 from dataclasses import dataclass
 
 import arviz as az
@@ -177,6 +178,23 @@ class ChunkCheckpoint:
             os.fsync(f.fileno())
         os.replace(tmp, self._path(k))
 
+    def _readable(self, files):
+        """The chunks before the first damaged one; that one and the rest are set aside (renamed
+        ``*.damaged``) with a warning, so the run continues from the last good chunk."""
+        for k, path in enumerate(files):
+            try:
+                with np.load(path) as z:
+                    for key in ("start", "chain", "log_prob", "accepted", "rs_keys"):
+                        z[key]  # noqa: B018 -- reading every array finds a truncated file
+            except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+                for bad in files[k:]:
+                    os.replace(bad, bad + ".damaged")
+                warnings.warn(f"sampler checkpoint {path} cannot be read ({type(exc).__name__}: {exc}); it and the "
+                              f"{len(files) - k - 1} later chunk(s) were renamed *.damaged and the module continues "
+                              f"from {'chunk ' + str(k - 1) if k else 'the start'}", RuntimeWarning, stacklevel=3)
+                return files[:k]
+        return files
+
     def load(self, nwalkers, ndim):
         """An in-memory :class:`emcee.backends.Backend` holding the stored
         run, or None if there is none.
@@ -186,7 +204,7 @@ class ChunkCheckpoint:
         ValueError
             If the chunks do not fit ``(nwalkers, ndim)`` or each other.
         """
-        files = self.chunks()
+        files = self._readable(self.chunks())
         if not files:
             return None
         chains, lps, n = [], [], 0

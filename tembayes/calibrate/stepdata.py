@@ -26,7 +26,7 @@ import numpy as np
 
 from tembayes.data.quality import noise_estimate
 from tembayes.errors import DataError
-from tembayes.identify.steps import current_noise, detect_steps
+from tembayes.data.steps import current_noise, detect_steps
 
 #: Channels of the step likelihood, in the order of every channel axis.
 CHANNELS = ("voltage_V", "dT_K", "Tmean_K")

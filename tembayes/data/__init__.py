@@ -1,9 +1,10 @@
 """The data-contract layer: experiment CSVs, batch folders, atomic outputs.
 
 Everything loaded here is SI (kelvin, seconds, amperes, volts); degrees
-Celsius appear only in the files.  Inputs that break the contract
-(``shared/spec/contract.md`` sections 1-2) are refused with a
-:class:`~tembayes.errors.DataError` naming the file, line/column and fix.
+Celsius appear only in the files.  Inputs that break the data format
+(docs/data-format.md) or the physics a rig obeys (:mod:`.preflight`) are
+refused with a :class:`~tembayes.errors.DataError` naming the file,
+line/column and fix.
 """
 
 from .batch import (
@@ -16,6 +17,7 @@ from .batch import (
     Module,
     load_batch,
     load_batch_toml,
+    file_stem,
     load_population_table,
     natural_key,
 )
@@ -44,6 +46,7 @@ __all__ = [
     "load_batch_toml",
     "load_population_table",
     "natural_key",
+    "file_stem",
     "summarize_experiment",
     "noise_estimate",
     "atomic_write_text",

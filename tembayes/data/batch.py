@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import difflib
 import math
 import re
 import tomllib
@@ -11,6 +12,7 @@ from pathlib import Path
 from ..constants import KELVIN
 from ..errors import DataError, ModelError
 from .experiment import Experiment, load_experiment
+from .preflight import ERROR, check_experiment
 
 __all__ = [
     "Datasheet",
@@ -21,6 +23,7 @@ __all__ = [
     "load_batch_toml",
     "load_population_table",
     "natural_key",
+    "file_stem",
     "BATCH_TOML",
     "IDENTIFICATION_CSV",
     "DEFAULT_RIG_CONFIG",
@@ -37,6 +40,14 @@ POPULATION_SPREAD_KEYS = ("spread_R0_rel", "spread_R1_ohm_per_K", "spread_S0_rel
                           "spread_K_rel")
 #: Log-sd of a stated spread when ``spread_log_sd`` is not given.
 DEFAULT_SPREAD_LOG_SD = 0.3
+
+#: Plausible datasheet hot-side temperatures [degC].
+TH_MIN_C = -50.0
+TH_MAX_C = 150.0
+#: Qmax implied by Vmax, Imax (and Th, dTmax) within this factor of the stated one.
+QMAX_RATIO_MAX = 3.0
+#: Tables batch.toml may hold.
+BATCH_TABLES = ("module_type", "rig", "population")
 
 # toml key -> (Datasheet attribute, unit for messages)
 _DATASHEET_KEYS = {
@@ -133,8 +144,8 @@ class Datasheet:
         ----------
         table : dict
             Contract keys ``name`` (free text, optional), ``th_C`` [degC],
-            ``imax_A`` [A], ``vmax_V`` [V], ``dtmax_K`` [K], ``qmax_W`` [W].
-            Unknown keys are allowed and ignored.
+            ``imax_A`` [A], ``vmax_V`` [V], ``dtmax_K`` [K], ``qmax_W`` [W];
+            any other key is refused with the nearest known name.
         path : str or Path
             The ``batch.toml`` the table came from (for messages).
 
@@ -151,6 +162,7 @@ class Datasheet:
         if not isinstance(table, dict):
             raise DataError(path, "'module_type' must be a table",
                             "Write it as a [module_type] section", column="module_type")
+        _refuse_unknown(path, table, ("name", *_DATASHEET_KEYS), "module_type.")
         name = table.get("name", "")
         if not isinstance(name, str):
             raise DataError(path, f"module_type.name must be text, found {name!r}",
@@ -168,15 +180,40 @@ class Datasheet:
                 raise DataError(path, f"{key} = {v!r} must be positive",
                                 f"Give the datasheet value in {unit}", column=key)
             values[attr] = float(v)
+        if not TH_MIN_C <= values["th"] <= TH_MAX_C:
+            kelvin = TH_MIN_C + KELVIN <= values["th"] <= TH_MAX_C + KELVIN
+            raise DataError(path, f"th_C = {table['th_C']!r} is not a plausible datasheet hot-side temperature in "
+                            f"degC ({TH_MIN_C:g}..{TH_MAX_C:g})" + (": it looks like kelvin" if kelvin else ""),
+                            f"Give it in degC (e.g. {values['th'] - KELVIN:.4g})" if kelvin else
+                            "Give the datasheet's hot-side temperature in degC (usually 25 or 50)", column="th_C")
         values["th"] += KELVIN
-        if values["th"] <= 0:
-            raise DataError(path, f"th_C = {table['th_C']!r} is below absolute zero",
-                            "Give the datasheet hot-side temperature in degC", column="th_C")
         if values["dtmax"] >= values["th"]:
             raise DataError(path, f"dtmax_K = {table['dtmax_K']!r} is not below Th = {values['th']:.2f} K",
                             "Check dtmax_K (kelvin) and th_C (degC) against the datasheet",
                             column="dtmax_K")
-        return cls(name=name, **values)
+        sheet = cls(name=name, **values)
+        sheet._check_consistency(path)
+        return sheet
+
+    def qmax_expected(self) -> float:
+        """Qmax [W] the other figures imply: ``S Imax Th - R Imax^2 / 2`` (zero dT, standard conversions)."""
+        return self.vmax * self.imax * (self.th + self.dtmax) / (2.0 * self.th)
+
+    def _check_consistency(self, path):
+        """Refuse figures whose units disagree (mA, mV, kW): Qmax must match the other figures' order."""
+        ratio = self.qmax_expected() / self.qmax
+        if 1.0 / QMAX_RATIO_MAX <= ratio <= QMAX_RATIO_MAX:
+            return
+        if ratio > 1:  # a figure in Vmax x Imax too large, or Qmax too small
+            suspects = [(k, u) for k, u, off in (("imax_A", "mA", self.imax > 100), ("vmax_V", "mV", self.vmax > 1000),
+                                                 ("qmax_W", "kW", self.qmax < 1)) if off]
+        else:
+            suspects = [("qmax_W", "mW")] if self.qmax > 1e4 else []
+        keys = [k for k, _ in suspects] or ["imax_A", "vmax_V", "qmax_W"]
+        raise DataError(path, f"the datasheet figures disagree by a factor {ratio:.3g}: Vmax x Imax (with Th, "
+                        f"dTmax) implies Qmax = {self.qmax_expected():.4g} W, the table says {self.qmax:g} W",
+                        "Check the unit of " + (", ".join(f"{k} ({u}?)" for k, u in suspects) if suspects else
+                                                "imax_A [A], vmax_V [V] and qmax_W [W]"), column=keys[0])
 
 
 @dataclass(frozen=True, eq=False)
@@ -216,22 +253,23 @@ class LazyModule:
     id : str
     path : Path
         The module folder.
-    imax : float
-        The datasheet's maximum current [A] (the CSVs' current check).
+    datasheet : Datasheet
+        The module type (the CSVs' unit checks).
+    validation_files : tuple of Path
     """
 
     id: str
     path: Path
-    imax: float
+    datasheet: "Datasheet"
     validation_files: tuple = ()
 
     @property
     def identification(self) -> Experiment:
-        return load_experiment(self.path / IDENTIFICATION_CSV, imax=self.imax)
+        return load_experiment(self.path / IDENTIFICATION_CSV, datasheet=self.datasheet)
 
     @property
     def validations(self) -> tuple:
-        return tuple(load_experiment(p, imax=self.imax) for p in self.validation_files)
+        return tuple(load_experiment(p, datasheet=self.datasheet) for p in self.validation_files)
 
     def load(self) -> Module:
         """The module with its experiments in memory."""
@@ -257,6 +295,9 @@ class Batch:
     population : dict
         The optional ``[population]`` table: known unit-to-unit spreads of the
         type, ``spread_... -> (median, log_sd)`` (:func:`load_population_table`).
+    findings : tuple of tembayes.data.preflight.Finding
+        The preflight's warnings on the experiments (errors too when loaded
+        with ``strict=False``).
     """
 
     path: Path
@@ -264,6 +305,7 @@ class Batch:
     rig_config: dict = field(default_factory=lambda: dict(DEFAULT_RIG_CONFIG))
     modules: dict = field(default_factory=dict)
     population: dict = field(default_factory=dict)
+    findings: tuple = ()
 
 
 def load_batch_toml(path) -> tuple[Datasheet, dict]:
@@ -314,8 +356,26 @@ def _read_batch_toml(path):
     return path, doc
 
 
+def _nearest(name, known):
+    """``", did you mean 'x'"`` for the closest known name, or ``""``."""
+    match = difflib.get_close_matches(str(name), [str(k) for k in known], n=1, cutoff=0.6)
+    return f" (did you mean '{match[0]}'?)" if match else ""
+
+
+def _refuse_unknown(path, table, known, prefix=""):
+    """Refuse the first key of ``table`` not in ``known``, naming the nearest known one."""
+    for key in table:
+        if key not in known:
+            raise DataError(path, f"unknown key '{prefix}{key}'{_nearest(key, known)}",
+                            f"Use one of {', '.join(known)}, or delete it", column=key)
+
+
 def _tables(path, doc):
     """``[module_type]`` and ``[rig]`` of a parsed batch.toml, validated."""
+    for key in doc:
+        if key not in BATCH_TABLES:
+            raise DataError(path, f"unknown table '[{key}]'{_nearest(key, BATCH_TABLES)}",
+                            f"batch.toml holds the tables {', '.join(BATCH_TABLES)}; rename or delete it", column=key)
     if "module_type" not in doc:
         raise DataError(path, "there is no [module_type] table",
                         "Add [module_type] with name, th_C, imax_A, vmax_V, dtmax_K, qmax_W "
@@ -374,11 +434,9 @@ def _population(path, doc):
         raise DataError(path, "'population' must be a table", "Write it as a [population] section",
                         column="population")
     allowed = POPULATION_SPREAD_KEYS + ("spread_log_sd",)
+    _refuse_unknown(path, table, allowed, "population.")
     values = {}
     for key, v in table.items():
-        if key not in allowed:
-            raise DataError(path, f"population.{key} is not a known key",
-                            f"Use {', '.join(allowed)}", column=key)
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
             raise DataError(path, f"population.{key} must be a positive number, found {v!r}",
                             "Give the spread as a number, e.g. 0.01 for 1 %", column=key)
@@ -388,10 +446,8 @@ def _population(path, doc):
 
 
 def _check_rig(path: Path, rig_config: dict) -> None:
-    try:
-        from ..physics.rig import rig_from_config  # lazy: physics is heavier than data
-    except ImportError:
-        return  # physics not available: the rig is checked when a model is built
+    from ..physics.rig import rig_from_config  # lazy: physics is heavier than data
+
     try:
         rig_from_config(rig_config)
     except ModelError as e:
@@ -400,7 +456,23 @@ def _check_rig(path: Path, rig_config: dict) -> None:
                         column="rig") from None
 
 
-def load_batch(path, *, lazy=False) -> Batch:
+def file_stem(module_id: str) -> str:
+    """The name a module's files get in every output (corner plots, export keys): letters, digits, ``_``."""
+    return re.sub(r"[^A-Za-z0-9_]", "_", str(module_id)) or "_"
+
+
+def _refuse_colliding_ids(path, ids):
+    """Module ids that would share an output file name (``TEM 1``/``TEM_1``; case-blind file systems)."""
+    seen = {}
+    for mid in ids:
+        key = file_stem(mid).casefold()
+        if key in seen:
+            raise DataError(path, f"the module folders '{seen[key]}' and '{mid}' would share output file names "
+                            f"('{file_stem(mid)}')", "Rename one of them (letters, digits and '_' keep ids apart)")
+        seen[key] = mid
+
+
+def load_batch(path, *, lazy=False, strict=True) -> Batch:
     """Load and validate a batch folder (contract section 1).
 
     Parameters
@@ -413,11 +485,16 @@ def load_batch(path, *, lazy=False) -> Batch:
         Validate every file, then keep only the paths: the modules are
         :class:`LazyModule` and read their CSVs when used (memory independent
         of the batch size).
+    strict : bool
+        Refuse the batch on the first error-level preflight finding
+        (:mod:`tembayes.data.preflight`); False keeps every finding in
+        ``Batch.findings`` (``tembayes inspect``).
 
     Returns
     -------
     Batch
-        Modules in natural order of their ids; experiments in SI units.
+        Modules in natural order of their ids; experiments in SI units;
+        ``findings`` holds the preflight's warnings (and errors, if not strict).
 
     Raises
     ------
@@ -432,6 +509,7 @@ def load_batch(path, *, lazy=False) -> Batch:
                         "Pass the batch folder (the one holding batch.toml and the module folders)")
     toml = _read_batch_toml(path / BATCH_TOML)
     datasheet, rig_config = _tables(*toml)
+    population = _population(*toml)
 
     folders = sorted(
         (p for p in path.iterdir()
@@ -442,25 +520,31 @@ def load_batch(path, *, lazy=False) -> Batch:
         raise DataError(path, "the batch folder has no module folders",
                         "Put each module's experiments in its own sub-folder "
                         "(e.g. TEM1/identification.csv)")
-    modules = {}
+    _refuse_colliding_ids(path, [f.name for f in folders])
+    modules, findings = {}, []
     for folder in folders:
         ident = folder / IDENTIFICATION_CSV
         if not ident.is_file():
             raise DataError(folder, "the module folder has no identification.csv",
                             "Each module folder needs identification.csv "
                             "(move other folders out of the batch folder)")
-        validation_files = sorted(
+        validation_files = tuple(sorted(
             (p for p in folder.glob("validation*.csv") if p.is_file()),
             key=lambda p: natural_key(p.stem),
-        )
+        ))
         module = Module(
             id=folder.name,
             path=folder,
-            identification=load_experiment(ident, imax=datasheet.imax),
-            validations=tuple(load_experiment(p, imax=datasheet.imax) for p in validation_files),
+            identification=load_experiment(ident, datasheet=datasheet),
+            validations=tuple(load_experiment(p, datasheet=datasheet) for p in validation_files),
         )
+        for exp in (module.identification, *module.validations):
+            found = check_experiment(exp, datasheet=datasheet, identification=exp is module.identification)
+            if strict and any(f.severity == ERROR for f in found):
+                raise next(f for f in found if f.severity == ERROR).error()
+            findings += found
         # lazy: the files were read (validated) above, and are dropped here
-        modules[folder.name] = (LazyModule(id=folder.name, path=folder, imax=datasheet.imax,
-                                           validation_files=tuple(validation_files)) if lazy else module)
+        modules[folder.name] = (LazyModule(id=folder.name, path=folder, datasheet=datasheet,
+                                           validation_files=validation_files) if lazy else module)
     return Batch(path=path, datasheet=datasheet, rig_config=rig_config, modules=modules,
-                 population=_population(*toml))
+                 population=population, findings=tuple(findings))

@@ -62,6 +62,9 @@ class Experiment:
     extra : dict of str to ndarray
         Other numeric columns of the file, as written (unit unknown); kept,
         not used.
+    lines : ndarray of int, shape (n,), optional
+        The file line of each sample (header = line 1), for messages; None
+        for data made in memory.
 
     Notes
     -----
@@ -77,6 +80,7 @@ class Experiment:
     t_water: np.ndarray
     t_amb: np.ndarray
     extra: dict = field(default_factory=dict)
+    lines: np.ndarray | None = None
 
     def __post_init__(self):
         set_ = object.__setattr__  # frozen dataclass: the only way to normalise
@@ -104,6 +108,21 @@ class Experiment:
                 raise ValueError(f"Experiment.extra[{key!r}]: expected shape ({n},), found {arr.shape}")
             extra[str(key)] = arr
         set_(self, "extra", extra)
+        if self.lines is not None:
+            lines = np.asarray(self.lines, dtype=np.int64)
+            if lines.shape != (n,):
+                raise ValueError(f"Experiment.lines: expected shape ({n},), found {lines.shape}")
+            lines.setflags(write=False)
+            set_(self, "lines", lines)
+
+    def where(self, i: int) -> str:
+        """Sample ``i`` for a message: ``"line 1234 (t = 567.8 s)"``, or ``"sample 1232 (...)"`` in memory."""
+        at = f"line {int(self.lines[i])}" if self.lines is not None else f"sample {int(i)}"
+        return f"{at} (t = {self.time[i]:.6g} s)"
+
+    def line(self, i: int) -> int | None:
+        """The file line of sample ``i`` (None for data made in memory)."""
+        return None if self.lines is None else int(self.lines[i])
 
     @property
     def n(self) -> int:
@@ -162,7 +181,10 @@ class Experiment:
 
 
 def _frozen(values) -> np.ndarray:
-    arr = np.array(values, dtype=np.float64)  # always a private copy
+    if isinstance(values, np.ndarray) and values.dtype == np.float64 and values.base is None \
+            and values.flags.c_contiguous and values.flags.owndata and not values.flags.writeable:
+        return values  # already private and read-only (the loader's own arrays): no second copy
+    arr = np.array(values, dtype=np.float64)  # a private copy
     arr.setflags(write=False)
     return arr
 
@@ -170,8 +192,11 @@ def _frozen(values) -> np.ndarray:
 # --------------------------------------------------------------------------
 # loading
 
+#: Bytes of data rows parsed at a time: memory stays bounded for any file size.
+_CHUNK_BYTES = 8 << 20
 
-def load_experiment(path, *, imax=None) -> Experiment:
+
+def load_experiment(path, *, datasheet=None) -> Experiment:
     """Load and validate one experiment CSV (contract section 2).
 
     Parameters
@@ -179,105 +204,94 @@ def load_experiment(path, *, imax=None) -> Experiment:
     path : str or Path
         The CSV file: one header row, comma separators, ``.`` decimal point,
         the contract columns in any order, further columns allowed.
-    imax : float, optional
-        Datasheet maximum current of the module type [A].  When given, a
-        current above ``3 * imax`` is refused as milliamperes; otherwise the
-        limit is 100 A.
+    datasheet : tembayes.data.Datasheet, optional
+        The module type.  When given, a current above 3 x its Imax is
+        refused as milliamperes (otherwise above 100 A), and a file whose
+        Seebeck voltage per kelvin is 1.8 times too small is refused as degF.
 
     Returns
     -------
     Experiment
         SI arrays (temperatures in kelvin).  Numeric extra columns are kept
-        in ``extra``; non-numeric ones are dropped.
+        in ``extra``; non-numeric ones are dropped.  ``lines`` holds each
+        sample's line in the file.
 
     Raises
     ------
     DataError
         For anything that breaks the contract; the message names the file,
         the line (header = line 1) and/or column, and what to do.
+
+    Notes
+    -----
+    The rows are parsed in blocks of a few megabytes, so memory is the
+    arrays' size plus a constant, whatever the file's size.
     """
     path = Path(path)
-    text = _read_text(path)
-    lines = text.splitlines()
-    if not any(line.strip() for line in lines):
-        raise DataError(path, "the file is empty",
-                        "Export the experiment again: the contract needs a header row and data rows")
-
-    reader = csv.reader(lines)
-    header = next(reader)
-    names = _check_header(path, header, lines[0])
-    ncol = len(names)
-
-    rows, row_lines = [], []
-    for row in reader:
-        line_no = reader.line_num
-        if not row or (len(row) == 1 and not row[0].strip()):
-            continue  # blank lines carry nothing; tolerate them
-        if len(row) != ncol:
-            _refuse_field_count(path, row, ncol, line_no, lines)
-        rows.append(row)
-        row_lines.append(line_no)
-
-    if not rows:
-        raise DataError(path, "the file has a header but no data rows",
-                        "Export the experiment again with its samples", line=1)
-    if len(rows) < 2:
-        raise DataError(path, "the file has only 1 data row; at least 2 are needed",
-                        "Export the whole experiment", line=row_lines[0])
-
-    cols = list(zip(*rows))  # column-major tuples of strings
-    index = {name: j for j, name in enumerate(names)}
-    data = {c: _to_float(path, cols[index[c]], c, row_lines) for c in CSV_COLUMNS}
-    for c, arr in data.items():
-        bad = np.flatnonzero(~np.isfinite(arr))
-        if bad.size:
-            i = int(bad[0])
-            raise DataError(path, f"{cols[index[c]][i].strip()!r} is not a finite number",
-                            "Every contract field needs a finite number: fill the gap or delete the row",
-                            line=row_lines[i], column=c)
-
-    extra = {}
-    for j, name in enumerate(names):
-        if name in CSV_COLUMNS or not name:
-            continue
-        try:
-            extra[name] = np.array(cols[j], dtype=np.float64)
-        except ValueError:
-            pass  # non-numeric extra column (notes, timestamps): allowed and ignored
+    _check_file(path)
+    with path.open("rb") as f:
+        first = f.readline()
+        if b"\x00" in first:
+            raise DataError(path, "the file is binary, not a text CSV",
+                            "Export the experiment as plain CSV text", line=1)
+        header = _decode(first).rstrip("\r\n")
+        if not header.strip():
+            raise DataError(path, "line 1 is empty, but the header row must be line 1",
+                            f"Put the column names {', '.join(CSV_COLUMNS)} on line 1", line=1)
+        table = _Table(path, _check_header(path, next(csv.reader([header]))))
+        line_no = 1
+        while block := f.readlines(_CHUNK_BYTES):
+            table.add(block, line_no + 1, last=not f.peek(1))
+            line_no += len(block)
+    data, extra, row_lines = table.result()
 
     _check_time(path, data, row_lines)
-    _check_units(path, data, row_lines, imax)
+    _check_units(path, data, row_lines, datasheet)
 
-    sensors = np.stack([data[c] for c in SENSOR_CHANNELS]) + KELVIN
+    sensors = np.stack([data.pop(c) for c in SENSOR_CHANNELS])
+    sensors += KELVIN
+    data["T_water_C"] += KELVIN
+    data["T_amb_C"] += KELVIN
+    for arr in (sensors, *data.values(), *extra.values()):
+        arr.setflags(write=False)  # handed over, not copied again
     return Experiment(
         path=path,
         time=data["time_s"],
         current=data["current_A"],
         voltage=data["voltage_V"],
         sensors=sensors,
-        t_water=data["T_water_C"] + KELVIN,
-        t_amb=data["T_amb_C"] + KELVIN,
+        t_water=data["T_water_C"],
+        t_amb=data["T_amb_C"],
         extra=extra,
+        lines=row_lines,
     )
 
 
-def _read_text(path: Path) -> str:
+def _check_file(path: Path) -> None:
+    """Refuse a missing, unreadable, empty or whitespace-only file before parsing."""
     if not path.exists():
         raise DataError(path, "the file does not exist", "Check the path (and the batch folder layout)")
     if path.is_dir():
         raise DataError(path, "this is a folder, not a CSV file", "Pass the experiment's .csv file")
     try:
-        raw = path.read_bytes()
+        with path.open("rb") as f:
+            head = f.read(1 << 16)
+            if b"\x00" in head:  # the rest is checked block by block while parsing
+                raise DataError(path, "the file is binary, not a text CSV", "Export the experiment as plain CSV "
+                                "text", line=head[: head.index(b"\x00")].count(b"\n") + 1)
+            piece = head
+            while piece:
+                if piece.strip():
+                    return
+                piece = f.read(1 << 16)
     except OSError as e:
         raise DataError(path, f"the file cannot be read ({e.strerror or e})",
                         "Check the file's permissions") from None
-    if not raw.strip():
-        raise DataError(path, "the file is empty",
-                        "Export the experiment again: the contract needs a header row and data rows")
-    if b"\x00" in raw:
-        line = raw[: raw.index(b"\x00")].count(b"\n") + 1
-        raise DataError(path, "the file is binary, not a text CSV",
-                        "Export the experiment as plain CSV text", line=line)
+    raise DataError(path, "the file is empty",
+                    "Export the experiment again: the contract needs a header row and data rows")
+
+
+def _decode(raw: bytes) -> str:
     try:
         return raw.decode("utf-8-sig")
     except UnicodeDecodeError:
@@ -286,7 +300,102 @@ def _read_text(path: Path) -> str:
         return raw.decode("cp1252", errors="replace")
 
 
-def _check_header(path: Path, header: list, first_line: str) -> list:
+class _Table:
+    """The data rows of one CSV, parsed block by block into float columns.
+
+    A block goes through numpy's C parser; a block it refuses (or that holds
+    quotes or a wrong field count) is read again field by field, which finds
+    the first bad row for the message.
+    """
+
+    def __init__(self, path, names):
+        self.path = path
+        self.ncol = len(names)
+        index = {name: j for j, name in enumerate(names)}
+        self.contract = [index[c] for c in CSV_COLUMNS]
+        self.extra = {j: name for j, name in enumerate(names) if name and name not in CSV_COLUMNS}
+        self.parts, self.line_parts = [], []
+        self.extra_parts = {j: [] for j in self.extra}  # None once a column shows a non-number
+
+    def add(self, block, first_line, *, last):
+        """Parse ``block`` (raw lines, the first is file line ``first_line``; ``last``: nothing follows)."""
+        lines, numbers = [], []
+        for k, raw in enumerate(block):
+            if b"\x00" in raw:
+                raise DataError(self.path, "the file is binary, not a text CSV",
+                                "Export the experiment as plain CSV text", line=first_line + k)
+            text = raw.decode("utf-8", errors="replace").rstrip("\r\n")
+            if text.strip():  # blank lines carry nothing; tolerate them
+                lines.append(text)
+                numbers.append(first_line + k)
+        if not lines:
+            return
+        numbers = np.asarray(numbers, dtype=np.int64)
+        values = self._fast(lines)
+        if values is None:
+            values = self._slow(lines, numbers, last)
+        self._check_finite(values, lines, numbers)
+        self.parts.append(values)
+        self.line_parts.append(numbers)
+        for j, parts in self.extra_parts.items():
+            if parts is not None:
+                col = self._extra_column(lines, j)
+                self.extra_parts[j] = None if col is None else parts + [col]
+
+    def _fast(self, lines):
+        if any('"' in s or s.count(",") != self.ncol - 1 for s in lines):
+            return None
+        try:
+            return np.loadtxt(lines, delimiter=",", dtype=np.float64, ndmin=2, comments=None, usecols=self.contract)
+        except ValueError:
+            return None
+
+    def _slow(self, lines, numbers, last):
+        rows = list(csv.reader(lines))
+        for k, row in enumerate(rows):
+            if len(row) != self.ncol:
+                _refuse_field_count(self.path, row, self.ncol, int(numbers[k]), lines[k],
+                                    trailing=last and k == len(rows) - 1)
+        cols = list(zip(*rows))
+        return np.column_stack([_to_float(self.path, cols[j], c, numbers)
+                                for j, c in zip(self.contract, CSV_COLUMNS)])
+
+    @staticmethod
+    def _extra_column(lines, j):
+        try:
+            if any('"' in s for s in lines):
+                return np.array([row[j] for row in csv.reader(lines)], dtype=np.float64)
+            return np.loadtxt(lines, delimiter=",", dtype=np.float64, ndmin=1, comments=None, usecols=j)
+        except (ValueError, IndexError):
+            return None
+
+    def _check_finite(self, values, lines, numbers):
+        bad = np.argwhere(~np.isfinite(values))
+        if bad.size:
+            k, c = (int(x) for x in bad[0])
+            field = next(csv.reader([lines[k]]))[self.contract[c]].strip()
+            raise DataError(self.path, f"{field!r} is not a finite number",
+                            "Every contract field needs a finite number: fill the gap or delete the row",
+                            line=int(numbers[k]), column=CSV_COLUMNS[c])
+
+    def result(self):
+        """``(contract columns, numeric extra columns, line of each row)``; refuses fewer than 2 rows."""
+        n = sum(len(p) for p in self.parts)
+        if n == 0:
+            raise DataError(self.path, "the file has a header but no data rows",
+                            "Export the experiment again with its samples", line=1)
+        row_lines = np.concatenate(self.line_parts)
+        if n < 2:
+            raise DataError(self.path, "the file has only 1 data row; at least 2 are needed",
+                            "Export the whole experiment", line=int(row_lines[0]))
+        values = np.concatenate(self.parts)
+        self.parts = []
+        data = {c: np.ascontiguousarray(values[:, k]) for k, c in enumerate(CSV_COLUMNS)}
+        extra = {self.extra[j]: np.concatenate(p) for j, p in self.extra_parts.items() if p}
+        return data, extra, row_lines
+
+
+def _check_header(path: Path, header: list) -> list:
     names = [h.strip() for h in header]
     if not any(names):
         raise DataError(path, "line 1 is empty, but the header row must be line 1",
@@ -344,16 +453,15 @@ def _rename_hint(required: str, other: str, why: str) -> str:
     return f"Did you mean {required!r}? Convert the values to {to} and rename the column"
 
 
-def _refuse_field_count(path, row, ncol, line_no, lines):
+def _refuse_field_count(path, row, ncol, line_no, text, *, trailing):
     n = len(row)
     problem = f"the row has {n} field{'s' if n != 1 else ''} but the header has {ncol}"
-    text = lines[line_no - 1] if line_no - 1 < len(lines) else ""
     if n == 1 and ";" in text:
         hint = "Use comma separators and '.' as the decimal point"
     elif n > ncol:
         hint = ("A decimal comma splits numbers in two: use '.' as the decimal point; "
                 "otherwise fix the row so it matches the header")
-    elif line_no >= len(lines) or not any(line.strip() for line in lines[line_no:]):
+    elif trailing:
         hint = "The last line looks truncated (file cut off while being written?): delete it"
     else:
         hint = "Fix or delete the row so it matches the header"
@@ -404,7 +512,7 @@ def _check_time(path, data, row_lines):
     )
 
 
-def _check_units(path, data, row_lines, imax):
+def _check_units(path, data, row_lines, datasheet):
     for c in TEMPERATURE_COLUMNS:
         med = float(np.median(data[c]))
         if med > _KELVIN_MEDIAN_C:
@@ -414,18 +522,19 @@ def _check_units(path, data, row_lines, imax):
         v = data[c]
         bad = np.flatnonzero((v < TEMP_MIN_C) | (v > TEMP_MAX_C))
         if bad.size:
+            _refuse_degf(path, data, datasheet)
             i = int(bad[0])
             raise DataError(path, f"{v[i]:.6g} degC is outside the plausible range "
                                   f"[{TEMP_MIN_C:g}, {TEMP_MAX_C:g}] degC",
-                            "Check the sensor and the column (temperatures must be in degC); "
+                            "Check the sensor and the column (temperatures must be in degC, not degF); "
                             "fix or delete the row", line=row_lines[i], column=c)
 
     cur = np.abs(data["current_A"])
     i = int(np.argmax(cur))
-    if imax is not None:
-        imax = float(imax)
+    if datasheet is not None:
+        imax = float(datasheet.imax)
         if not imax > 0:
-            raise ValueError(f"imax must be a positive current [A], got {imax!r}")
+            raise ValueError(f"datasheet.imax must be a positive current [A], got {imax!r}")
         limit, why = _MAX_CURRENT_IMAX * imax, f"more than {_MAX_CURRENT_IMAX:g} x Imax = {imax:g} A"
     else:
         limit, why = _MAX_CURRENT_A, f"more than {_MAX_CURRENT_A:g} A"
@@ -438,3 +547,16 @@ def _check_units(path, data, row_lines, imax):
     if volt[i] > _MAX_VOLTAGE_V:
         raise DataError(path, f"|voltage| up to {volt[i]:.6g} (more than {_MAX_VOLTAGE_V:g} V) looks like mV",
                         "Convert to V (divide by 1000)", line=row_lines[i], column="voltage_V")
+    if datasheet is not None:
+        _refuse_degf(path, data, datasheet)
+
+
+def _refuse_degf(path, data, datasheet):
+    """Refuse a file in degF when its physics says so (see :func:`tembayes.data.preflight.degf_evidence`)."""
+    from .preflight import degf_evidence  # the physics of the data lives there
+
+    why = None if datasheet is None else degf_evidence(data["current_A"], data["voltage_V"],
+                                                           {c: data[c] for c in TEMPERATURE_COLUMNS}, datasheet)
+    if why:
+        raise DataError(path, f"the temperatures look like degF: {why}",
+                        "Convert every temperature column to degC ((F - 32) / 1.8)", column=TEMPERATURE_COLUMNS[0])

@@ -22,6 +22,7 @@ from ..constants import CSV_COLUMNS, KELVIN, SENSOR_CHANNELS
 from ..errors import TembayesError
 from .batch import Datasheet
 from .experiment import Experiment
+from .outputs import MARKER, marker, refuse_existing
 
 __all__ = [
     "atomic_write_text",
@@ -136,7 +137,7 @@ def write_json(path, obj) -> Path:
 
 
 @contextlib.contextmanager
-def atomic_directory(path, *, overwrite=False):
+def atomic_directory(path, *, overwrite=False, kind=None):
     """Build a folder under a temporary name and rename it into place on success.
 
     Parameters
@@ -146,6 +147,11 @@ def atomic_directory(path, *, overwrite=False):
     overwrite : bool, default False
         Replace an existing ``path``; otherwise an existing ``path`` is
         refused (checked before and after the work).
+    kind : str, optional
+        The tembayes output kind (a command name,
+        :data:`tembayes.data.outputs.KINDS`): an existing ``path`` is then
+        replaced only if it is an output of that kind holding nothing else,
+        and the new folder gets the marker naming its kind.
 
     Yields
     ------
@@ -155,21 +161,23 @@ def atomic_directory(path, *, overwrite=False):
     Raises
     ------
     TembayesError
-        When ``path`` exists and ``overwrite`` is false.
+        When ``path`` may not be replaced.
 
     Notes
     -----
-    On an exception inside the block the temporary folder is removed, so
-    nothing is written.
+    On an exception inside the block the temporary folder is removed and
+    ``path`` is left as it was.
     """
     path = Path(path)
-    _refuse_existing(path, overwrite)
+    _refuse_existing(path, overwrite, kind)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
     try:
         os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes 0700
         yield tmp
-        _refuse_existing(path, overwrite)  # someone may have created it meanwhile
+        if kind is not None:
+            atomic_write_text(tmp / MARKER, marker(kind, complete=True))
+        _refuse_existing(path, overwrite, kind)  # someone may have created it meanwhile
         if path.exists() or path.is_symlink():
             # Move the old output aside first so the swap window is two renames.
             old = Path(tempfile.mkdtemp(prefix=f".{path.name}.old-", dir=path.parent))
@@ -187,8 +195,10 @@ def atomic_directory(path, *, overwrite=False):
         raise
 
 
-def _refuse_existing(path: Path, overwrite: bool) -> None:
-    if not overwrite and (path.exists() or path.is_symlink()):
+def _refuse_existing(path: Path, overwrite: bool, kind) -> None:
+    if kind is not None:
+        refuse_existing(path, kind, overwrite)
+    elif not overwrite and (path.exists() or path.is_symlink()):
         raise TembayesError(f"{path}: already exists. Choose another output or allow overwriting it")
 
 

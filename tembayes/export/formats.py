@@ -49,9 +49,11 @@ from __future__ import annotations
 import io
 import json
 import re
+from pathlib import Path
 
 import numpy as np
 
+from tembayes.data.batch import file_stem
 from tembayes.data.write import atomic_write_bytes
 from tembayes.export.observer import SCHEMA
 
@@ -59,7 +61,7 @@ FORMATS = ("json", "npz", "mat")
 
 
 def _matlab_name(s):
-    s = re.sub(r"[^A-Za-z0-9_]", "_", s)
+    s = file_stem(s)
     return s if re.match(r"[A-Za-z]", s) else "m_" + s
 
 
@@ -134,3 +136,23 @@ def encode(exp, fmt):
 def write_export(exp, path, fmt):
     """Write the export to ``path`` atomically."""
     atomic_write_bytes(path, encode(exp, fmt))
+
+
+def is_export_file(path) -> bool:
+    """Whether ``path`` is a file this module wrote (any of the three encodings), by its schema entry."""
+    import zipfile
+
+    path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+        if head.lstrip().startswith(b"{"):
+            return b'"schema": "tembayes-observer-export/' in head
+        if zipfile.is_zipfile(path):
+            with zipfile.ZipFile(path) as z:
+                return "schema.npy" in z.namelist()
+        from scipy.io import whosmat
+
+        return any(name == "schema" for name, _, _ in whosmat(path))
+    except (OSError, ValueError, NotImplementedError, TypeError):
+        return False

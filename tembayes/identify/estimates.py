@@ -92,7 +92,7 @@ def jump_resistance(time, voltage, current, step, *, pre_window=30.0, post_windo
     ----------
     time, voltage, current : ndarray, shape (n,)
         [s], [V], [A].
-    step : tembayes.identify.steps.Step
+    step : tembayes.data.steps.Step
     pre_window : float
         Length of the pre-step line fit [s] (inside the previous hold).
     post_window : float, optional

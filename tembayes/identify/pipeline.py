@@ -31,7 +31,7 @@ from tembayes.errors import ModelError
 from tembayes.identify.estimates import hold_end, jump_resistance, junction_temperatures
 from tembayes.identify.fits import LineFit, fit_line, hysteresis
 from tembayes.identify.rigfit import RigFit, constant_laws, fit_rig, validation_errors
-from tembayes.identify.steps import detect_steps
+from tembayes.data.steps import detect_steps
 from tembayes.physics.rig import rig_from_config
 
 #: Holds whose junction temperature difference is smaller than this give no

@@ -180,9 +180,12 @@ class RigDescription:
                 p = RigParameter(p.name, v, min(p.low, v), max(p.high, v), p.unit, p.doc)
             params.append(p)
         if values:
-            raise ModelError(
-                f"unknown rig parameter(s) {sorted(values)}; rig '{self.name}' has {list(self.parameter_names)}"
-            )
+            import difflib
+
+            name = sorted(values)[0]
+            near = difflib.get_close_matches(name, self.parameter_names, n=1, cutoff=0.6)
+            raise ModelError(f"unknown rig parameter '{name}'" + (f" (did you mean '{near[0]}'?)" if near else "")
+                             + f"; rig '{self.name}' has {', '.join(self.parameter_names)}")
         return RigDescription(
             self.name, tuple(params), self.nodes, self.links, self.hot, self.cold, self.sensors, self.legs
         )

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import io
 import math
-import re
 
 import numpy as np
 from matplotlib.figure import Figure
@@ -39,6 +38,7 @@ from matplotlib.ticker import MaxNLocator, NullLocator
 
 from tembayes.calibrate.run import CalibrationRun, load_run  # noqa: F401 (re-exported)
 from tembayes.constants import LAW_PARAMETERS, MODULE_PARAMETERS
+from tembayes.data.batch import file_stem
 from tembayes.data.write import atomic_write_bytes
 
 __all__ = [
@@ -754,10 +754,6 @@ def plot_step_loglike(run, *, max_modules=MAX_OVERLAY_MODULES, ncols=3):
 # --------------------------------------------------------------------------- saving
 
 
-def _safe_name(s):
-    return re.sub(r"[^A-Za-z0-9._-]+", "_", str(s)) or "_"
-
-
 def _save(fig, path, fmt, dpi):
     buf = io.BytesIO()
     fig.savefig(buf, format=fmt, dpi=dpi)
@@ -795,7 +791,7 @@ def save_calibration_figures(run_dir, *, fmt="png", dpi=DPI, max_corner_modules=
     out = run.path / "figures"
     written = []
     for m in _pick_modules(run, max_corner_modules)[0]:
-        written.append(_save(plot_corner_module(run, m), out / f"corner_{_safe_name(m)}.{fmt}", fmt, dpi))
+        written.append(_save(plot_corner_module(run, m), out / f"corner_{file_stem(m)}.{fmt}", fmt, dpi))
     written.append(_save(plot_corner_population(run), out / f"corner_population.{fmt}", fmt, dpi))
     written.append(_save(plot_laws(run), out / f"laws.{fmt}", fmt, dpi))
     written.append(_save(plot_hysteresis(run), out / f"hysteresis.{fmt}", fmt, dpi))

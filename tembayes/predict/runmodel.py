@@ -33,8 +33,8 @@ from scipy.interpolate import CubicSpline
 
 from tembayes.calibrate.stepdata import _smooth, hold_levels, step_grid
 from tembayes.data.quality import noise_estimate
+from tembayes.data.steps import detect_steps
 from tembayes.errors import DataError, ModelError
-from tembayes.identify.steps import detect_steps
 from tembayes.physics import effects
 from tembayes.physics.simulate import build, integrate_on_grids
 

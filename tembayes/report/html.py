@@ -322,7 +322,7 @@ def write_report(rep, out_dir, *, overwrite=False):
     """Write ``out_dir/report.html`` and ``out_dir/report.json`` atomically; returns the HTML path."""
     from tembayes.data.write import atomic_directory, write_json
 
-    with atomic_directory(out_dir, overwrite=overwrite) as tmp:
+    with atomic_directory(out_dir, overwrite=overwrite, kind="report") as tmp:
         (tmp / "report.html").write_text(render_html(rep), encoding="utf-8")
         write_json(tmp / "report.json", rep.to_json())
     return out_dir / "report.html"

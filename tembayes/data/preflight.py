@@ -1,0 +1,455 @@
+"""Preflight: what a well-formed file can hold but a test rig cannot produce.
+
+:func:`~tembayes.data.load_experiment` checks the file format; these checks
+read the physics of the data and run before any command's work:
+
+- **time**: logging gaps (the current and temperatures in between are
+  unknown) and time stamps in the wrong unit, from how fast the sensors
+  settle after a current step (a rig's blocks settle in minutes);
+- **sensors**: a channel that is stuck (frozen while the others move),
+  jumps faster than any block can change, or reads colder than the module
+  can pump below the rig's boundaries;
+- **polarity**: positive current must cool the cold (bottom) side, and the
+  voltage must follow the current;
+- **temperature units**: at zero current no part of the rig can sit outside
+  the range of its boundary temperatures (one column in another unit), and
+  the Seebeck voltage per kelvin must match the datasheet's order (a whole
+  file in degF reads 1.8 times too many kelvin);
+- **identifiability** of an identification run (warnings): current steps in
+  both directions, holds long enough to settle, a wide enough range of the
+  mean temperature.
+
+Each finding names the file, the line and the column, and says what to do.
+Errors refuse the input; warnings are printed and the work goes on.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..constants import KELVIN, SENSOR_CHANNELS
+from ..errors import DataError
+from .quality import noise_estimate
+from .steps import current_noise, detect_steps
+
+__all__ = ["Finding", "check_experiment", "degf_evidence", "raise_first_error", "ERROR", "WARNING"]
+
+ERROR = "error"
+WARNING = "warning"
+
+#: A time step this many times the median sampling interval is a gap ...
+GAP_FACTOR = 10.0
+#: ... if it is also longer than this [s].
+GAP_MIN_S = 2.0
+#: A gap is refused when longer than this [s] (or this many median intervals) ...
+GAP_REFUSE_S = 30.0
+GAP_REFUSE_FACTOR = 50.0
+#: ... or when the current changes across it by more than this many noise sds (a step at an unknown instant).
+GAP_STEP_SIGMAS = 10.0
+
+#: Sensor channels on each side of the module (reference rig: T1, T2 top; T3, T4 bottom).
+HOT_SIDE = ("T1_C", "T2_C")
+COLD_SIDE = ("T3_C", "T4_C")
+#: The sensors next to the module's faces: their difference carries the module's response.
+FACE_SENSORS = ("T2_C", "T3_C")
+
+#: A sensor frozen for this long [s] and this many samples while another moves by
+#: STUCK_OTHERS_K is stuck.
+STUCK_MIN_S = 60.0
+STUCK_MIN_SAMPLES = 20
+STUCK_OTHERS_K = 0.5
+#: For a coarsely quantised channel, a frozen stretch must also be this many times
+#: its longest other one.
+STUCK_QUANTISED_RATIO = 10.0
+
+#: A change between two samples above JUMP_K + JUMP_RATE_K_PER_S * dt is a glitch.
+JUMP_K = 5.0
+JUMP_RATE_K_PER_S = 5.0
+#: A sensor colder than the coldest boundary minus dTmax minus this [K] is impossible.
+COLD_MARGIN_K = 5.0
+
+#: Sensor settling (63 % of the response after a current step) outside this range [s]
+#: means the time stamps are not seconds.
+SETTLE_MAX_S = 6 * 3600.0
+SETTLE_MIN_S = 0.3
+
+#: Zero-current holds this many settling times long are used for the maximum principle ...
+ZERO_HOLD_SETTLINGS = 2.0
+#: ... with this margin [K] plus this fraction of the sensor's change over the hold.
+ZERO_MARGIN_K = 2.0
+ZERO_MARGIN_FRACTION = 0.2
+
+#: Seebeck ratio (the voltage per degree of the face sensors at zero current, over the datasheet's S)
+#: in [LOW, this) with a tight linear fit (R^2 >= SEEBECK_MIN_R2) reads degF; in degC it is 0.85-0.9 on
+#: the reference rig, in degF 1.8 times less.
+SEEBECK_RATIO_DEGF = 0.62
+SEEBECK_RATIO_DEGF_LOW = 0.35
+SEEBECK_MIN_R2 = 0.8
+#: Samples with |T2 - T3| above this [K] at zero current are needed, at least SEEBECK_MIN_SAMPLES.
+SEEBECK_MIN_DT_K = 0.5
+SEEBECK_MIN_SAMPLES = 200
+
+#: Identification-run warnings: holds shorter than this many settling times; T-bar span below this [K].
+HOLD_SETTLINGS = 2.0
+TAVG_SPAN_MIN_K = 5.0
+
+
+@dataclass(frozen=True)
+class Finding:
+    """One preflight finding.
+
+    Attributes
+    ----------
+    severity : str
+        ``"error"`` (the input is refused) or ``"warning"``.
+    path : Path
+        The file.
+    problem, hint : str
+        What is wrong, and what to do.
+    line : int, optional
+        The file line (header = line 1).
+    column : str, optional
+        The column.
+    """
+
+    severity: str
+    path: Path
+    problem: str
+    hint: str
+    line: int | None = None
+    column: str | None = None
+
+    def error(self) -> DataError:
+        """The finding as the :class:`~tembayes.errors.DataError` that refuses the input."""
+        return DataError(self.path, self.problem, self.hint, line=self.line, column=self.column)
+
+    def __str__(self):
+        return str(self.error())
+
+    def to_json(self) -> dict:
+        return {"severity": self.severity, "path": str(self.path), "line": self.line, "column": self.column,
+                "problem": self.problem, "hint": self.hint}
+
+
+def raise_first_error(findings) -> None:
+    """Raise the first error-level finding as a DataError (nothing to do without one)."""
+    for f in findings:
+        if f.severity == ERROR:
+            raise f.error()
+
+
+def check_experiment(exp, *, datasheet=None, identification=False) -> list:
+    """Every preflight check of one experiment.
+
+    Parameters
+    ----------
+    exp : tembayes.data.Experiment
+    datasheet : tembayes.data.Datasheet, optional
+        Enables the checks that need the module type's scale (sensor range,
+        Seebeck ratio).
+    identification : bool
+        Also the warnings on what the run can identify.
+
+    Returns
+    -------
+    list of Finding
+        Errors first.
+    """
+    steps = detect_steps(exp.time, exp.current)
+    settle = _settling_time(exp, steps)
+    found = [*_gaps(exp), *_time_unit(exp, settle), *_stuck(exp), *_jumps(exp), *_polarity(exp)]
+    if datasheet is not None:
+        found += _below_pumping(exp, datasheet)
+    if not found:  # a broken sensor or clock would confound the physics below
+        found += _zero_current_range(exp, steps, settle)
+    if identification:
+        found += _identifiability(exp, steps, settle)
+    return sorted(found, key=lambda f: f.severity != ERROR)
+
+
+def _finding(severity, exp, problem, hint, i=None, column=None):
+    return Finding(severity, exp.path, problem, hint, None if i is None else exp.line(i), column)
+
+
+# -- time ---------------------------------------------------------------------
+
+
+def _gaps(exp):
+    dt = np.diff(exp.time)
+    if dt.size < 2:
+        return []
+    med = float(np.median(dt))
+    gaps = np.flatnonzero(dt > max(GAP_FACTOR * med, GAP_MIN_S))
+    if not gaps.size:
+        return []
+    sigma = max(current_noise(exp.current), 1e-4)
+    out = []
+    for k in gaps:
+        before = float(np.median(exp.current[max(0, k - 4):k + 1]))
+        after = float(np.median(exp.current[k + 1:k + 6]))
+        stepped = abs(after - before) > GAP_STEP_SIGMAS * sigma
+        refuse = stepped or dt[k] > max(GAP_REFUSE_S, GAP_REFUSE_FACTOR * med)
+        what = (f"a {dt[k]:.4g} s gap in the time stamps after {exp.where(k)} (the sampling interval is "
+                f"{med:.3g} s)")
+        if stepped:
+            what += f", and the current changed inside it from {before:+.3f} to {after:+.3f} A at an unknown instant"
+        out.append(_finding(ERROR if refuse else WARNING, exp, what,
+                            "Split the experiment at the gap into two files, or record it again" if refuse else
+                            "The gap is short and the current held: the model interpolates across it",
+                            k + 1, "time_s"))
+    errors = [f for f in out if f.severity == ERROR]
+    return errors[:1] + [f for f in out if f.severity == WARNING][:1]
+
+
+def _settling_time(exp, steps):
+    """Median time [s] for the sensors next to the module to cover 63 % of their move after a
+    current step (NaN without a clear response)."""
+    times = []
+    noise = {c: noise_estimate(exp.channel(c)) for c in FACE_SENSORS}
+    for s in steps:
+        seg = slice(s.hold_start, s.hold_end)
+        for c in FACE_SENSORS:
+            y = exp.channel(c)[seg]
+            move = y[-1] - y[0]
+            if y.size < 5 or not abs(move) > max(50.0 * noise[c], 0.05):
+                continue
+            reached = np.flatnonzero(np.abs(y - y[0]) >= 0.63 * abs(move))
+            times.append(exp.time[s.hold_start + reached[0]] - s.t)
+    return float(np.median(times)) if len(times) >= 2 else math.nan
+
+
+def _time_unit(exp, settle):
+    if not math.isfinite(settle):
+        return []
+    if settle > SETTLE_MAX_S:
+        return [_finding(ERROR, exp, f"the sensors take {settle / 3600:.3g} h (in the file's time unit) to settle "
+                         "after a current step, but a rig's blocks settle in minutes: time_s looks like "
+                         "milliseconds", "Convert the time column to seconds (divide by 1000)", column="time_s")]
+    if settle < SETTLE_MIN_S:
+        return [_finding(ERROR, exp, f"the sensors settle {settle:.3g} time units after a current step, but a "
+                         "rig's blocks take minutes: time_s looks like minutes or hours",
+                         "Convert the time column to seconds", column="time_s")]
+    return []
+
+
+# -- sensors ------------------------------------------------------------------
+
+
+def _runs(x):
+    """``(start, stop)`` index pairs of stretches of exactly equal consecutive values (stop exclusive)."""
+    same = np.diff(x) == 0
+    if not same.any():
+        return np.empty((0, 2), dtype=np.int64)
+    edges = np.diff(np.concatenate([[0], same.astype(np.int8), [0]]))
+    starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    return np.column_stack([starts, stops + 1])
+
+
+def _stuck(exp):
+    out = []
+    t = exp.time
+    for j, c in enumerate(SENSOR_CHANNELS):
+        x = exp.sensors[j]
+        runs = _runs(x)
+        if not runs.size:
+            continue
+        length = t[runs[:, 1] - 1] - t[runs[:, 0]]
+        long = np.flatnonzero((length >= STUCK_MIN_S) & (runs[:, 1] - runs[:, 0] >= STUCK_MIN_SAMPLES))
+        if not long.size:
+            continue
+        steps = np.abs(np.diff(x))
+        q = float(np.median(steps[steps > 0])) if (steps > 0).any() else 0.0
+        coarse = q > noise_estimate(x)
+        for k in long[np.argsort(-length[long])]:
+            if coarse and length[k] < STUCK_QUANTISED_RATIO * np.max(np.delete(length, k), initial=0.0):
+                continue
+            a, b = runs[k]
+            others = [(exp.channel(o)[a:b].max() - exp.channel(o)[a:b].min(), o) for o in SENSOR_CHANNELS if o != c]
+            moved, other = max(others)
+            if moved > STUCK_OTHERS_K:
+                out.append(_finding(
+                    ERROR, exp, f"{c} reads exactly {x[a] - KELVIN:.6g} degC from {exp.where(a)} to "
+                    f"{exp.where(b - 1)} ({length[k] / 60:.3g} min) while {other} moves by {moved:.3g} K: the "
+                    "sensor or its logger channel is stuck",
+                    f"Repair the channel and record again, or cut the run before line {exp.line(a)}"
+                    if exp.lines is not None else "Repair the channel and record again", a, c))
+                break
+    return out
+
+
+def _jumps(exp):
+    dt = np.diff(exp.time)
+    limit = JUMP_K + JUMP_RATE_K_PER_S * dt
+    for j, c in enumerate(SENSOR_CHANNELS):
+        d = np.abs(np.diff(exp.sensors[j]))
+        bad = np.flatnonzero(d > limit)
+        if bad.size:
+            k = int(bad[0])
+            return [_finding(ERROR, exp, f"{c} jumps from {exp.sensors[j][k] - KELVIN:.4g} to "
+                             f"{exp.sensors[j][k + 1] - KELVIN:.4g} degC in {dt[k]:.3g} s at {exp.where(k + 1)}, "
+                             "faster than any block of the rig can change", "Check the sensor and its wiring; "
+                             "delete the glitched rows or cut the run there", k + 1, c)]
+    return []
+
+
+def _below_pumping(exp, datasheet):
+    coldest = float(min(exp.t_water.min(), exp.t_amb.min()))
+    floor = coldest - datasheet.dtmax - COLD_MARGIN_K
+    for j, c in enumerate(SENSOR_CHANNELS):
+        k = int(np.argmin(exp.sensors[j]))
+        if exp.sensors[j][k] < floor:
+            return [_finding(ERROR, exp, f"{c} reads {exp.sensors[j][k] - KELVIN:.4g} degC at {exp.where(k)}, "
+                             f"{coldest - exp.sensors[j][k]:.3g} K below the coldest boundary; the module pumps at "
+                             f"most dTmax = {datasheet.dtmax:g} K", "Check the sensor (a broken or shorted "
+                             "thermistor reads at its limit) and its column", k, c)]
+    return []
+
+
+# -- polarity -----------------------------------------------------------------
+
+
+def _slope(x, y):
+    """Least-squares slope of ``y`` on ``x`` and its standard error."""
+    xc = x - x.mean()
+    sxx = float(xc @ xc)
+    if sxx <= 0:
+        return 0.0, math.inf
+    b = float(xc @ (y - y.mean())) / sxx
+    resid = y - y.mean() - b * xc
+    return b, math.sqrt(float(resid @ resid) / max(len(x) - 2, 1) / sxx)
+
+
+def _polarity(exp):
+    i = exp.current
+    span = float(i.max() - i.min())
+    if span < 0.1:
+        return []
+    dT = exp.channel(FACE_SENSORS[1]) - exp.channel(FACE_SENSORS[0])  # cold face minus hot face
+    thermal, _ = _slope(i, dT)
+    volt, _ = _slope(i, exp.voltage)
+    cools = None if abs(thermal) * span < 1.0 else thermal < 0
+    follows = volt > 0
+    if cools is None or (cools and follows):
+        return [] if follows else [_finding(
+            ERROR, exp, f"the voltage falls as the current rises ({volt:+.3g} V per A)", "The voltage has the "
+            "current's sign (V = R I + S dT): negate voltage_V (or current_A, if positive current warms the "
+            "bottom block)", column="voltage_V")]
+    side = (f"positive current warms the cold side: {FACE_SENSORS[1]} - {FACE_SENSORS[0]} rises by "
+            f"{thermal:.3g} K per A" if not cools else "")
+    if not cools and follows:
+        return [_finding(ERROR, exp, side + "; the voltage follows the current, so both are reversed",
+                         "Negate current_A and voltage_V (positive current must cool the bottom, cold-side "
+                         "block); if the module is mounted the right way, check that T1, T2 are the top block's",
+                         column="current_A")]
+    if not cools:
+        return [_finding(ERROR, exp, side + f"; the voltage falls as the current rises ({volt:+.3g} V per A)",
+                         "Negate current_A (positive current must cool the bottom, cold-side block)",
+                         column="current_A")]
+    return [_finding(ERROR, exp, f"the voltage falls as the current rises ({volt:+.3g} V per A) while positive "
+                     "current cools the cold side as it should", "Negate voltage_V", column="voltage_V")]
+
+
+# -- temperature units --------------------------------------------------------
+
+
+def _zero_holds(exp, steps, settle):
+    """``(a, b)`` sample ranges of the settled last part of zero-current holds."""
+    bounds = [(0, steps[0].index if steps else exp.n)] + [(s.hold_start, s.hold_end) for s in steps]
+    sigma = max(current_noise(exp.current), 1e-3)
+    need = ZERO_HOLD_SETTLINGS * settle if math.isfinite(settle) else math.inf
+    out = []
+    for a, b in bounds:
+        if b - a < 10 or abs(float(np.median(exp.current[a:b]))) > 5 * sigma:
+            continue
+        if exp.time[b - 1] - exp.time[a] >= need:
+            out.append((a, b))
+    return out
+
+
+def _zero_current_range(exp, steps, settle):
+    for a, b in _zero_holds(exp, steps, settle):
+        tail = slice(a + int(0.8 * (b - a)), b)
+        lo = min(float(np.median(exp.t_water[tail])), float(np.median(exp.t_amb[tail])))
+        hi = max(float(np.median(exp.t_water[tail])), float(np.median(exp.t_amb[tail])))
+        for j, c in enumerate(SENSOR_CHANNELS):
+            x = exp.sensors[j]
+            level = float(np.median(x[tail]))
+            margin = ZERO_MARGIN_K + ZERO_MARGIN_FRACTION * abs(level - float(x[a]))
+            if not lo - margin <= level <= hi + margin:
+                return [_finding(
+                    ERROR, exp, f"at zero current {c} settles at {level - KELVIN:.4g} degC ({exp.where(b - 1)}), "
+                    f"outside the boundaries' {lo - KELVIN:.4g}..{hi - KELVIN:.4g} degC: with no heat source no "
+                    "part of the rig can stay there", f"Check {c}'s unit (all temperatures in degC: degF? an "
+                    "offset?) and that the columns are not swapped", b - 1, c)]
+    return []
+
+
+def degf_evidence(current, voltage, temps, datasheet):
+    """Why a file's temperatures read degF, or None.
+
+    At zero current the terminal voltage is the Seebeck voltage of the
+    junctions, about the datasheet's S times the difference of the face
+    sensors (somewhat less: the junctions relax first).  In degF a kelvin
+    reads as 1.8 degrees, so the voltage per degree falls to ~1/1.8 of that,
+    a tight linear relation still (unlike a broken sensor), and the cooling
+    water reads above 32, its freezing point in degF.
+
+    Parameters
+    ----------
+    current, voltage : ndarray, shape (n,)
+        [A], [V].
+    temps : mapping of str to ndarray
+        Temperature columns as read (degC, or degF if wrong).
+    datasheet : tembayes.data.Datasheet
+
+    Returns
+    -------
+    str or None
+    """
+    sigma = max(current_noise(current), 1e-3)
+    dT = temps[FACE_SENSORS[0]] - temps[FACE_SENSORS[1]]  # hot face minus cold face
+    use = (np.abs(current) < 5 * sigma) & (np.abs(dT) > SEEBECK_MIN_DT_K)
+    if use.sum() < SEEBECK_MIN_SAMPLES or min(float(np.median(v)) for v in temps.values()) < 32.0:
+        return None
+    x, y = dT[use], voltage[use]
+    s, _ = _slope(x, y)
+    r2 = np.corrcoef(x, y)[0, 1] ** 2
+    ratio = s / datasheet.seebeck()
+    if r2 >= SEEBECK_MIN_R2 and SEEBECK_RATIO_DEGF_LOW <= ratio < SEEBECK_RATIO_DEGF:
+        return (f"at zero current the voltage is {1e3 * s:.3g} mV per degree of {FACE_SENSORS[0]} - "
+                f"{FACE_SENSORS[1]}, {ratio:.2f} of the datasheet's Seebeck coefficient ({1e3 * datasheet.seebeck():.3g} "
+                "mV/K), as when a kelvin reads 1.8 degrees, and no column reads below 32")
+    return None
+
+
+# -- what an identification run can identify ----------------------------------
+
+
+def _identifiability(exp, steps, settle):
+    hint = "The reference staircase: 0 -> +0.8 -> -1.6 -> 0 A in 0.2 A steps, each held about 600 s"
+    if not steps:
+        return [_finding(WARNING, exp, "the current has no steps: R and S cannot be identified from this run",
+                         hint, column="current_A")]
+    out = []
+    directions = {s.direction for s in steps}
+    if directions != {"up", "down"}:
+        missing = ({"up", "down"} - directions).pop()
+        out.append(_finding(WARNING, exp, f"the current never steps {missing}: the hysteresis check (every mean "
+                            "temperature visited by an up- and a down-step) is impossible", hint, column="current_A"))
+    holds = np.array([exp.time[s.hold_end - 1] - exp.time[s.hold_start] for s in steps])
+    if math.isfinite(settle) and np.median(holds) < HOLD_SETTLINGS * settle:
+        out.append(_finding(WARNING, exp, f"the holds ({np.median(holds):.0f} s) are short against the sensors' "
+                            f"settling (63 % in {settle:.0f} s): the steady states the step method reads are not "
+                            "reached (calibrate reads the transients and is not affected)", hint,
+                            column="current_A"))
+    tavg = 0.5 * (exp.channel(FACE_SENSORS[0]) + exp.channel(FACE_SENSORS[1]))
+    span = float(np.percentile(tavg, 99) - np.percentile(tavg, 1))
+    if span < TAVG_SPAN_MIN_K:
+        out.append(_finding(WARNING, exp, f"the mean temperature spans only {span:.3g} K: the slopes R1 and S1 of "
+                            "the laws are poorly determined", "Use larger currents in both directions (" + hint
+                            + ")", column="current_A"))
+    return out
