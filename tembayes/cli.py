@@ -21,6 +21,7 @@ examples:
   tembayes simulate runs/demo --modules 3 --outlier TEM1 --seed 0
   tembayes simulate runs/kt --effect k_temperature --effect sensor_lag=8 --seed 3
   tembayes simulate runs/other --datasheet other_type.toml --validation-rate 1
+  tembayes simulate runs/real --fidelity high --validation-start rest --modules 8   # out-of-model bench
 
 effects (NAME or NAME=VALUE; VALUE sets the first parameter, others scale along):
 {effects}
@@ -44,6 +45,7 @@ examples:
   tembayes calibrate data/example --out runs/example --seed 0 --resume   # after an interruption
   tembayes calibrate runs/demo --out runs/demo-cal --max-steps 20000 --no-figures
   tembayes calibrate data/example --out runs/one-by-one --workers 1   # in this process, with stage messages
+  tembayes calibrate runs/lag --out runs/lag-cal --effect sensor_lag   # a catalogue effect in the model
   tembayes calibrate factory/lot42 --out runs/lot42 --workers 8 --quiet   # a local Dask cluster of 8 processes
   tembayes calibrate factory/lot42 --out runs/lot42 --scheduler tcp://10.0.0.5:8786   # a running Dask cluster
   tembayes calibrate factory/lot42 --out runs/lot42 --scheduler tcp://10.0.0.5:8786 --resume   # only missing modules
@@ -170,6 +172,9 @@ def _cmd_simulate(args):
         hold=args.hold,
         n_validations=args.validations,
         validation_duration=args.validation_hours * 3600.0,
+        fidelity=args.fidelity,
+        validation_start=args.validation_start,
+        physics=args.physics,
     )
     truth = simulate_batch(args.out, config, overwrite=args.overwrite)
     print(f"wrote {args.out}: {len(truth['modules'])} modules ({datasheet.name}), "
@@ -268,7 +273,14 @@ def _cmd_calibrate(args):
                   "with `dask scheduler` and workers with `dask worker ADDRESS --nworkers N --nthreads 1`",
                   file=sys.stderr)
             return 2
-    opt = CalibrationOptions(max_steps=args.max_steps, nwalkers=args.walkers)
+    from tembayes.physics.effects import parse_effects
+
+    sampled = tuple(spec.strip() for spec in args.effect or () if "=" not in spec)
+    fixed = parse_effects([spec for spec in args.effect or () if "=" in spec])
+    parse_effects(sampled)  # names checked, none twice
+    opt = CalibrationOptions(max_steps=args.max_steps, nwalkers=args.walkers, model=args.model, effects=sampled,
+                             effect_values={k: v for values in fixed.values() for k, v in values.items()},
+                             discrepancy=args.discrepancy)
     check_output(args.out, kind="calibrate", inputs=[(args.batch, "batch folder")],
                  overwrite=args.overwrite or args.resume, need_bytes=bytes_needed(1, workers))
     # every file validated, then only paths kept: memory independent of the batch size
@@ -522,6 +534,17 @@ def build_parser():
     p.add_argument("--validations", type=int, default=1, metavar="K", help="validation runs per module (default 1)")
     p.add_argument("--validation-hours", type=float, default=4.0, metavar="H",
                    help="length of a validation run (default 4 h)")
+    p.add_argument("--fidelity", choices=("standard", "high"), default="standard",
+                   help="standard: the calibration model's structure, finer steps (proves the code); high: a rig "
+                        "and module the model does not contain -- finer steel, the module's layers, sensor bodies "
+                        "at uncertain depths, Thomson heat, K(T), re-mounting spread, slow sensor noise (measures "
+                        "the method)")
+    p.add_argument("--physics", choices=("paper", "full"), default="paper",
+                   help="the standard bench's physics: that of a calibration model form (default paper, the "
+                        "default model's)")
+    p.add_argument("--validation-start", choices=("steady", "rest"), default="steady",
+                   help="steady: a validation run starts with 300 s at 0 A; rest: the rig at rest and the current "
+                        "switched straight to the first level")
     p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
     p.set_defaults(func=_cmd_simulate)
 
@@ -566,6 +589,15 @@ def build_parser():
                    help="sampler budget per module (default 60000 steps)")
     p.add_argument("--walkers", type=int, metavar="N",
                    help="emcee walkers (default 2 x parameters + 2)")
+    p.add_argument("--model", choices=("paper", "full"), default="paper",
+                   help="the model's physics: paper (default: Evers et al.'s form) or full (Thomson heat, the "
+                        "plates' two layers, the sensors' response time, a temperature slope of K)")
+    p.add_argument("--discrepancy", choices=("none", "window-sandwich"), default="none",
+                   help="window-sandwich: widen the laws' posterior to the scatter of the step windows' scores, "
+                        "for a model that is not the rig (default none)")
+    p.add_argument("--effect", action="append", metavar="NAME[=VALUE]",
+                   help="add a catalogue effect to the model (repeatable): its size sampled under its prior, or "
+                        "fixed at VALUE (the first parameter's, SI; see tembayes simulate --help)")
     p.add_argument("--no-figures", action="store_true", help="skip the corner plots")
     p.add_argument("--quiet", action="store_true", help="no progress bars (stage messages only)")
     p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), metavar="N",

@@ -514,3 +514,49 @@ def test_sampling_clock_is_independent_of_the_protocol():
     phases = [sample_times(np.random.default_rng(s), 600.0, rate=5.0)[0] for s in range(50)]
     assert 0.0 <= min(phases) and max(phases) < 0.2
     assert np.std(phases) > 0.04  # ~ 0.2 / sqrt(12) for a uniform phase
+
+
+# ---------------------------------------------------------------- the out-of-model bench
+
+
+@pytest.fixture(scope="module")
+def high_and_standard(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("fidelity")
+    cfg = BenchConfig(n_modules=1, hold=120, rate=1, n_validations=1, validation_duration=1800, seed=3,
+                      validation_start="rest")
+    return {f: _make(tmp, replace(cfg, fidelity=f), f) for f in ("high", "standard")}
+
+
+def _model_misfit(batch, truth):
+    """RMS [K] of the calibration rig (paper form, the calibration's resolution) run with the true laws and
+    the true rig values it shares, against the identification run, at the best step phase."""
+    from tembayes.predict.runmodel import RunModel
+    from tembayes.physics.rig import reference_rig
+
+    exp = load_batch(batch).modules["TEM1"].identification
+    t = truth["modules"]["TEM1"]
+    p = {k: t[k] for k in MODULE_PARAMETERS} | {k: v for k, v in t["rig"].items() if k != "g_ceramic"}
+    rm = RunModel(exp, reference_rig(4, 6))
+    return min(float(np.sqrt(np.mean((exp.sensors - rm.simulate(p, s)[0][0]) ** 2))) for s in (-0.4, 0.0, 0.4))
+
+
+def test_the_high_fidelity_bench_is_not_the_calibration_model(high_and_standard):
+    (hb, ht), (sb, st) = high_and_standard["high"], high_and_standard["standard"]
+    assert ht["generator"]["fidelity"] == "high" and ht["bench_layout"]["physics"]["thomson_fraction"] == 1.0
+    assert set(ht["bench_layout"]["depth_sides"]) == {"T1", "T2", "T3", "T4"}
+    for b in (hb, sb):  # the preflight finds nothing impossible (a warning for the short holds at most)
+        assert all(f.severity == "warning" for f in load_batch(b).findings)
+    # the standard bench is the model's structure: its true values reproduce it to the noise;
+    # the high-fidelity one is not (layers, sensor bodies, Thomson heat, K(T), finer steel)
+    assert _model_misfit(sb, st) < 0.008
+    assert _model_misfit(hb, ht) > 0.05
+
+
+def test_a_validation_run_can_start_from_rest_at_its_first_level(high_and_standard):
+    b, _ = high_and_standard["standard"]
+    exp = load_batch(b).modules["TEM1"].validations[0]
+    first = float(np.median(exp.current[:10]))
+    assert abs(first) >= 0.15  # straight into a level, no rest hold
+    boundaries = (min(exp.t_water[0], exp.t_amb[0]) - 0.5, max(exp.t_water[0], exp.t_amb[0]) + 0.5)
+    assert np.all((exp.sensors[:, 0] > boundaries[0]) & (exp.sensors[:, 0] < boundaries[1]))  # the rig at rest
+    assert np.ptp(exp.sensors[2, :300]) > 1.0  # and on its way

@@ -281,3 +281,35 @@ def test_residual_process_whitening_matches_the_exact_ou_likelihood():
     sign, ld = np.linalg.slogdet(C)
     ll_exact = -0.5 * r @ np.linalg.solve(C, r) - 0.5 * ld
     assert ll_white == pytest.approx(ll_exact, rel=1e-8)
+
+
+def _t_rmse(p, after=0.0):
+    keep = p.time >= p.time[0] + after
+    return float(np.sqrt(np.mean((p.measured[:4, keep] - p.mean[:4, keep]) ** 2)))
+
+
+def test_a_run_that_starts_from_rest_is_predicted_from_its_first_minute(run3, batch3, tmp_path):
+    out, _, truth = run3
+    run, batch = load_run(out), load_batch(batch3)
+    exp = _record_validation(truth["modules"]["TEM2"], tmp_path / "rest.csv", 7, hours=2.0, start="rest")
+    res = predict(run, exp, "TEM2", batch, n_draws=100, seed=2, compare_constant=False)
+    p = res.linear
+    first = float(np.median(exp.current[:20]))
+    assert abs(first) >= 0.15
+    # the rig was at rest: the initial state is the steady state at ~0 A, not at the first level
+    assert abs(p.start_current) < 0.05 < abs(first) - 0.1
+    assert res.to_json()["initial_state"]["pre_history_current_A"] == p.start_current
+    # the first hour no longer dominates: over the whole run within 20 % of after the first hour
+    assert _t_rmse(p) <= 1.2 * _t_rmse(p, after=3600.0)
+    # negative control: started from the steady state at the first level (as before), it does
+    rm = RunModel(exp, run.rig_for(batch))
+    rm.start_current = float(rm.levels[0])
+    forced = simulate_predictive(rm, res.draws, np.random.default_rng(2))
+    assert _t_rmse(forced) > 2.0 * _t_rmse(forced, after=3600.0)
+
+
+def test_a_run_that_starts_settled_at_its_first_level_keeps_that_start(run3, validations):
+    _, _, truth = run3
+    exp = validations["TEM1"]  # 300 s at 0 A, settled
+    rm = RunModel(exp, RIG)
+    assert abs(rm.fit_start(_truth_params(truth, "TEM1")) - rm.levels[0]) < 0.02

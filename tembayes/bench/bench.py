@@ -7,9 +7,13 @@ identification staircase and validation cycles on the higher-fidelity rig
 (:mod:`tembayes.bench.hifi`) with slow water and ambient drifts, adds sensor
 noise, and writes a contract batch folder plus ``truth.json``.
 
-Never the calibration model plus noise: the bench's blocks, legs, leak paths
-and current steps are all resolved more finely than the model that
-calibrates on them.
+Two fidelity levels: ``standard`` (:mod:`tembayes.bench.hifi`), the
+calibration model's structure at its default resolution, with the current
+steps resolved more finely -- it proves the code; and ``high``
+(:mod:`tembayes.bench.outside`), a rig and module the calibration model does
+not contain (finer steel, the module's layers, sensor bodies at uncertain
+depths, Thomson heat, K(T), re-mounting spread, slow sensor noise) -- it
+measures the method.  Every statistical study reports both.
 """
 
 from __future__ import annotations
@@ -29,14 +33,15 @@ from tembayes.data import (
     write_experiment_csv,
     write_json,
 )
+from tembayes.bench import hifi, outside
 from tembayes.errors import ModelError
-from tembayes.bench import hifi
 from tembayes.bench.protocols import (
     boundary_drifts,
     identification_staircase,
     sample_times,
     validation_cycle,
 )
+from tembayes.physics.rig import CERAMIC
 from tembayes.physics.simulate import Inputs, simulate
 
 #: The reference module type (``shared/spec/reference-rig.md``).
@@ -47,6 +52,19 @@ NOISE = {"temperature_K": 0.004, "voltage_V": 0.001, "current_A": 0.001}
 
 #: Relative unit-to-unit spread (sd) of each parameter within a batch.
 UNIT_SPREAD = {"R0_ohm": 0.02, "R1_ohm_per_K": 0.05, "S0_V_per_K": 0.01, "S1_V_per_K2": 0.06, "K_W_per_K": 0.03}
+
+#: Bench fidelity levels (``tembayes simulate --fidelity``).
+FIDELITIES = ("standard", "high")
+#: The high-fidelity bench's slow sensor noise: an Ornstein-Uhlenbeck part [K], [s].
+SLOW_NOISE = (0.0015, 20.0)
+#: Module type's relative temperature slope of K (sd) [1/K].
+K1_SD = 3e-4
+#: Range of the thermistors' response time on the standard bench [s] (the high-fidelity bench has sensor bodies).
+SENSOR_TAU_RANGE = (0.2, 1.5)
+#: Physics of the standard bench: that of the calibration model's forms (:mod:`tembayes.calibrate.modelform`).
+PHYSICS = ("full", "paper")
+#: Relative change of the batch's cooler clamp and enclosure leaks from one mounting to the next (sd).
+REMOUNT_SD = {"g_cooler": 0.03, "leak_top": 0.1, "leak_bottom": 0.1, "leak_module": 0.2}
 
 
 @dataclass(frozen=True)
@@ -74,6 +92,18 @@ class BenchConfig:
         Validation runs per module.
     validation_duration : float
         [s]
+    fidelity : str
+        ``"standard"`` or ``"high"`` (the out-of-model bench, see the module doc).
+    validation_start : str
+        ``"steady"``: a validation run starts with 300 s at rest (0 A, the rig
+        settled); ``"rest"``: the rig at rest and the current switched
+        straight to the first level at the first sample.
+    physics : str
+        The standard bench's physics, that of a calibration model form:
+        ``"paper"`` (the default model's) or ``"full"`` (Thomson heat,
+        layered plates, a sensor response time drawn in
+        :data:`SENSOR_TAU_RANGE`, a temperature slope of K).  The
+        high-fidelity bench has its own.
     """
 
     n_modules: int = 3
@@ -87,8 +117,17 @@ class BenchConfig:
     hold: float = 600.0
     n_validations: int = 1
     validation_duration: float = 4 * 3600.0
+    fidelity: str = "standard"
+    validation_start: str = "steady"
+    physics: str = "paper"
 
     def __post_init__(self):
+        if self.fidelity not in FIDELITIES:
+            raise ModelError(f"fidelity must be one of {FIDELITIES}, got {self.fidelity!r}")
+        if self.physics not in PHYSICS:
+            raise ModelError(f"physics must be one of {PHYSICS}, got {self.physics!r}")
+        if self.validation_start not in ("steady", "rest"):
+            raise ModelError(f"validation_start must be 'steady' or 'rest', got {self.validation_start!r}")
         if self.n_modules < 1:
             raise ModelError("n_modules must be at least 1")
         if self.outlier is not None and self.outlier not in self.module_ids:
@@ -124,8 +163,20 @@ def draw_truth(config, rng):
     R1 = R0 * 0.005 * rng.normal(1.0, 0.1)  # R rises ~0.5 %/K
     S1 = S0 * 0.002 * rng.normal(1.0, 0.15)  # S rises ~0.2 %/K
     population = {"R0_ohm": R0, "R1_ohm_per_K": R1, "S0_V_per_K": S0, "S1_V_per_K2": S1, "K_W_per_K": K0}
+    high = config.fidelity == "high"
+    full = high or config.physics == "full"
+    params = outside.OUTSIDE_PARAMETERS if high else hifi.HIFI_PARAMETERS + (CERAMIC,)
     # one enclosure and one cooler for the whole batch; paste and plates per mounting
-    shared = {k: _draw_rig(rng, k) for k in ("g_cooler", "leak_top", "leak_bottom")}
+    shared = {k: _draw_rig(rng, k, params) for k in ("g_cooler", "leak_top", "leak_bottom")}
+    layout = {"physics": {}}
+    if high:
+        shared.update({k: _draw_rig(rng, k, params) for k in ("leak_module", "c_sensor", "g_sensor")})
+        sides, shares = outside.draw_sensor_depths(rng)
+        shared.update(shares)
+        layout = {"depth_sides": sides, "physics": {"thomson_fraction": 1.0, "K1_per_K": float(rng.normal(0, K1_SD))}}
+    elif full:  # the calibration model's own physics, with values a real rig and module would have
+        layout = {"physics": {"thomson_fraction": 1.0, "K1_per_K": float(rng.normal(0, K1_SD)),
+                              "sensor_tau_s": float(rng.uniform(*SENSOR_TAU_RANGE))}}
     modules = {}
     for mid in config.module_ids:
         laws = {k: v * (1.0 + UNIT_SPREAD[k] * rng.standard_normal()) for k, v in population.items()}
@@ -133,19 +184,24 @@ def draw_truth(config, rng):
         if is_out:
             laws["S0_V_per_K"] *= 1.0 + config.outlier_shift * rng.choice([-1.0, 1.0])
         rig = dict(shared)
-        for k in ("g_paste_hot", "g_paste_cold", "c_plate_hot", "c_plate_cold", "c_legs"):
-            rig[k] = _draw_rig(rng, k)
+        for k in ("g_paste_hot", "g_paste_cold", "c_plate_hot", "c_plate_cold", "c_legs") + (("g_ceramic",) if full
+                                                                                              else ()):
+            rig[k] = _draw_rig(rng, k, params)
+        if high:  # the cooler clamped and the enclosure closed again for every module
+            for k, sd in REMOUNT_SD.items():
+                rig[k] *= float(np.exp(sd * rng.standard_normal()))
+        equivalent = outside.reference_equivalent(rig) if high else hifi.reference_equivalent(rig)
         modules[mid] = {
             **{k: float(v) for k, v in laws.items()},
             "outlier": bool(is_out),
             "rig_bench": {k: float(v) for k, v in rig.items()},
-            "rig": {k: float(v) for k, v in hifi.reference_equivalent(rig).items()},
+            "rig": {k: float(v) for k, v in equivalent.items()},
         }
-    return {"population": {k: float(v) for k, v in population.items()}, "modules": modules}
+    return {"population": {k: float(v) for k, v in population.items()}, "modules": modules, "bench_layout": layout}
 
 
-def _draw_rig(rng, name):
-    p = next(q for q in hifi.HIFI_PARAMETERS if q.name == name)
+def _draw_rig(rng, name, parameters):
+    p = next(q for q in parameters if q.name == name)
     sd = (p.high - p.low) / 6.0
     while True:  # truncated to the documented range
         v = rng.normal(p.nominal, sd)
@@ -153,7 +209,8 @@ def _draw_rig(rng, name):
             return v
 
 
-def run_experiment(protocol, module, effect_params, rng, *, rate=5.0, rig=None, t0=0.0, path=None):
+def run_experiment(protocol, module, effect_params, rng, *, rate=5.0, rig=None, t0=0.0, path=None, start="steady",
+                   slow_noise=None):
     """Run one experiment on the bench and return it as a measured Experiment.
 
     Parameters
@@ -170,15 +227,25 @@ def run_experiment(protocol, module, effect_params, rng, *, rate=5.0, rig=None, 
         Bench rig, default :func:`tembayes.bench.hifi.hifi_rig`.
     t0 : float
         Time stamp of the first sample [s].
+    start : str
+        ``"steady"``: the rig settled at the first level's current;
+        ``"rest"``: the rig settled at 0 A and the first level switched on
+        just before the first sample.
+    slow_noise : tuple of float, optional
+        ``(sd [K], tau [s])`` of an Ornstein-Uhlenbeck noise added to every
+        temperature channel on top of the white noise.
     """
     rig = rig or hifi.hifi_rig()
     ts = sample_times(rng, protocol.duration, rate=rate)
     # resolve each current step with a 1 ms ramp (the amplifier), between samples
     steps = protocol.step_times
-    grid = np.unique(np.concatenate([ts, steps - 1e-3, steps]))
+    pre = [ts[0] - 0.03, ts[0] - 0.02 - 1e-3, ts[0] - 0.02] if start == "rest" else []
+    grid = np.unique(np.concatenate([pre, ts, steps - 1e-3, steps]))
     grid = grid[np.concatenate([[True], np.diff(grid) > 1e-6])]
     i_true = protocol.current(grid)
     i_true[np.isin(grid, steps - 1e-3)] = protocol.current(steps - 2e-3)
+    if start == "rest":  # at rest before the first level is switched on
+        i_true[grid < ts[0] - 0.02 + 1e-9] = 0.0
     tw, ta = boundary_drifts(rng, grid)
     params = {k: module[k] for k in ("R0_ohm", "R1_ohm_per_K", "S0_V_per_K", "S1_V_per_K2", "K_W_per_K")}
     params.update(module["rig_bench"])
@@ -196,6 +263,8 @@ def run_experiment(protocol, module, effect_params, rng, *, rate=5.0, rig=None, 
     sensors = sim.sensors[0][:, sel] + rng.normal(0, noise["temperature_K"], (4, n))
     water = tw[sel] + rng.normal(0, noise["temperature_K"], n)
     amb = ta[sel] + rng.normal(0, noise["temperature_K"], n)
+    if slow_noise is not None:
+        sensors += np.stack([outside.ou_noise(rng, ts, *slow_noise) for _ in range(4)])
     return experiment_from_arrays(ts + t0, current, voltage, sensors, water, amb, path=path)
 
 
@@ -227,7 +296,14 @@ def simulate_batch(out, config, *, overwrite=False, progress=None):
     truth = draw_truth(config, rng)
     eff_flat = {k: v for params in config.effects.values() for k, v in params.items()}
     ds = config.datasheet
-    rig = hifi.hifi_rig()
+    high = config.fidelity == "high"
+    # the catalogue effects asked for come on top of (or replace) the bench's own physics
+    eff_flat = {**truth["bench_layout"]["physics"], **eff_flat}
+    if high:
+        rig = outside.outside_rig(truth["bench_layout"]["depth_sides"])
+    else:
+        rig = hifi.hifi_rig(layers=config.physics == "full")
+    run = {"rig": rig, "slow_noise": SLOW_NOISE if high else None}
     with atomic_directory(out, overwrite=overwrite, kind="simulate") as tmp:
         write_batch_toml(tmp / "batch.toml", ds, {"preset": "reference"})
         for (mid, module), mss in zip(truth["modules"].items(), module_ss):
@@ -235,16 +311,17 @@ def simulate_batch(out, config, *, overwrite=False, progress=None):
             (tmp / mid).mkdir()
             progress(f"bench: {mid} identification ({config.hold:.0f} s holds)")
             exp = run_experiment(
-                identification_staircase(ds.imax, hold=config.hold), module, eff_flat, mrng,
-                rate=config.rate, rig=rig,
+                identification_staircase(ds.imax, hold=config.hold), module, eff_flat, mrng, rate=config.rate, **run,
             )
             write_experiment_csv(tmp / mid / "identification.csv", exp)
             for v in range(config.n_validations):
                 name = "validation.csv" if v == 0 else f"validation{v + 1}.csv"
                 progress(f"bench: {mid} {name}")
-                proto = validation_cycle(mrng, ds.imax, duration=config.validation_duration)
+                rest = config.validation_start == "rest"
+                proto = validation_cycle(mrng, ds.imax, duration=config.validation_duration, rest=0.0 if rest else 300.0)
                 exp = run_experiment(proto, module, eff_flat, mrng, rate=config.validation_rate or config.rate,
-                                     rig=rig, t0=float(np.round(mrng.uniform(0, 1000), 3)))
+                                     t0=float(np.round(mrng.uniform(0, 1000), 3)), start="rest" if rest else "steady",
+                                     **run)
                 write_experiment_csv(tmp / mid / name, exp)
         truth = {
             "generator": {
@@ -256,6 +333,9 @@ def simulate_batch(out, config, *, overwrite=False, progress=None):
                 "n_validations": config.n_validations,
                 "validation_duration_s": config.validation_duration,
                 "bench_rig": rig.name,
+                "fidelity": config.fidelity,
+                "physics": "high-fidelity" if high else config.physics,
+                "validation_start": config.validation_start,
                 "outlier_shift": config.outlier_shift,
             },
             "tref_C": T_REF - KELVIN,

@@ -18,7 +18,7 @@ It reuses the same compiled kernel: a leg chain is just a longer module chain.
 
 from __future__ import annotations
 
-from tembayes.physics.rig import AREA, K_STEEL, REFERENCE, RHO_C, RigDescription, RigParameter
+from tembayes.physics.rig import AREA, CERAMIC, JUNCTION_SHARE, K_STEEL, REFERENCE, RHO_C, RigDescription, RigParameter
 
 N_BLOCK_CELLS = 6
 N_LEG_CELLS = 4
@@ -27,6 +27,7 @@ N_LEG_CELLS = 4
 #: and documented range), so a calibration's rig posterior can be checked.
 SHARED_WITH_REFERENCE = (
     "g_cooler", "g_paste_hot", "g_paste_cold", "c_plate_hot", "c_plate_cold", "c_legs", "leak_top", "leak_bottom",
+    "g_ceramic",
 )
 
 _DX = 0.010 / N_BLOCK_CELLS  # cell thickness [m]
@@ -42,29 +43,40 @@ HIFI_PARAMETERS = tuple(p for p in REFERENCE.parameters if p.name in SHARED_WITH
 )
 
 
-def hifi_rig(n_leg=N_LEG_CELLS):
-    """The bench's higher-fidelity description of the reference rig."""
+def hifi_rig(n_leg=N_LEG_CELLS, layers=False):
+    """The bench's higher-fidelity description of the reference rig.
+
+    With ``layers`` (the ``full`` model form's structure) each plate is two
+    layers, alumina and the junctions' copper, joined by ``g_ceramic``;
+    without, one node as in the paper.
+    """
     nb = N_BLOCK_CELLS
     top = [f"top_{i + 1}" for i in range(nb)]  # top_1 at the water cooler
     bottom = [f"bottom_{i + 1}" for i in range(nb)]  # bottom_1 at the module
     legs = [f"leg_{i + 1}" for i in range(n_leg)]  # leg_1 at the hot plate
+    share, rest = repr(JUNCTION_SHARE), repr(1.0 - JUNCTION_SHARE)
     nodes = [(n, "c_cell") for n in top]
-    nodes += [("hot_plate", "c_plate_hot")]
+    nodes += ([("hot_ceramic", f"{rest}*c_plate_hot"), ("hot_plate", f"{share}*c_plate_hot")] if layers
+              else [("hot_plate", "c_plate_hot")])
     nodes += [(n, f"{1.0 / n_leg!r}*c_legs") for n in legs]
-    nodes += [("cold_plate", "c_plate_cold")]
+    nodes += ([("cold_plate", f"{share}*c_plate_cold"), ("cold_ceramic", f"{rest}*c_plate_cold")] if layers
+              else [("cold_plate", "c_plate_cold")])
     nodes += [(n, "c_cell") for n in bottom]
+    half = ["2.0*g_ceramic"] if layers else []
     links = [("water", top[0], ["g_cooler", "g_half_cell"])]
     links += [(a, b, "g_cell") for a, b in zip(top[:-1], top[1:])]
-    links += [(top[-1], "hot_plate", ["g_half_cell", "g_paste_hot"])]
-    links += [("cold_plate", bottom[0], ["g_paste_cold", "g_half_cell"])]
+    links += [(top[-1], "hot_ceramic" if layers else "hot_plate", ["g_half_cell", "g_paste_hot"] + half)]
+    links += [("cold_ceramic" if layers else "cold_plate", bottom[0], half + ["g_paste_cold", "g_half_cell"])]
+    if layers:
+        links += [("hot_ceramic", "hot_plate", half[0]), ("cold_plate", "cold_ceramic", half[0])]
     links += [(a, b, "g_cell") for a, b in zip(bottom[:-1], bottom[1:])]
     links += [(n, "ambient", f"{1.0 / nb!r}*leak_top") for n in top]
     # half of the bottom leak through the side walls, half through the tabs
     links += [(n, "ambient", f"{0.5 / nb!r}*leak_bottom") for n in bottom]
     links += [(bottom[-1], "ambient", "0.5*leak_bottom")]
     return RigDescription(
-        name=f"bench-hifi-{n_leg}",
-        parameters=HIFI_PARAMETERS,
+        name=f"bench-hifi-{n_leg}" + ("-layers" if layers else ""),
+        parameters=HIFI_PARAMETERS + ((CERAMIC,) if layers else ()),
         nodes=tuple(nodes),
         links=tuple(links),
         hot="hot_plate",

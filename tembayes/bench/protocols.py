@@ -66,14 +66,16 @@ def identification_staircase(imax=REFERENCE_IMAX, hold=600.0, step=0.2, top=0.8,
     return Protocol(levels, np.full(len(levels), float(hold)))
 
 
-def validation_cycle(rng, imax=REFERENCE_IMAX, duration=4 * 3600.0, low=-1.6, high=0.9, hold_range=(300.0, 1200.0)):
+def validation_cycle(rng, imax=REFERENCE_IMAX, duration=4 * 3600.0, low=-1.6, high=0.9, hold_range=(300.0, 1200.0),
+                     rest=300.0):
     """A validation run: random holds between ``low`` and ``high`` amperes.
 
-    Starts with a 300 s rest at 0 A; levels are drawn on a 0.05 A grid so that
-    consecutive holds differ by at least 0.15 A.
+    Starts with a ``rest`` [s] at 0 A (0: straight into the first level);
+    levels are drawn on a 0.05 A grid so that consecutive holds differ by at
+    least 0.15 A.
     """
-    levels, durations = [0.0], [300.0]
-    total = 300.0
+    levels, durations = ([0.0], [float(rest)]) if rest > 0 else ([0.0], [0.0])
+    total = float(rest)
     grid = np.round(np.arange(low, high + 1e-9, 0.05), 6)
     while total < duration:
         while True:
@@ -84,6 +86,8 @@ def validation_cycle(rng, imax=REFERENCE_IMAX, duration=4 * 3600.0, low=-1.6, hi
         levels.append(lv)
         durations.append(d)
         total += d
+    if rest <= 0:  # no rest hold: the placeholder only made the first level differ from 0 A
+        levels, durations = levels[1:], durations[1:]
     scale = imax / REFERENCE_IMAX
     return Protocol(np.array(levels) * scale, np.array(durations))
 

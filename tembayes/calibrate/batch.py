@@ -44,6 +44,7 @@ from tembayes.calibrate.runfolder import RunFolder, module_usable
 from tembayes.data.digest import batch_inputs
 from tembayes.data.write import atomic_write_bytes, to_jsonable, write_json
 from tembayes.errors import ModelError
+from tembayes.physics.effects import EFFECT_PARAMETERS
 
 
 def _versions():
@@ -351,6 +352,10 @@ def finish_run(batch, out, *, seed=0, options=None, population=True, progress=No
         "failed_modules": failed,
         "calibration": {
             "seed": int(seed), "rig": rig, "options": dict(opt.__dict__), "versions": _versions(),
+            "model": opt.model,
+            # the catalogue effects in the model: sampled, or at a fixed value (contract section 4)
+            "effects": sorted({*opt.effects, *(EFFECT_PARAMETERS[k] for k in opt.effect_values)}),
+            "effect_values": dict(opt.effect_values),
             "command": None if argv is None else "tembayes " + " ".join(shlex.quote(a) for a in argv),
             "seconds": (seconds or 0.0) + time.perf_counter() - t0, "executor": executor,
         },

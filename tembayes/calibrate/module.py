@@ -43,9 +43,11 @@ from scipy.optimize import least_squares
 from threadpoolctl import threadpool_limits
 
 from tembayes.calibrate import sampler as smp
-from tembayes.calibrate.likelihood import OFFSET_SD, LevelErrors, StepLikelihood, noise_priors
+from tembayes.calibrate.likelihood import NOISE_SCALE, OFFSET_SD, LevelErrors, StepLikelihood, noise_priors
 from tembayes.calibrate.model import SHIFT, LinearisedModel, StepResponseModel
 from tembayes.calibrate.parameters import ParameterSpace
+from tembayes.calibrate.discrepancy import window_sandwich
+from tembayes.calibrate.modelform import DEFAULT_FORM, get_form
 from tembayes.calibrate.priors import ParameterPrior, effect_priors, law_priors, rig_prior
 from tembayes.calibrate.stepdata import step_data
 from tembayes.constants import MODULE_PARAMETERS
@@ -65,6 +67,8 @@ BLOCK_CELLS = 6
 #: Rig parameters whose documented range is narrower than this ratio
 #: (high/low) are fixed at nominal (the steel: known material and size).
 NUISANCE_MIN_RANGE = 1.2
+#: How a calibration widens its laws for a model that is not the rig (``CalibrationOptions.discrepancy``).
+DISCREPANCIES = ("none", "window-sandwich")
 #: An expansion whose PSIS k_hat on the first ``psis_probe`` steps of a
 #: rebuildable stage exceeds this is rebuilt at once (k_hat > 1: importance
 #: weights without a finite mean -- the expansion is not the posterior, and
@@ -107,6 +111,19 @@ class CalibrationOptions:
         Steps after which a rebuildable stage checks its expansion (PSIS)
         once, and is cut and rebuilt if ``k_hat`` > :data:`EARLY_REBUILD_K`
         (0: never; the last stage never is).
+    model : str
+        The model's physics, ``"paper"`` or ``"full"``
+        (:mod:`tembayes.calibrate.modelform`).
+    effects : tuple of str
+        Catalogue effects added to the model, their sizes sampled under their
+        priors (``tembayes calibrate --effect NAME``).
+    effect_values : dict
+        Effect parameters added to the model at a fixed value
+        (``--effect NAME=VALUE``; name -> value, SI).
+    discrepancy : str
+        ``"none"``, or ``"window-sandwich"``: the laws' posterior widened
+        to the scatter of the step windows' scores
+        (:mod:`tembayes.calibrate.discrepancy`).
     stage_steps : int
         Budget of a sampling run whose expansion may still be rebuilt (the
         run is cut there and the expansion rebuilt from its walkers).
@@ -129,6 +146,26 @@ class CalibrationOptions:
     max_relinearise: int = 3
     stage_steps: int = 60000
     psis_probe: int = 4000
+    model: str = DEFAULT_FORM
+    effects: tuple = ()
+    effect_values: dict = field(default_factory=dict)
+    discrepancy: str = "none"
+
+    def __post_init__(self):
+        if self.discrepancy not in DISCREPANCIES:
+            raise ModelError(f"discrepancy must be one of {DISCREPANCIES}, got {self.discrepancy!r}")
+        form = get_form(self.model)
+        named = set(self.effects) | {EFFECT_PARAMETERS.get(k) for k in self.effect_values}
+        if None in named:
+            bad = [k for k in self.effect_values if k not in EFFECT_PARAMETERS]
+            raise ModelError(f"unknown effect parameter(s) {bad}")
+        inside = sorted(named & set(form.includes))
+        if inside:
+            raise ModelError(f"the '{form.name}' model already contains {', '.join(inside)}; add it only to a "
+                             "--model paper calibration")
+        both = sorted(set(self.effects) & {EFFECT_PARAMETERS[k] for k in self.effect_values})
+        if both:
+            raise ModelError(f"effect {', '.join(both)} given both sampled and at a fixed value")
 
 
 @dataclass(frozen=True)
@@ -201,15 +238,31 @@ def module_seed(seed, module_id):
 
 
 def calibration_rig(rig_config, options):
-    return rig_from_config(rig_config or {}, leg_cells=options.leg_cells, block_cells=options.block_cells)
+    """The calibration model's rig for a batch's ``[rig]`` table and the options' resolution and form."""
+    form = get_form(options.model)
+    return rig_from_config(rig_config or {}, leg_cells=options.leg_cells, block_cells=options.block_cells,
+                           layers=form.layers, physics={**form.physics, **dict(options.effect_values)})
 
 
-def parameter_space(rig, datasheet, data, shift_bound, effects=()):
-    """The sampled coordinates: laws and K, rig nuisances, the parameters of
-    ``effects`` (catalogue names added to the base model), step shift, noise."""
+def parameter_space(rig, datasheet, data, shift_bound, effects=(), form=DEFAULT_FORM):
+    """The sampled coordinates: laws and K, rig nuisances, the model form's
+    sampled physics, the parameters of ``effects`` (catalogue names added to
+    the model), step shift, noise.
+
+    Raises
+    ------
+    ModelError
+        An effect the form already contains.
+    """
+    form = get_form(form)
+    inside = [e for e in effects if e in form.includes]
+    if inside:
+        raise ModelError(f"the '{form.name}' model already contains {', '.join(inside)}; add it only to a "
+                         "--model paper calibration")
     nuis = [p for p in rig.parameters if p.high / p.low > NUISANCE_MIN_RANGE]
     fixed = {p.name: p.nominal for p in rig.parameters if p.high / p.low <= NUISANCE_MIN_RANGE}
-    pri = list(law_priors(datasheet)) + [rig_prior(p) for p in nuis] + list(effect_priors(effects))
+    pri = (list(law_priors(datasheet)) + [rig_prior(p) for p in nuis] + list(form.priors)
+           + list(effect_priors(effects)))
     pri.append(ParameterPrior(SHIFT, "uniform", 0.0, shift_bound))
     model_space = ParameterSpace(tuple(pri), fixed)
     return model_space, ParameterSpace(tuple(pri) + noise_priors(data), fixed)
@@ -421,6 +474,17 @@ def calibrate_module(module, datasheet, **kw):
         return _calibrate_module(module, datasheet, **kw)
 
 
+def _adequacy_numbers(scatter, values, data):
+    """What says whether the model fits its own run: the windows' score scatter against the
+    posterior (1 when the model is right), the inferred noise scale and window offsets (in noise sds)."""
+    return {
+        "window_score_variance_ratio_max": float(np.max(scatter.ratios)),  # per law parameter, 1 if right
+        "window_score_variance_ratios": [float(r) for r in scatter.ratios],
+        "noise_scale_median": {n: float(np.median(values[n])) for n in NOISE_SCALE},
+        "offset_sd_over_noise_median": {n: float(np.median(values[n]) / sd) for n, sd in zip(OFFSET_SD, data.noise)},
+    }
+
+
 def _read_state(path):
     """A module's resume state, or None (set aside as ``*.damaged``, with a warning) if it cannot be read."""
     try:
@@ -444,7 +508,8 @@ def _calibrate_module(module, datasheet, *, rig_config=None, seed=0, options=Non
     data = step_data(module.identification)
     rig = calibration_rig(rig_config, opt)
     model = StepResponseModel(data, rig)
-    model_space, space = parameter_space(rig, datasheet, data, model.shift_bound, effects)
+    effects = tuple(dict.fromkeys((*effects, *opt.effects)))  # the run's own and the gap's candidate
+    model_space, space = parameter_space(rig, datasheet, data, model.shift_bound, effects, opt.model)
     nwalkers = 2 * space.ndim + 2 if opt.nwalkers is None else int(opt.nwalkers)
     if nwalkers < 2 * space.ndim:
         raise ModelError(f"nwalkers must be at least 2 x {space.ndim} parameters, got {nwalkers}")
@@ -550,9 +615,20 @@ def _calibrate_module(module, datasheet, *, rig_config=None, seed=0, options=Non
     kept = run.chain[sel].transpose(1, 0, 2)  # (nw, keep, p)
     nw, nk = kept.shape[:2]
     flat_kept = kept.reshape(-1, space.ndim)
+    step_ll = like.pointwise(flat_kept)
+    laws = [space.names.index(k) for k in MODULE_PARAMETERS]
+    scatter = window_sandwich(flat_kept, step_ll, laws)  # always: how far the windows disagree
+    adequacy = _adequacy_numbers(scatter, space.values(flat_kept), data)
+    widened = None
+    if opt.discrepancy == "window-sandwich":
+        widened = scatter
+        centre = flat_kept[:, laws].mean(axis=0)
+        flat_kept = flat_kept.copy()
+        flat_kept[:, laws] = centre + (flat_kept[:, laws] - centre) @ widened.stretch.T
+        step_ll = like.pointwise(flat_kept)
     vals = space.values(flat_kept)
     draws = {k: v.reshape(nw, nk) for k, v in vals.items()}
-    step_ll = like.pointwise(flat_kept).reshape(nw, nk, -1)
+    step_ll = step_ll.reshape(nw, nk, -1)
     # the junction mean temperature at every step (exact model, at the centre)
     sim = model.simulate(model_space.params(x_map[None]))
     tavg = 0.5 * (sim["t_hot"][0] + sim["t_cold"][0])
@@ -584,6 +660,8 @@ def _calibrate_module(module, datasheet, *, rig_config=None, seed=0, options=Non
         # largest response to a hold level outside the two windows kept, in
         # noise sds per level sd (the tridiagonal approximation's neglect)
         "level_band_neglected": levels.neglected,
+        "discrepancy": ({"method": "none"} if widened is None else widened.to_json(MODULE_PARAMETERS)),
+        "adequacy": adequacy,
     }
     timings["total_s"] = time.perf_counter() - t_start
     diag["timings"] = timings
@@ -623,7 +701,7 @@ def sample_prior_only(module, datasheet, *, rig_config=None, seed=0, options=Non
     data = step_data(module.identification)
     rig = calibration_rig(rig_config, opt)
     model = StepResponseModel(data, rig)
-    _, space = parameter_space(rig, datasheet, data, model.shift_bound)
+    _, space = parameter_space(rig, datasheet, data, model.shift_bound, form=opt.model)
     nwalkers = 2 * space.ndim + 2 if opt.nwalkers is None else int(opt.nwalkers)
     p0 = space.sample_prior(rng, nwalkers)
     run = smp.sample(space.log_prior, p0, seed=emcee_seed, monitor=range(space.ndim), thin_by=opt.thin_by,

@@ -250,6 +250,9 @@ def module_entry(r, outlier_prob=None):
         "psis_k": d["psis"][-1]["k_hat"], "sampler_converged": d["sampler_converged"],
         "seconds": d["timings"]["total_s"],
     }
+    for k in ("discrepancy", "adequacy"):  # runs that predate them have neither
+        if k in d:
+            entry["diagnostics"][k] = d[k]
     entry["hysteresis"] = r.hysteresis
     entry["nuisance"] = {k: stats(r.draws[k]) for k in r.names if k not in MODULE_PARAMETERS}
     return entry

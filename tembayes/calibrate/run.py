@@ -97,8 +97,8 @@ class CalibrationRun:
         return self.module_summary(module_id).get("hysteresis") or {}
 
     def options(self) -> dict:
-        """The calibration options recorded in ``summary.json``."""
-        return dict((self.summary.get("calibration") or {}).get("options") or {})
+        """The calibration options recorded in ``summary.json`` (``model`` is ``"paper"`` for runs that predate it)."""
+        return {"model": "paper", **((self.summary.get("calibration") or {}).get("options") or {})}
 
     def rig_for(self, batch):
         """The calibration rig of this run on ``batch``, after checking the batch holds every module.
@@ -108,14 +108,22 @@ class CalibrationRun:
         DataError
             The batch is not the one the run was calibrated on.
         """
-        from tembayes.physics.rig import rig_from_config
+        from tembayes.calibrate.module import calibration_rig
 
         missing = [m for m in self.module_ids if m not in batch.modules]
         if missing:
             raise DataError(batch.path, f"has no module folder(s) {missing} of the run",
                             "Give the batch folder the run was calibrated on.")
-        opts = self.options()
-        return rig_from_config(batch.rig_config, opts.get("leg_cells", 4), opts.get("block_cells", 6))
+        return calibration_rig(batch.rig_config, self.calibration_options())
+
+    def calibration_options(self):
+        """The run's :class:`~tembayes.calibrate.module.CalibrationOptions` (options it does not know at their defaults)."""
+        import dataclasses
+
+        from tembayes.calibrate.module import CalibrationOptions
+
+        known = {f.name for f in dataclasses.fields(CalibrationOptions)}
+        return CalibrationOptions(**{k: v for k, v in self.options().items() if k in known})
 
     def priors(self, module_id) -> dict:
         """``name -> {"kind", "center", "scale"}`` of the module's priors (from ``posterior.nc``)."""

@@ -85,6 +85,7 @@ from pathlib import Path
 import numpy as np
 from scipy.special import logsumexp
 
+from tembayes.calibrate.modelform import get_form
 from tembayes.constants import MODULE_PARAMETERS
 from tembayes.errors import DataError
 from tembayes.gap.conflicts import range_conflicts
@@ -323,7 +324,7 @@ def _score(module, raw, priors, rig, tag, seed, n_draws, alpha):
     parameters outside their range.
     """
     draws = posterior_draws(raw, priors, module.id, module.identification, rig)
-    evals = [evaluate_run(RunModel(exp, rig), draws, _seed(seed, module.id, tag, exp.path),
+    evals = [evaluate_run(RunModel(exp, rig, start="data"), draws, _seed(seed, module.id, tag, exp.path),
                           _seed(seed, module.id, exp.path), n_draws=n_draws, alpha=alpha)
              for exp in module.validations]
     for e in evals:
@@ -331,7 +332,7 @@ def _score(module, raw, priors, rig, tag, seed, n_draws, alpha):
     return draws, evals, [r["parameter"] for r in range_conflicts(raw, rig) if r["conflict"]]
 
 
-def _refit_job(module, datasheet, rig_config, leg_cells, block_cells, effect, start, seed, n_draws, alpha, heldout):
+def _refit_job(module, datasheet, rig_config, base, effect, start, seed, n_draws, alpha, heldout):
     """One refit (:func:`~tembayes.gap.which.refit`) and, with ``heldout``, its Laplace posterior's
     held-out scores and range conflicts (a worker's job).
 
@@ -339,10 +340,9 @@ def _refit_job(module, datasheet, rig_config, leg_cells, block_cells, effect, st
     """
     from threadpoolctl import threadpool_limits
 
-    from tembayes.calibrate.module import CalibrationOptions
+    from tembayes.calibrate.module import calibration_rig
     from tembayes.errors import TembayesError
     from tembayes.gap.which import refit
-    from tembayes.physics.rig import rig_from_config
 
     t0 = _time.perf_counter()
     out = {"module": module.id, "effect": effect, "failed": None, "evals": None, "conflicts": None}
@@ -350,20 +350,20 @@ def _refit_job(module, datasheet, rig_config, leg_cells, block_cells, effect, st
         warnings.simplefilter("ignore", RuntimeWarning)  # a wrong effect's refit may probe where the rig strains
         try:
             rf = refit(module, datasheet, effect, rig_config=rig_config, start=start,
-                       options=CalibrationOptions(leg_cells=leg_cells, block_cells=block_cells))
+                       options=base)
             out["refit"] = rf
             if heldout:
                 raw = rf.draws(_seed(seed, module.id, "laplace", effect), 4 * n_draws)
                 with threadpool_limits(limits=1, user_api="blas"):
                     _, out["evals"], out["conflicts"] = _score(module, raw, rf.priors,
-                                                               rig_from_config(rig_config, leg_cells, block_cells),
+                                                               calibration_rig(rig_config, base),
                                                                f"screen:{effect}", seed, n_draws, alpha)
         except TembayesError as err:
             out["failed"] = str(err)
     return {**out, "seconds": _time.perf_counter() - t0}
 
 
-def _candidate_job(module, datasheet, rig_config, leg_cells, block_cells, effect, seed, options, n_draws, alpha,
+def _candidate_job(module, datasheet, rig_config, base, effect, seed, options, n_draws, alpha,
                    start, refitted=None):
     """One module recalibrated with ``effect`` and scored on its held-out runs (a worker's job).
 
@@ -377,18 +377,17 @@ def _candidate_job(module, datasheet, rig_config, leg_cells, block_cells, effect
     """
     from threadpoolctl import threadpool_limits
 
-    from tembayes.calibrate.module import CalibrationOptions, calibrate_module
+    from tembayes.calibrate.module import calibrate_module, calibration_rig
     from tembayes.errors import TembayesError
     from tembayes.gap.which import refit
-    from tembayes.physics.rig import rig_from_config
 
     t0 = _time.perf_counter()
-    rig = rig_from_config(rig_config, leg_cells, block_cells)
+    rig = calibration_rig(rig_config, base)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", RuntimeWarning)
         try:
             rf = refitted or refit(module, datasheet, effect, rig_config=rig_config, start=start,
-                                   options=CalibrationOptions(leg_cells=leg_cells, block_cells=block_cells))
+                                   options=base)
             cal = calibrate_module(module, datasheet, rig_config=rig_config, seed=seed, options=options,
                                    effects=(effect,), start={**start, **rf.mode()})
             raw = {k: np.asarray(v).ravel() for k, v in cal.draws.items()}
@@ -396,7 +395,7 @@ def _candidate_job(module, datasheet, rig_config, leg_cells, block_cells, effect
             # again, from its posterior median (a screen refit may have stopped short of the mode)
             rf = refit(module, datasheet, effect, rig_config=rig_config, start={k: float(np.median(v))
                                                                                 for k, v in raw.items()},
-                       options=CalibrationOptions(leg_cells=leg_cells, block_cells=block_cells))
+                       options=base)
             with threadpool_limits(limits=1, user_api="blas"):
                 draws, evals, conflicting = _score(module, raw, cal.priors, rig, effect, seed, n_draws, alpha)
         except TembayesError as err:
@@ -715,34 +714,31 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
     -------
     GapDiagnosis
     """
-    from tembayes.calibrate.module import CalibrationOptions
-
     t_start = _time.perf_counter()
     jobs = default_jobs() if jobs is None else int(jobs)
     say = progress or (lambda msg: None)
     unknown = [e for e in exclude if e not in E.CATALOGUE]
     if unknown:
         raise DataError("--exclude", f"names no catalogue effect: {unknown}", f"Choose from {list(E.CATALOGUE)}.")
-    allowed = [e for e in E.CATALOGUE if e not in set(exclude)]
+    base = run.calibration_options()
+    # the effects the run's model already contains are no candidates
+    inside = {*get_form(base.model).includes, *base.effects, *(E.EFFECT_PARAMETERS[k] for k in base.effect_values)}
+    allowed = [e for e in E.CATALOGUE if e not in set(exclude) and e not in inside]
     rig = run.rig_for(batch)
     ids = [m for m in run.module_ids if batch.modules[m].validations]
     if not ids:
         raise DataError(batch.path, "has no validation*.csv in any module folder",
                         "The diagnosis needs held-out runs: add at least one validation experiment per module.")
-    opts = run.options()
-    leg, blk = opts.get("leg_cells", 4), opts.get("block_cells", 6)
     if options is None:
-        known = CalibrationOptions.__dataclass_fields__
-        options = CalibrationOptions(**{k: v for k, v in opts.items() if k in known})
-        options = replace(options, max_steps=min(options.max_steps, RECAL_MAX_STEPS),
-                          stage_steps=min(options.stage_steps, RECAL_MAX_STEPS))
+        options = replace(base, max_steps=min(base.max_steps, RECAL_MAX_STEPS),
+                          stage_steps=min(base.stage_steps, RECAL_MAX_STEPS))
     # the family-wise level split over every map: each validation run and each identification run
     alpha = ALPHA / (sum(len(batch.modules[m].validations) for m in ids) + len(ids))
     raws = {mid: module_raw_draws(run, mid) for mid in ids}  # read once: anchoring, conflicts, the refits' start
     starts = {mid: {k: float(np.median(raws[mid][k])) for k in MODULE_PARAMETERS} for mid in ids}
 
     def refit_job(mid, e, heldout=False):
-        return _refit_job, (batch.modules[mid], batch.datasheet, batch.rig_config, leg, blk, e, starts[mid], seed,
+        return _refit_job, (batch.modules[mid], batch.datasheet, batch.rig_config, base, e, starts[mid], seed,
                             min(n_draws, SCREEN_DRAWS), alpha, heldout)
 
     with _executor(jobs) as ex:
@@ -757,7 +753,7 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
             conflicts[mid] = [r for r in range_conflicts(raws[mid], rig) if r["outside_sd"] > 0]
             for exp in module.validations:
                 say(f"{mid}: held-out {Path(str(exp.path)).name}: predictive and gap map")
-                base_evals.append(evaluate_run(RunModel(exp, rig), d, _seed(seed, mid, "base", exp.path),
+                base_evals.append(evaluate_run(RunModel(exp, rig, start="data"), d, _seed(seed, mid, "base", exp.path),
                                                _seed(seed, mid, exp.path), n_draws=n_draws, alpha=alpha,
                                                keep_prediction=True))
         say("refitting the base model on the identification runs (each step window held out in turn)")
@@ -836,7 +832,7 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
         # evidence there go on to the other modules
         def job(mid, e):
             r = screened.get(("refit", mid, e)) if mid == lead else None
-            return (batch.modules[mid], batch.datasheet, batch.rig_config, leg, blk, e, seed, options, n_draws, alpha,
+            return (batch.modules[mid], batch.datasheet, batch.rig_config, base, e, seed, options, n_draws, alpha,
                     starts[mid], None if r is None or r["failed"] else r["refit"])
 
         lead_done, why = {}, {}

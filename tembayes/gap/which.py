@@ -199,7 +199,8 @@ def refit(module, datasheet, effect=None, *, rig_config=None, start=None, option
     rig = calibration_rig(rig_config, opt)
     model = StepResponseModel(data, rig)
     effects = () if effect is None else (E.get(effect).name,)
-    space, _ = parameter_space(rig, datasheet, data, model.shift_bound, effects)
+    space, _ = parameter_space(rig, datasheet, data, model.shift_bound, tuple(dict.fromkeys((*effects, *opt.effects))),
+                               opt.model)
     x0 = start_point(space, start)
     with threadpool_limits(limits=1, user_api="blas"):
         x, _, sol = fit_map(model, space, data, x0, max_nfev=max_nfev)

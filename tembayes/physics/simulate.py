@@ -150,7 +150,7 @@ def tem_vectors(params, nd, tref=T_REF):
 
 
 def build(params, rig=REFERENCE):
-    """Kernel arrays for a parameter mapping.
+    """Kernel arrays for a parameter mapping (the rig's ``physics`` values where the mapping has none).
 
     Returns
     -------
@@ -158,7 +158,7 @@ def build(params, rig=REFERENCE):
         ``A``, ``Bb``, ``Cinv``, ``P``, ``tem`` (chain node indices),
         ``network`` and the checked ``params`` with ``nd``.
     """
-    params, nd = check_params(params, rig)
+    params, nd = check_params({**rig.physics, **params}, rig)
     net = rig.network({k: v for k, v in params.items() if k in rig.parameter_names})
     if net.C.shape[0] != nd:
         net = type(net)(net.nodes, *(np.broadcast_to(a, (nd,) + a.shape[1:]).copy() for a in (net.C, net.G, net.Gb)))
@@ -234,8 +234,8 @@ def simulate(inputs, params, *, rig=REFERENCE, y0=None, steady_start=True, atol=
     )
 
 
-def integrate_on_grids(m, grids, current, t_water, t_amb, rec, atol, hmax):
-    """Run the kernel on a time grid per draw, from the steady state at the first point.
+def integrate_on_grids(m, grids, current, t_water, t_amb, rec, atol, hmax, y0=None):
+    """Run the kernel on a time grid per draw, from the steady state at the first point (or from ``y0``).
 
     Parameters
     ----------
@@ -250,6 +250,9 @@ def integrate_on_grids(m, grids, current, t_water, t_amb, rec, atol, hmax):
     rec : ndarray of int
         Nodes to record.
     atol, hmax : float
+    y0 : ndarray, shape (nd, N), optional
+        Initial state of every node [K]; default the steady state at the
+        first point's inputs.
 
     Returns
     -------
@@ -264,9 +267,10 @@ def integrate_on_grids(m, grids, current, t_water, t_amb, rec, atol, hmax):
     nd = m["nd"]
     TW = np.repeat(np.asarray(t_water, float)[None, :], nd, axis=0)
     TA = np.repeat(np.asarray(t_amb, float)[None, :], nd, axis=0)
-    Y0 = np.full((nd, len(m["network"].nodes)), float(t_water[0]))
+    steady = y0 is None
+    Y0 = np.full((nd, len(m["network"].nodes)), float(t_water[0])) if steady else np.array(y0, dtype=float)
     out, volt, stats = K.integrate_grids(grids, current, TW, TA, m["A"], m["Bb"], m["Cinv"], m["tem"], m["P"], rec,
-                                         Y0, True, float(atol), float(hmax))
+                                         Y0, steady, float(atol), float(hmax))
     failed = (stats[:, 3] != 0) | ~np.all(np.isfinite(volt), axis=1)
     out[failed] = np.nan
     volt[failed] = np.nan

@@ -286,6 +286,9 @@ class Prediction:
     n_failed : int
         Draws the rig could not simulate, left out (at most
         :data:`MAX_FAILED_FRACTION` of them; ``n_draws`` counts the rest).
+    start_current : float or None
+        The pre-history current the run's initial state was taken from [A]
+        (:meth:`~tembayes.predict.runmodel.RunModel.fit_start`).
     """
 
     source: str
@@ -306,6 +309,7 @@ class Prediction:
     noise_sd: np.ndarray | None = None
     noise_tau: np.ndarray | None = None
     n_failed: int = 0
+    start_current: float | None = None
 
     @property
     def residual(self):
@@ -375,6 +379,8 @@ def simulate_predictive(model, draws, rng, *, progress=None, keep_draws=False, s
     exp = model.exp
     M = draws.n
     n = len(model.time)
+    if model.start == "data" and model.start_current is None:  # the run's initial state, from its first minute
+        model.fit_start({k: float(np.median(v)) for k, v in draws.params.items()})
     Y = np.empty((M, len(CHANNELS), n))
     # one phase per draw, common to the run's steps (see RunModel), unless the run's is given
     drawn = rng.uniform(-1.0, 1.0, M) * model.shift_bound
@@ -416,7 +422,8 @@ def simulate_predictive(model, draws, rng, *, progress=None, keep_draws=False, s
                       current=np.asarray(exp.current, float), n_draws=len(Y), seconds=_time.perf_counter() - t0,
                       since_step=since, deviations=dev,
                       noise_sd=noise_sd if keep_draws else None,
-                      noise_tau=noise_tau if keep_draws else None, n_failed=n_failed)
+                      noise_tau=noise_tau if keep_draws else None, n_failed=n_failed,
+                      start_current=model.start_current)
 
 
 @dataclass(frozen=True)
@@ -452,6 +459,9 @@ class PredictResult:
             "by_Tavg": self.linear.by_tavg(),
             "anchor": self.draws.anchor,
             "n_failed_draws": self.linear.n_failed,
+            # the run's initial state: the steady state of this current, fitted on its first minute
+            "initial_state": {"pre_history_current_A": self.linear.start_current,
+                              "first_level_A": float(self.linear.current[0])},
             "seconds": self.seconds,
         })
         if self.constant is not None:
@@ -494,7 +504,7 @@ def predict(run, experiment, module, batch, *, n_draws=500, seed=0, compare_cons
         raise DataError(run.path / "posterior.nc", f"has no module '{module}'",
                         f"Choose one of {list(run.module_ids)} or 'population'.")
     rig = run.rig_for(batch)
-    model = RunModel(experiment, rig)
+    model = RunModel(experiment, rig, start="data")
     ids = list(run.module_ids) if module == "population" else [module]
     results = {}
     for laws in ("linear", "constant") if compare_constant else ("linear",):

@@ -22,6 +22,16 @@ The step instant is the parameter ``step_shift_s`` [s]: one offset for all
 steps from the middle of their sampling intervals (a programme timer and a
 DAQ clock keep a fixed phase), each step's instant clipped into its own
 interval.  A validation run's phase is unknown: the predictive draws it.
+
+A run starts wherever it starts: the rig at rest with the current switched
+straight to its first level, or in the middle of an earlier program.  With
+``start="data"`` the initial state is taken from the data: the steady state
+of the rig under a constant *pre-history current* (:meth:`RunModel.fit_start`:
+the one that explains the run's first minute best), moved along the rig's
+slowest modes until the sensors read their first measured values (the rig's
+own leaks and blocks set where it rests; a model's slightly different leaks
+would rest a tenth of a kelvin elsewhere and carry that through the first
+hour).  A run that starts settled at its first level gets that level back.
 """
 
 from __future__ import annotations
@@ -45,6 +55,10 @@ CHANNELS = SENSOR_CHANNELS + ("voltage_V",)
 
 #: Integrator tolerance [K], as in the calibration.
 ATOL = 1e-4
+#: The run's beginning whose sensors fix its initial state [s].
+START_WINDOW_S = 60.0
+#: Pre-history currents tried, as multiples of the run's largest |level|.
+START_SPAN = 1.5
 
 
 class RunModel:
@@ -64,6 +78,10 @@ class RunModel:
         Moving-average width of the water and ambient inputs [s].
     atol, hmax : float, optional
         Integrator tolerance [K] and largest step [s].
+    start : {"steady", "data"}
+        The initial state: the steady state at the first level (or
+        :attr:`start_current`), or taken from the data (see the module
+        docstring).
 
     Attributes
     ----------
@@ -74,11 +92,18 @@ class RunModel:
         intervals [s].
     levels : ndarray, shape (ns + 1,)
         Hold currents [A] (means of the measured current).
+    start_current : float or None
+        The pre-history current whose steady state the run starts from [A]
+        (:meth:`fit_start`); None: the first hold's level.
     """
 
-    def __init__(self, exp, rig, *, dense=20.0, spacing=5.0, smooth=10.0, atol=ATOL, hmax=60.0):
+    def __init__(self, exp, rig, *, dense=20.0, spacing=5.0, smooth=10.0, atol=ATOL, hmax=60.0, start="steady"):
+        if start not in ("steady", "data"):
+            raise ValueError(f"start must be 'steady' or 'data', got {start!r}")
         self.exp = exp
         self.rig = rig
+        self.start = start
+        self.start_current = None
         self.atol = float(atol)
         self.hmax = float(hmax)
         t = np.asarray(exp.time, dtype=float)
@@ -150,7 +175,7 @@ class RunModel:
         """Per-draw time grids ``(nd, n_grid)`` for step shifts ``shift`` [s]."""
         return self._steps.shifted(shift)
 
-    def simulate(self, params, shift, *, at="samples", strict=True):
+    def simulate(self, params, shift, *, at="samples", strict=True, start=None):
         """Simulate the run.
 
         Parameters
@@ -166,6 +191,8 @@ class RunModel:
         strict : bool
             Raise :class:`~tembayes.errors.ModelError` for a failed draw
             (else it comes back as NaN).
+        start : float or ndarray, shape (nd,), optional
+            Pre-history current per draw [A]; default :attr:`start_current`.
 
         Returns
         -------
@@ -181,13 +208,21 @@ class RunModel:
         shift = np.broadcast_to(np.atleast_1d(np.asarray(shift, dtype=float)), (nd,))
         G = self.grid(shift)
         Ic = np.repeat(self.levels[self._grid_hold][None, :], nd, axis=0)
-        out, volt, failed, _ = integrate_on_grids(m, G, Ic, self._tw, self._ta, rec, self.atol, self.hmax)
+        start = self.start_current if start is None else start
+        # the steady state of the pre-history current, a millisecond before the first sample
+        G = np.concatenate([G[:, :1] - 1e-3, G], axis=1)
+        first = Ic[:, :1] if start is None else np.broadcast_to(np.asarray(start, float), (nd,))[:, None]
+        Ic = np.ascontiguousarray(np.concatenate([first, Ic], axis=1))
+        tw, ta = np.concatenate([self._tw[:1], self._tw]), np.concatenate([self._ta[:1], self._ta])
+        y0 = self._initial_states(m, Ic[:, 0], G[:, 0], rec) if self.start == "data" else None
+        out, volt, failed, _ = integrate_on_grids(m, G, Ic, tw, ta, rec, self.atol, self.hmax, y0=y0)
         if strict and np.any(failed):
             raise ModelError(f"the simulation of {self.exp.path} failed for {int(failed.sum())} of {nd} draws "
                              "(no steady start, step budget exceeded or non-finite values)")
         sensors = np.ascontiguousarray(out.transpose(0, 2, 1))
         if effects.has_sensor_effect(m["params"]):
             effects.apply_sensors(G[0], sensors, m["params"])
+        sensors, volt = sensors[:, :, 1:], volt[:, 1:]
         o = self._obs_pos
         sensors, volt = sensors[:, :, o], volt[:, o]
         if at == "grid":
@@ -252,6 +287,78 @@ class RunModel:
             if den > 0:
                 return float(np.clip(s[k] + 0.5 * (s[1] - s[0]) * (c0 - c2) / den, -b * (1 - 1e-9), b * (1 - 1e-9)))
         return float(s[k])
+
+    def _initial_states(self, m, current, t, rec, modes=4):
+        """``(nd, N)``: the steady states under ``current`` [A] moved along the ``modes`` slowest modes
+        of the network until the sensors ``rec`` read the run's first samples."""
+        nd, N = m["nd"], len(m["network"].nodes)
+        G = np.stack([t - 1e-3, t], axis=1)
+        I = np.ascontiguousarray(np.repeat(np.asarray(current, float)[:, None], 2, axis=1))
+        xs, _, _, _ = integrate_on_grids(m, G, I, np.full(2, self._tw[0]), np.full(2, self._ta[0]),
+                                         np.arange(N, dtype=np.int64), self.atol, self.hmax)
+        xs = xs[:, -1]
+        # the network's conduction with the module's own (K along its chain of plates and legs):
+        # L symmetric, dx/dt = C^-1 L x, so C^(-1/2) L C^(-1/2) is symmetric and its eigenvectors the modes
+        net = m["network"]
+        L = net.G.copy()
+        tem = m["tem"]
+        g = m["params"]["K_W_per_K"] * (len(tem) - 1)
+        for a, b in zip(tem[:-1], tem[1:]):
+            L[:, a, b] += g
+            L[:, b, a] += g
+        idx = np.arange(N)
+        L[:, idx, idx] -= L.sum(axis=2) + net.Gb.sum(axis=2)
+        root = np.sqrt(net.C)
+        w, U = np.linalg.eigh(L / root[:, :, None] / root[:, None, :])
+        V = U[:, :, -modes:] / root[:, :, None]  # the slowest: eigenvalues nearest zero
+        first = np.asarray(self.exp.sensors, float)[:, 0]
+        M = V[:, rec, :]
+        r = first[None] - xs[:, rec]
+        MtM = np.einsum("dij,dik->djk", M, M) + 1e-9 * np.eye(modes)
+        coef = np.linalg.solve(MtM, np.einsum("dij,di->dj", M, r)[..., None])[..., 0]
+        x0 = xs + np.einsum("dnk,dk->dn", V, coef)
+        x0[~np.all(np.isfinite(x0), axis=1)] = np.nan
+        return x0
+
+    def fit_start(self, params, n=25):
+        """Take the run's initial state from its first minute; sets and returns :attr:`start_current`.
+
+        The pre-history current whose steady state, followed by the run's own
+        current, fits the four sensors over the first :data:`START_WINDOW_S`
+        seconds best (least squares, each sensor in units of its noise), on
+        ``n`` currents across +-:data:`START_SPAN` x the run's largest level,
+        refined by the parabola through the best three.
+
+        Parameters
+        ----------
+        params : mapping
+            One parameter point (scalars or shape ``(1,)``, SI), e.g. the
+            posterior's median.
+        n : int
+
+        Returns
+        -------
+        float
+            [A]
+        """
+        span = START_SPAN * max(float(np.max(np.abs(self.levels))), 0.1)
+        cand = np.linspace(-span, span, n)
+        P = {k: np.repeat(np.ravel(np.asarray(v, float))[:1], n) for k, v in params.items()}
+        sens, _ = self.simulate(P, 0.0, at="grid", strict=False, start=cand)
+        idx = self.grid_samples
+        early = self.time[idx] <= self.time[0] + START_WINDOW_S
+        y = np.asarray(self.exp.sensors, float)[:, idx][:, early]
+        cost = np.sum(((y[None] - sens[:, :, early]) / self.noise[None, :4, None]) ** 2, axis=(1, 2))
+        cost = np.where(np.isfinite(cost), cost, np.inf)
+        k = int(np.argmin(cost))
+        best = float(cand[k])
+        if 0 < k < n - 1 and np.all(np.isfinite(cost[k - 1:k + 2])):
+            c0, c1, c2 = cost[k - 1:k + 2]
+            den = c0 - 2 * c1 + c2
+            if den > 0:
+                best = float(cand[k] + 0.5 * (cand[1] - cand[0]) * (c0 - c2) / den)
+        self.start_current = best
+        return best
 
     @property
     def grid_samples(self):

@@ -1,0 +1,147 @@
+"""Law coverage on both benches: are the posterior's 90 % intervals honest?
+
+Batches of bench modules of two module types are simulated (the standard
+bench, the calibration model's structure; or the high-fidelity out-of-model
+bench), calibrated with ``tembayes calibrate`` (a model form and discrepancy
+method chosen here), and each module's posterior compared with its truth:
+
+- coverage of the 90 % intervals per law parameter and K, with its binomial
+  95 % band;
+- the median |error| of the posterior mean and the median 90 % width, in %;
+- the median z (error in posterior sds) and the worst ones.
+
+Resumable: every batch and run is cached under ``--work``; rerun to continue,
+``--summarise`` to print and record what is there.
+
+    python analyses/law_coverage.py --fidelity high --model full --discrepancy window-sandwich --batches 13
+    python analyses/law_coverage.py --fidelity standard --physics full --model full --batches 13
+    python analyses/law_coverage.py ... --summarise
+
+Writes analyses/results/law_coverage_<label>.{json,md}.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+from scipy.stats import binom
+
+ROOT = Path(__file__).resolve().parent.parent
+PARAMS = ("R0_ohm", "R1_ohm_per_K", "S0_V_per_K", "S1_V_per_K2", "K_W_per_K")
+#: The two module types: TEC1-12706 class and a 3 ohm, 3.9 A class.
+TYPES = {
+    "TEC1-12706": "[module_type]\nname = \"TEC1-12706\"\nth_C = 25.0\nimax_A = 6.4\nvmax_V = 14.4\ndtmax_K = 66.0\n"
+                  "qmax_W = 50.0\n",
+    "3ohm-3.9A": "[module_type]\nname = \"3ohm-3.9A\"\nth_C = 25.0\nimax_A = 3.9\nvmax_V = 15.4\ndtmax_K = 68.0\n"
+                 "qmax_W = 34.0\n",
+}
+
+
+def label(args):
+    return f"{args.fidelity}-{args.physics}-{args.model}-{args.discrepancy}"
+
+
+def run(cmd):
+    p = subprocess.run([sys.executable, "-m", "tembayes", *map(str, cmd)], capture_output=True, text=True, check=False)
+    if p.returncode not in (0, 1):
+        raise RuntimeError(f"{' '.join(map(str, cmd))}: {p.stderr.strip().splitlines()[-1:]}")
+    return p
+
+
+def one_batch(args, work, t, b):
+    name = f"{t}-b{b}"
+    bdir = work / "batches" / f"{args.fidelity}-{args.physics}" / name
+    if not (bdir / "truth.json").exists():
+        ds = work / f"{t}.toml"
+        ds.write_text(TYPES[t])
+        seed = 1000 * (list(TYPES).index(t) + 1) + b
+        run(["simulate", bdir, "--modules", args.modules, "--fidelity", args.fidelity, "--physics", args.physics,
+             "--datasheet", ds, "--seed", seed, "--validations", 0, "--overwrite"])
+    rdir = work / "runs" / label(args) / name
+    if not (rdir / "summary.json").exists():
+        run(["calibrate", bdir, "--out", rdir, "--seed", 0, "--model", args.model, "--discrepancy", args.discrepancy,
+             "--quiet", "--no-figures", "--workers", args.workers, "--overwrite"])
+    return bdir, rdir
+
+
+def rows(work, args):
+    out = []
+    for bdir in sorted((work / "batches" / f"{args.fidelity}-{args.physics}").glob("*")):
+        rdir = work / "runs" / label(args) / bdir.name
+        if not (rdir / "summary.json").exists():
+            continue
+        s = json.loads((rdir / "summary.json").read_text())
+        truth = json.loads((bdir / "truth.json").read_text())
+        for mid, m in s["modules"].items():
+            row = {"batch": bdir.name, "module": mid, "converged": bool(m["diagnostics"]["converged"]),
+                   "seconds": m["diagnostics"].get("timings", {}).get("total_s")}
+            for p in PARAMS:
+                tv = truth["modules"][mid][p]
+                e = m[p]
+                row[p] = {"err_pct": 100 * (e["mean"] / tv - 1), "z": (e["mean"] - tv) / e["sd"],
+                          "width_pct": 100 * (e["q95"] - e["q05"]) / abs(tv), "inside": e["q05"] <= tv <= e["q95"]}
+            out.append(row)
+    return out
+
+
+def summarise(r):
+    n = len(r)
+    lo, hi = binom.ppf(0.025, n, 0.9) / n, binom.ppf(0.975, n, 0.9) / n
+    doc = {"n_modules": n, "band90": [lo, hi], "converged": sum(x["converged"] for x in r),
+           "median_seconds": float(np.median([x["seconds"] for x in r if x["seconds"]])) if n else None}
+    for p in PARAMS:
+        doc[p] = {"coverage90": float(np.mean([x[p]["inside"] for x in r])),
+                  "median_abs_err_pct": float(np.median([abs(x[p]["err_pct"]) for x in r])),
+                  "median_width90_pct": float(np.median([x[p]["width_pct"] for x in r])),
+                  "median_abs_z": float(np.median([abs(x[p]["z"]) for x in r])),
+                  "max_abs_z": float(np.max([abs(x[p]["z"]) for x in r]))}
+    return doc
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--fidelity", choices=("standard", "high"), default="high")
+    ap.add_argument("--physics", choices=("paper", "full"), default="paper", help="the standard bench's physics")
+    ap.add_argument("--model", choices=("paper", "full"), default="full")
+    ap.add_argument("--discrepancy", choices=("none", "window-sandwich"), default="window-sandwich")
+    ap.add_argument("--batches", type=int, default=13, help="batches per module type")
+    ap.add_argument("--modules", type=int, default=4, help="modules per batch")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--work", type=Path, default=Path("/tmp/tembayes-law-coverage"))
+    ap.add_argument("--shard", default="0/1", help="K/N: this process does every N-th batch from K")
+    ap.add_argument("--summarise", action="store_true")
+    args = ap.parse_args()
+    args.work.mkdir(parents=True, exist_ok=True)
+    if not args.summarise:
+        k, n = (int(x) for x in args.shard.split("/"))
+        jobs = [(t, b) for b in range(args.batches) for t in TYPES]
+        for i, (t, b) in enumerate(jobs):
+            if i % n == k:
+                one_batch(args, args.work, t, b)
+                print(f"done {t} batch {b}", flush=True)
+    r = rows(args.work, args)
+    doc = {"label": label(args), "settings": {k: str(v) for k, v in vars(args).items()}, "summary": summarise(r),
+           "modules": r}
+    res = ROOT / "analyses" / "results"
+    (res / f"law_coverage_{label(args)}.json").write_text(json.dumps(doc, indent=1) + "\n")
+    s = doc["summary"]
+    lines = [f"# Law coverage: {label(args)}", "",
+             f"{s['n_modules']} modules ({s['converged']} converged), 90 % band "
+             f"[{s['band90'][0]:.3f}, {s['band90'][1]:.3f}]; median {s['median_seconds']} s per module", "",
+             "| | coverage 90 % | median abs error % | median 90 % width % | median abs z | max abs z |",
+             "|---|---|---|---|---|---|"]
+    for p in PARAMS:
+        q = s[p]
+        lines.append(f"| {p} | {q['coverage90']:.3f} | {q['median_abs_err_pct']:.3f} | {q['median_width90_pct']:.3f} "
+                     f"| {q['median_abs_z']:.2f} | {q['max_abs_z']:.1f} |")
+    (res / f"law_coverage_{label(args)}.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
