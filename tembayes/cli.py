@@ -464,9 +464,21 @@ def _cmd_gap(args):
     batch = _run_batch(args, run)
     diag = diagnose(run, batch, exclude=args.exclude or (), candidates=args.candidates, n_draws=args.draws,
                     seed=args.seed, jobs=args.jobs, progress=_progress)
+    from tembayes.data import write_json
+    from tembayes.data.write import atomic_directory
+    from tembayes.gap.recalibrated import write_recalibrated_run
     from tembayes.plots.gap import save_gap_figures
 
-    _write_result(args, "gap.json", diag.to_json(), lambda tmp: save_gap_figures(diag, tmp))
+    with atomic_directory(args.out, overwrite=args.overwrite, kind="gap") as tmp:
+        doc = diag.to_json()
+        recal = write_recalibrated_run(diag, run, batch, tmp / "run", seed=args.seed, progress=_progress)
+        if recal is not None:
+            doc["recalibrated"] = recal
+        doc["command"] = "tembayes " + " ".join(args.argv)
+        doc["tembayes_version"] = tembayes.__version__
+        write_json(tmp / "gap.json", doc)
+        if not args.no_figures:
+            save_gap_figures(diag, tmp)
     print(f"verdict: {diag.verdict}" + (f" -- best: {diag.best}" if diag.best else ""))
     if len(diag.best_group) > 1:
         print(f"  the data cannot tell apart: {', '.join(diag.best_group)}")
@@ -487,6 +499,8 @@ def _cmd_gap(args):
                   f"gap {scale * r['gap_before']:.3g} -> {scale * r['gap_after']:.3g} {unit} (shrink {r['shrink']:.0%})")
         elif r.get("dropped"):
             print(f"  {r['effect']:20s} dropped: {r['dropped']}")
+    if diag.best and diag.recalibration:
+        print(f"  recalibrated with {diag.best}: {args.out / 'run'} (predict, report and export take it)")
     print(f"wrote {args.out / 'gap.json'}")
     return 0
 

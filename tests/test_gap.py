@@ -290,6 +290,13 @@ def test_gap_names_a_sensor_lag_recovers_its_size_and_shrinks_the_gap(lag_gap):
     assert {r["effect"] for r in doc["ranking"]} == {"k_temperature", "sensor_lag", "contact_resistance",
                                                      "joule_split", "current_offset"}
     assert {r["evidence_kind"] for r in doc["ranking"][1:]} <= {"heldout_elpd", "heldout_elpd_laplace"}
+    # the loop closed: the recalibrated run, which predict takes
+    rec = doc["recalibrated"]
+    assert rec["effects"] == ["sensor_lag"] and rec["run"] == "run" and set(rec["laws_after"]) == {"TEM1"}
+    from tembayes.cli import main
+
+    assert main(["predict", str(out / "run"), str(next(lag_gap_batch(out)).parent / "validation.csv"),
+                 "--module", "TEM1", "--out", str(out.parent / "pred"), "--draws", "50", "--no-constant"]) == 0
 
 
 @pytest.mark.slow  # a blind calibration and diagnosis: ~4 min
@@ -333,3 +340,42 @@ def test_gap_is_quiet_without_an_effect_and_refuses_a_batch_without_held_out_run
     d = diagnose(load_run(run3[0]), load_batch(held), n_draws=80)
     assert d.verdict == "no_gap" and d.best is None and d.where == []
     assert all(r["evidence_kind"] == "screen" for r in d.ranking)
+
+
+def lag_gap_batch(out):
+    """The lag case's identification files (the gap output's recalibrated run records its batch)."""
+    import json
+    from pathlib import Path
+
+    batch = Path(json.loads((out / "run" / "summary.json").read_text())["batch"]["path"])
+    return batch.glob("*/identification.csv")
+
+
+def test_a_recalibrated_run_is_a_run_that_predict_takes(run3, batch3, tmp_path):
+    """write_recalibrated_run on known modules: a complete run folder, its effects recorded, the laws
+    before and after, read back by load_run and predicted from."""
+    from types import SimpleNamespace
+
+    from tembayes.calibrate import results as res
+    from tembayes.calibrate.module import CalibrationOptions
+    from tembayes.calibrate.run import load_run
+    from tembayes.data import load_batch
+    from tembayes.gap.recalibrated import write_recalibrated_run
+    from tembayes.predict import predict
+    from benchdata import record_validation
+
+    out, summ, truth = run3
+    run, batch = load_run(out), load_batch(batch3)
+    recal = {m: res.read_module(out / "modules" / f"{m}.nc") for m in ("TEM1", "TEM2", "TEM3")}
+    diag = SimpleNamespace(best="current_offset", recalibration=recal,
+                           recalibration_options=CalibrationOptions(effects=("current_offset",)))
+    block = write_recalibrated_run(diag, run, batch, tmp_path / "run", seed=0)
+    assert block["effects"] == ["current_offset"] and block["modules_not_recalibrated"] == []
+    assert block["laws_before"]["TEM2"]["R0_ohm"] == summ["modules"]["TEM2"]["R0_ohm"]
+    again = load_run(tmp_path / "run")
+    assert again.summary["calibration"]["effects"] == ["current_offset"]
+    assert again.calibration_options().effects == ["current_offset"] or again.calibration_options().effects == (
+        "current_offset",)
+    exp = record_validation(truth["modules"]["TEM1"], tmp_path / "v.csv", 5, hours=0.5)
+    p = predict(again, exp, "TEM1", batch, n_draws=30, seed=0, compare_constant=False)
+    assert p.linear.metrics()["T3_C"]["rmse"] < 0.05

@@ -194,7 +194,7 @@ def _calibrate_in(batch, out, record, *, seed, options, resume, population, say,
             say(f"{head}: FAILED ({oc.error})")
         else:
             nc = res.write_netcdf(res.to_inference_data([oc.result]), out / "modules" / f"{oc.module_id}.nc")
-            _write_digest(nc, oc.result)
+            write_digest(nc, oc.result)
             failed.unlink(missing_ok=True)
             # the module is safe on disk: its sampler checkpoints (up to ~20 MB) are not needed again
             for f in (out / "checkpoints").glob(f"{glob.escape(oc.module_id)}.*"):
@@ -245,7 +245,7 @@ def _digest_path(nc):
     return nc.with_name(nc.stem + ".digest.npz")
 
 
-def _write_digest(nc, r):
+def write_digest(nc, r):
     """What the batch stage needs of a module, next to its file: its summary entry, the reason it
     would be left out of the population, its thinned law draws (reading the ``.nc`` back through
     arviz costs ~0.3 s a module, 50 min for 10^4)."""

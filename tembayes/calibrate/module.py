@@ -49,7 +49,7 @@ from tembayes.calibrate.parameters import ParameterSpace
 from tembayes.calibrate.discrepancy import window_sandwich
 from tembayes.calibrate.modelform import DEFAULT_FORM, get_form
 from tembayes.calibrate.priors import ParameterPrior, effect_priors, law_priors, rig_prior
-from tembayes.calibrate.stepdata import step_data
+from tembayes.calibrate.stepdata import CHANNELS, step_data
 from tembayes.constants import MODULE_PARAMETERS
 from tembayes.data.write import atomic_write_text
 from tembayes.errors import ModelError
@@ -474,14 +474,25 @@ def calibrate_module(module, datasheet, **kw):
         return _calibrate_module(module, datasheet, **kw)
 
 
-def _adequacy_numbers(scatter, values, data):
+def _adequacy_numbers(scatter, values, data, resid):
     """What says whether the model fits its own run: the windows' score scatter against the
-    posterior (1 when the model is right), the inferred noise scale and window offsets (in noise sds)."""
+    posterior (1 when the model is right), the inferred noise scale and window offsets (in noise
+    sds), and the residuals' lag-1 autocorrelation within windows (their offsets removed)."""
+    starts = np.append(data.window_starts, resid.shape[1])
+    rho = {}
+    for c, name in enumerate(CHANNELS):
+        num = den = 0.0
+        for a, b in zip(starts[:-1], starts[1:]):
+            r = resid[c, a:b] - resid[c, a:b].mean()
+            num += float(r[1:] @ r[:-1])
+            den += float(r @ r)
+        rho[name] = num / den if den > 0 else float("nan")
     return {
         "window_score_variance_ratio_max": float(np.max(scatter.ratios)),  # per law parameter, 1 if right
         "window_score_variance_ratios": [float(r) for r in scatter.ratios],
         "noise_scale_median": {n: float(np.median(values[n])) for n in NOISE_SCALE},
         "offset_sd_over_noise_median": {n: float(np.median(values[n]) / sd) for n, sd in zip(OFFSET_SD, data.noise)},
+        "residual_lag1_autocorrelation": rho,
     }
 
 
@@ -618,7 +629,8 @@ def _calibrate_module(module, datasheet, *, rig_config=None, seed=0, options=Non
     step_ll = like.pointwise(flat_kept)
     laws = [space.names.index(k) for k in MODULE_PARAMETERS]
     scatter = window_sandwich(flat_kept, step_ll, laws)  # always: how far the windows disagree
-    adequacy = _adequacy_numbers(scatter, space.values(flat_kept), data)
+    fitted = lin.predict(flat_kept[:, :p].mean(axis=0)[None])[0]
+    adequacy = _adequacy_numbers(scatter, space.values(flat_kept), data, data.obs - fitted)
     widened = None
     if opt.discrepancy == "window-sandwich":
         widened = scatter

@@ -79,7 +79,7 @@ from concurrent.futures import (
     as_completed,
     wait,
 )
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -408,7 +408,7 @@ def _candidate_job(module, datasheet, rig_config, base, effect, seed, options, n
                         "q95": float(np.quantile(x, 0.95)), "unit": p.unit}
     return {"module": module.id, "effect": effect, "evals": evals, "size": size, "refit": rf,
             "converged": bool(cal.diagnostics["converged"]), "seconds": _time.perf_counter() - t0, "failed": None,
-            "conflicts": conflicting, "warnings": [str(w.message) for w in caught]}
+            "conflicts": conflicting, "warnings": [str(w.message) for w in caught], "calibration": cal}
 
 
 class _Serial:
@@ -560,6 +560,13 @@ class GapDiagnosis:
         Where the base model shows a gap: ``"validation"`` (runs),
         ``"identification"`` (windows held out), ``"parameters"`` (range
         conflicts); empty for ``no_gap``.
+    recalibration : dict
+        Module id -> the best effect's recalibrated
+        :class:`~tembayes.calibrate.module.ModuleCalibration` (empty without
+        a best effect); :func:`tembayes.gap.recalibrated.write_recalibrated_run`
+        writes them as a run folder.
+    recalibration_options : CalibrationOptions or None
+        The options they were calibrated with (the run's, the effect added).
     """
 
     verdict: str
@@ -577,6 +584,8 @@ class GapDiagnosis:
     evaluations: dict
     primary: str = "validation"
     gap_in: tuple = ()
+    recalibration: dict = field(default_factory=dict)
+    recalibration_options: object = None
 
     def to_json(self):
         """``gap.json``: the contract's keys and the diagnosis's details."""
@@ -625,6 +634,26 @@ def _parameter_gaps(conflicts):
                                       f"{r['low']:.4g}-{r['high']:.4g} {r['unit']}",
                             "score": r["outside_sd"]})
     return sorted(out, key=lambda c: -c["score"])
+
+
+def _suspect_start(effect, rows):
+    """Where a range-conflict suspect's refit starts: the conflicting parameters at their documented
+    edge and the excess moved into the effect (an extra leak takes what the enclosure's leaks have
+    beyond their range; a contact resistance what the paste lacks).  From the base posterior's
+    values instead the refit stays on the conductance side of the ridge the two share (measured on
+    an ambient-leak bench module: 3.1-3.9 nats below the mode this start reaches)."""
+    out = {}
+    for r in rows:
+        if not r["conflict"]:
+            continue
+        p, med = r["parameter"], r["median"]
+        if effect == "ambient_leak" and p in ("leak_top", "leak_bottom") and med > r["high"]:
+            out[p] = r["high"]
+            out["extra_leak_W_per_K"] = out.get("extra_leak_W_per_K", 0.0) + med - r["high"]
+        elif effect == "contact_resistance" and p in ("g_paste_hot", "g_paste_cold") and med < r["low"]:
+            out[p] = r["low"]
+            out[f"contact_R_{p.rsplit('_', 1)[1]}_K_per_W"] = 1.0 / med - 1.0 / r["low"]
+    return out
 
 
 def _suspects(conflicts, allowed):
@@ -737,15 +766,19 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
     raws = {mid: module_raw_draws(run, mid) for mid in ids}  # read once: anchoring, conflicts, the refits' start
     starts = {mid: {k: float(np.median(raws[mid][k])) for k in MODULE_PARAMETERS} for mid in ids}
 
+    def start(mid, e):
+        return {**starts[mid], **_suspect_start(e, conflicts.get(mid, ()))}
+
     def refit_job(mid, e, heldout=False):
-        return _refit_job, (batch.modules[mid], batch.datasheet, batch.rig_config, base, e, starts[mid], seed,
+        return _refit_job, (batch.modules[mid], batch.datasheet, batch.rig_config, base, e, start(mid, e), seed,
                             min(n_draws, SCREEN_DRAWS), alpha, heldout)
 
     with _executor(jobs) as ex:
         # 1. where: every module's base refit (the identification run's held-out windows) in the
         # workers while this process predicts the validation runs with the base posterior
+        conflicts = {}
         base_futs = _submit_all(ex, {("refit", mid, None): refit_job(mid, None) for mid in ids}, cache)
-        base_evals, conflicts = [], {}
+        base_evals = []
         for mid in ids:
             module = batch.modules[mid]
             say(f"{mid}: base model, anchoring on the identification run")
@@ -833,7 +866,7 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
         def job(mid, e):
             r = screened.get(("refit", mid, e)) if mid == lead else None
             return (batch.modules[mid], batch.datasheet, batch.rig_config, base, e, seed, options, n_draws, alpha,
-                    starts[mid], None if r is None or r["failed"] else r["refit"])
+                    start(mid, e), None if r is None or r["failed"] else r["refit"])
 
         lead_done, why = {}, {}
 
@@ -960,9 +993,12 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
         # the parameters back in range and the held-out data still within the bands
         verdict = "explained" if top["conflicts_resolved"] and top["remaining_cells"] == 0 else "unexplained"
     best = top["effect"] if verdict in ("explained", "partially_explained") else None
+    recal = {}
+    if best:  # the best explanation's recalibrated modules: the run gap hands back
+        recal = {r["module"]: r["calibration"] for r in results if r["effect"] == best and not r["failed"]}
     return GapDiagnosis(verdict, all_where, ranking, best, group if best else [], screen, conflicts, suspects, base,
                         list(exclude), _time.perf_counter() - t_start, int(seed), {"base": base_evals},
-                        primary, gap_in)
+                        primary, gap_in, recal, replace(options, effects=(*options.effects, best)) if best else None)
 
 
 def _gaps(primary, before, after, id_before, id_after):
