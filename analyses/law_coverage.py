@@ -108,7 +108,7 @@ def main():
     ap.add_argument("--fidelity", choices=("standard", "high"), default="high")
     ap.add_argument("--physics", choices=("paper", "full"), default="paper", help="the standard bench's physics")
     ap.add_argument("--model", choices=("paper", "full"), default="full")
-    ap.add_argument("--discrepancy", choices=("none", "window-sandwich"), default="window-sandwich")
+    ap.add_argument("--discrepancy", choices=("none", "window-sandwich", "robust"), default="robust")
     ap.add_argument("--batches", type=int, default=13, help="batches per module type")
     ap.add_argument("--modules", type=int, default=4, help="modules per batch")
     ap.add_argument("--workers", type=int, default=2)

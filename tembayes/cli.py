@@ -606,9 +606,10 @@ def build_parser():
     p.add_argument("--model", choices=("paper", "full"), default="paper",
                    help="the model's physics: paper (default: Evers et al.'s form) or full (Thomson heat, the "
                         "plates' two layers, the sensors' response time, a temperature slope of K)")
-    p.add_argument("--discrepancy", choices=("none", "window-sandwich"), default="none",
-                   help="window-sandwich: widen the laws' posterior to the scatter of the step windows' scores, "
-                        "for a model that is not the rig (default none)")
+    p.add_argument("--discrepancy", choices=("none", "window-sandwich", "robust"), default="none",
+                   help="for a model that is not the rig: window-sandwich widens the laws' posterior to the scatter "
+                        "of the step windows' scores; robust also carries over the uncertainty of the rig "
+                        "parameters held fixed (default none)")
     p.add_argument("--effect", action="append", metavar="NAME[=VALUE]",
                    help="add a catalogue effect to the model (repeatable): its size sampled under its prior, or "
                         "fixed at VALUE (the first parameter's, SI; see tembayes simulate --help)")

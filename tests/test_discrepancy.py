@@ -71,3 +71,38 @@ def test_windows_that_disagree_are_covered_by_the_sandwich_not_by_the_posterior(
     plain, wide = _coverage(0.3, 3)
     assert plain < 0.7  # the plain posterior is overconfident (0.60 measured)
     assert lo - 0.03 <= wide <= hi  # the sandwich is honest (24 windows estimate V with some scatter)
+
+
+def test_a_held_parameter_moves_the_mode_as_its_linear_response_says():
+    """Known answer on a linear model: y = a t + b + 0.3 log(q) t^2, q held at 2 while the data's is
+    2 e^0.2: the least-squares fit of (a, b) moves by exactly the computed shift times 0.2."""
+    from types import SimpleNamespace
+
+    from tembayes.calibrate.discrepancy import held_nuisance_spread
+    from tembayes.physics.rig import RigParameter
+
+    t = np.linspace(0.0, 1.0, 50)
+
+    class Space:
+        priors = (SimpleNamespace(kind="uniform", scale=1.0),) * 2
+        fixed = {"q": 2.0}
+
+        def params(self, X):
+            return {"a": X[:, 0], "b": X[:, 1], "q": np.full(len(X), 2.0)}
+
+    class Model:
+        def predict(self, P):
+            a, b, q = (np.asarray(P[k], float)[:, None] for k in ("a", "b", "q"))
+            return (a * t + b + 0.3 * np.log(q) * t ** 2)[:, None, :]
+
+    J = np.stack([t, np.ones_like(t)])[:, None, :]  # (p, nc, n)
+    held = {"q": RigParameter("q", 2.0, 2.0 * np.exp(-0.4), 2.0 * np.exp(0.4), "1")}
+    spread = held_nuisance_spread(Model(), Space(), np.array([1.0, 0.5]), J, np.array([0.01]), held)
+    y_true = 1.0 * t + 0.5 + 0.3 * (np.log(2.0) + 0.2) * t ** 2
+    y_held = 1.0 * t + 0.5 + 0.3 * np.log(2.0) * t ** 2
+    A = np.column_stack([t, np.ones_like(t)])
+    move = np.linalg.lstsq(A, y_true - y_held, rcond=None)[0]
+    np.testing.assert_allclose(spread.shift[:, 0] * 0.2, -move, rtol=1e-6)  # the held value errs by -0.2
+    np.testing.assert_allclose(spread.log_sd, [0.2])  # a quarter of the log range
+    X = spread.apply(np.zeros((20000, 2)), np.random.default_rng(0))
+    np.testing.assert_allclose(X.std(axis=0), np.abs(spread.shift[:, 0]) * 0.2, rtol=0.03)

@@ -1,4 +1,4 @@
-"""Honest widths when the model is not the rig: the window sandwich.
+"""Honest widths when the model is not the rig: the window sandwich and the held parameters.
 
 The step-response likelihood is a sum over step windows.  When the model is
 right, each window's score (the gradient of its log-likelihood) varies from
@@ -22,6 +22,13 @@ sandwich's eigendirections: with 24 windows the largest eigenvalue of a
 correct model's ratio matrix is ~2 by chance alone (measured on a bench
 module: 0.44 ... 2.97), a marginal ratio scatters by ~30 % about 1, so a
 correctly specified module keeps its posterior up to a few percent.
+
+The windows can agree on a wrong value, though: a rig parameter the
+calibration holds fixed (the ceramic's conductance, held because sampling it
+does not converge; the steel's) moves every window the same way.  Its
+documented range is carried over to the posterior to first order
+(:func:`held_nuisance_spread`): every draw moves by the mode's response to
+a draw of the held parameter.
 """
 
 from __future__ import annotations
@@ -30,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["WindowSandwich", "window_scores", "window_sandwich"]
+__all__ = ["WindowSandwich", "window_scores", "window_sandwich", "HeldSpread", "held_nuisance_spread"]
 
 
 @dataclass(frozen=True)
@@ -101,3 +108,87 @@ def window_sandwich(X, L, idx):
     r = sand / np.diag(post)[idx]
     f = np.sqrt(np.maximum(r, 1.0))
     return WindowSandwich(stretch=np.diag(f), ratios=r, sd_factor=f, n_windows=K)
+
+
+@dataclass(frozen=True)
+class HeldSpread:
+    """What the rig parameters a calibration holds fixed add to its posterior (see :func:`held_nuisance_spread`).
+
+    Attributes
+    ----------
+    names : tuple of str
+        The held parameters.
+    log_sd : ndarray, shape (m,)
+        Their uncertainty (log scale: a quarter of the log of their documented range).
+    shift : ndarray, shape (p, m)
+        Shift of the posterior mode's coordinates per unit of each one's log.
+    """
+
+    names: tuple
+    log_sd: np.ndarray
+    shift: np.ndarray
+
+    def apply(self, X, rng):
+        """``X`` ``(n, >= p)`` with every draw moved by the held parameters' drawn deviations (in place: a copy)."""
+        X = np.array(X, dtype=float)
+        xi = rng.standard_normal((len(X), len(self.names))) * self.log_sd
+        X[:, :self.shift.shape[0]] += xi @ self.shift.T
+        return X
+
+    def to_json(self, coordinate_names, law_idx, law_sd):
+        """Each held parameter's sd contribution to each law, as a fraction of the law's posterior sd."""
+        return {q: {coordinate_names[j]: float(abs(self.shift[j, i]) * self.log_sd[i] / law_sd[k])
+                    for k, j in enumerate(law_idx)}
+                for i, q in enumerate(self.names)}
+
+
+def held_nuisance_spread(model, space, x, J, noise, held, h=0.05):
+    """Carry the uncertainty of held rig parameters over to the posterior, to first order.
+
+    A parameter the calibration holds at its nominal value (``RigParameter.held``,
+    or a documented range too narrow to sample) is still uncertain.  Where
+    the mode would move if it were ``e^d`` times its value is the weighted
+    least-squares response ``-(J^T W J + P)^-1 J^T W df/dd`` of the mode to
+    the prediction's change ``df/dd`` (``J`` the prediction's slopes in the
+    sampled coordinates, ``W`` the noise weights, ``P`` the prior precision);
+    adding that shift times a draw of ``d`` to every posterior draw is the
+    posterior marginalised over the held parameter, to first order.
+
+    Parameters
+    ----------
+    model : StepResponseModel
+    space : ParameterSpace
+        The model's sampled coordinates (``space.fixed`` holds the held values).
+    x : ndarray, shape (p,)
+        The posterior's centre.
+    J : ndarray, shape (p, nc, n)
+        The prediction's slopes at (about) ``x``.
+    noise : ndarray, shape (nc,)
+        The channels' noise sd.
+    held : mapping of str to RigParameter
+        The held parameters to carry over.
+    h : float
+        Finite-difference step in log units.
+
+    Returns
+    -------
+    HeldSpread
+    """
+    names = tuple(held)
+    m = len(names)
+    X = np.repeat(np.asarray(x, float)[None], 2 * m, axis=0)
+    params = space.params(X)
+    for i, q in enumerate(names):
+        v = np.full(2 * m, float(space.fixed[q]))
+        v[2 * i] *= np.exp(h)
+        v[2 * i + 1] *= np.exp(-h)
+        params[q] = v
+    Y = model.predict(params)
+    D = (Y[0::2] - Y[1::2]) / (2.0 * h)  # (m, nc, n)
+    w = 1.0 / np.asarray(noise, float) ** 2
+    JtWJ = np.einsum("icn,jcn,c->ij", J, J, w)
+    prec = np.array([0.0 if p.kind == "uniform" else 1.0 / p.scale ** 2 for p in space.priors])
+    JtWD = np.einsum("icn,qcn,c->iq", J, D, w)
+    shift = -np.linalg.solve(JtWJ + np.diag(prec), JtWD)
+    log_sd = np.array([np.log(held[q].high / held[q].low) / 4.0 for q in names])
+    return HeldSpread(names=names, log_sd=log_sd, shift=shift)

@@ -46,7 +46,7 @@ from tembayes.calibrate import sampler as smp
 from tembayes.calibrate.likelihood import NOISE_SCALE, OFFSET_SD, LevelErrors, StepLikelihood, noise_priors
 from tembayes.calibrate.model import SHIFT, LinearisedModel, StepResponseModel
 from tembayes.calibrate.parameters import ParameterSpace
-from tembayes.calibrate.discrepancy import window_sandwich
+from tembayes.calibrate.discrepancy import held_nuisance_spread, window_sandwich
 from tembayes.calibrate.modelform import DEFAULT_FORM, get_form
 from tembayes.calibrate.priors import ParameterPrior, effect_priors, law_priors, rig_prior
 from tembayes.calibrate.stepdata import CHANNELS, step_data
@@ -68,7 +68,7 @@ BLOCK_CELLS = 6
 #: (high/low) are fixed at nominal (the steel: known material and size).
 NUISANCE_MIN_RANGE = 1.2
 #: How a calibration widens its laws for a model that is not the rig (``CalibrationOptions.discrepancy``).
-DISCREPANCIES = ("none", "window-sandwich")
+DISCREPANCIES = ("none", "window-sandwich", "robust")
 #: An expansion whose PSIS k_hat on the first ``psis_probe`` steps of a
 #: rebuildable stage exceeds this is rebuilt at once (k_hat > 1: importance
 #: weights without a finite mean -- the expansion is not the posterior, and
@@ -121,8 +121,9 @@ class CalibrationOptions:
         Effect parameters added to the model at a fixed value
         (``--effect NAME=VALUE``; name -> value, SI).
     discrepancy : str
-        ``"none"``, or ``"window-sandwich"``: the laws' posterior widened
-        to the scatter of the step windows' scores
+        ``"none"``; ``"window-sandwich"``: the laws' posterior widened to
+        the scatter of the step windows' scores; ``"robust"``: that, and the
+        uncertainty of the rig parameters held fixed carried over
         (:mod:`tembayes.calibrate.discrepancy`).
     stage_steps : int
         Budget of a sampling run whose expansion may still be rebuilt (the
@@ -259,8 +260,8 @@ def parameter_space(rig, datasheet, data, shift_bound, effects=(), form=DEFAULT_
     if inside:
         raise ModelError(f"the '{form.name}' model already contains {', '.join(inside)}; add it only to a "
                          "--model paper calibration")
-    nuis = [p for p in rig.parameters if p.high / p.low > NUISANCE_MIN_RANGE]
-    fixed = {p.name: p.nominal for p in rig.parameters if p.high / p.low <= NUISANCE_MIN_RANGE}
+    nuis = [p for p in rig.parameters if p.high / p.low > NUISANCE_MIN_RANGE and not p.held]
+    fixed = {p.name: p.nominal for p in rig.parameters if p not in nuis}
     pri = (list(law_priors(datasheet)) + [rig_prior(p) for p in nuis] + list(form.priors)
            + list(effect_priors(effects)))
     pri.append(ParameterPrior(SHIFT, "uniform", 0.0, shift_bound))
@@ -631,12 +632,20 @@ def _calibrate_module(module, datasheet, *, rig_config=None, seed=0, options=Non
     scatter = window_sandwich(flat_kept, step_ll, laws)  # always: how far the windows disagree
     fitted = lin.predict(flat_kept[:, :p].mean(axis=0)[None])[0]
     adequacy = _adequacy_numbers(scatter, space.values(flat_kept), data, data.obs - fitted)
-    widened = None
-    if opt.discrepancy == "window-sandwich":
+    widened = spread = None
+    if opt.discrepancy in ("window-sandwich", "robust"):
         widened = scatter
         centre = flat_kept[:, laws].mean(axis=0)
         flat_kept = flat_kept.copy()
         flat_kept[:, laws] = centre + (flat_kept[:, laws] - centre) @ widened.stretch.T
+    if opt.discrepancy == "robust":
+        law_sd = flat_kept[:, laws].std(axis=0)
+        held = {q: rig.parameter(q) for q in model_space.fixed
+                if q in rig.parameter_names and rig.parameter(q).high > rig.parameter(q).low}
+        spread = held_nuisance_spread(model, model_space, flat_kept[:, :p].mean(axis=0), lin.J, data.noise, held)
+        flat_kept = spread.apply(flat_kept, rng)
+        spread_json = spread.to_json(space.names, laws, law_sd)
+    if widened is not None:
         step_ll = like.pointwise(flat_kept)
     vals = space.values(flat_kept)
     draws = {k: v.reshape(nw, nk) for k, v in vals.items()}
@@ -672,7 +681,9 @@ def _calibrate_module(module, datasheet, *, rig_config=None, seed=0, options=Non
         # largest response to a hold level outside the two windows kept, in
         # noise sds per level sd (the tridiagonal approximation's neglect)
         "level_band_neglected": levels.neglected,
-        "discrepancy": ({"method": "none"} if widened is None else widened.to_json(MODULE_PARAMETERS)),
+        "discrepancy": ({"method": "none"} if widened is None else
+                        {**widened.to_json(MODULE_PARAMETERS), "method": opt.discrepancy,
+                         **({"held_sd_over_posterior_sd": spread_json} if spread is not None else {})}),
         "adequacy": adequacy,
     }
     timings["total_s"] = time.perf_counter() - t_start

@@ -50,6 +50,10 @@ class RigParameter:
         diagnosis flags posteriors far outside it.
     unit : str
     doc : str
+    held : bool
+        A calibration holds it at its nominal value even though its range
+        is wide (sampling it would not converge); its range's uncertainty
+        can be carried over by :func:`tembayes.calibrate.discrepancy.held_nuisance_spread`.
     """
 
     name: str
@@ -58,6 +62,7 @@ class RigParameter:
     high: float
     unit: str
     doc: str = ""
+    held: bool = False
 
 
 @dataclass(frozen=True)
@@ -184,7 +189,7 @@ class RigDescription:
                 v = float(values.pop(p.name))
                 if not np.isfinite(v) or v <= 0:
                     raise ModelError(f"rig parameter '{p.name}' must be a positive number, got {v}")
-                p = RigParameter(p.name, v, min(p.low, v), max(p.high, v), p.unit, p.doc)
+                p = RigParameter(p.name, v, min(p.low, v), max(p.high, v), p.unit, p.doc, p.held)
             params.append(p)
         if values:
             import difflib
@@ -331,13 +336,14 @@ _REFERENCE_PARAMETERS = (
 
 #: The module's plates as two layers (``reference_rig(layers=True)``): the
 #: alumina, then the copper and solder where the junctions are, joined by the
-#: ceramic's conductance (0.8 mm of alumina over 40 x 40 mm: ~50-60 W/K).  Its
-#: range is narrow, so a calibration holds it at the nominal value: in series
-#: with the paste the data barely tell the two apart, and sampled it bent the
-#: R0-S0-K ridge until a module did not converge in 60 000 steps (held, the
-#: same module converged in 25 000); the paste's range absorbs the rest.
-CERAMIC = RigParameter("g_ceramic", 60.0, 55.0, 65.0, "W/K",
-                       "through a module's alumina plate to its junctions (the plate's two layers)")
+#: ceramic's conductance (0.6-1 mm of alumina, k ~ 25 W/(m K), over 40 x 40 mm:
+#: 35-70 W/K).  A calibration holds it at the nominal value: in series with the
+#: paste the data barely tell the two apart, and sampled it bent the R0-S0-K
+#: ridge until a module did not converge in 60 000 steps (held, the same module
+#: converged in 25 000); its range's uncertainty is carried over to the laws
+#: instead (``--discrepancy robust``).
+CERAMIC = RigParameter("g_ceramic", 50.0, 35.0, 70.0, "W/K",
+                       "through a module's alumina plate to its junctions (the plate's two layers)", held=True)
 #: Share of a plate's heat capacity at its junctions (copper and solder); the rest is alumina.
 JUNCTION_SHARE = 0.2
 
