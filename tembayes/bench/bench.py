@@ -177,6 +177,10 @@ def draw_truth(config, rng):
     elif full:  # the calibration model's own physics, with values a real rig and module would have
         layout = {"physics": {"thomson_fraction": 1.0, "K1_per_K": float(rng.normal(0, K1_SD)),
                               "sensor_tau_s": float(rng.uniform(*SENSOR_TAU_RANGE))}}
+    if full:  # the steel is known to its documented range, not exactly: one rig, one draw
+        shared.update({k: _draw_rig(rng, k, params) for k in ("c_cell", "g_cell")})
+        if not high:
+            shared["g_half_cell"] = 2.0 * shared["g_cell"]
     modules = {}
     for mid in config.module_ids:
         laws = {k: v * (1.0 + UNIT_SPREAD[k] * rng.standard_normal()) for k, v in population.items()}

@@ -6,7 +6,9 @@ method.  This bench (``tembayes simulate --fidelity high``) adds what a real
 rig has and the calibration model leaves out:
 
 - **finer steel**: 18 cells of 0.56 mm per block (the model: 6), the leak
-  spread over the block sides and the bottom block's tabs;
+  spread over the block sides and the bottom block's tabs; the steel's heat
+  capacity and conductivity drawn per rig within their documented ranges
+  (+-3 %, +-5 %), since no rig's steel is exactly the handbook value;
 - **the module's layers**: each face is an alumina plate (85 % of the plate's
   heat capacity) behind a copper/solder layer (15 %) where the junctions
   are, joined by the ceramic's own conductance (``g_ceramic``, ~50 W/K);
