@@ -302,6 +302,10 @@ def _cmd_calibrate(args):
               f"K {m['K_W_per_K']['mean']:.4f}+-{m['K_W_per_K']['sd']:.4f} W/K  "
               f"outlier_prob {'-' if op is None else f'{op:.2f}'}  "
               f"{'converged' if m['diagnostics']['converged'] else 'NOT CONVERGED'}")
+        adequacy = m["diagnostics"].get("adequacy", {})
+        if adequacy.get("verdict") == "does_not_fit":
+            print(f"  {mid}: the model does not fit its identification run: " + "; ".join(adequacy["reasons"])
+                  + f". The laws rest on it: run `tembayes gap {args.out} {args.batch}` to find what is missing")
     if len(shown) < len(mods):
         n_conv = sum(bool(m["diagnostics"]["converged"]) for m in mods.values())
         print(f"... the {len(shown)} likeliest outliers of {len(mods)} calibrated modules shown; "

@@ -3,6 +3,7 @@ check on synthetic predictives whose truth is known, and its figures."""
 
 from __future__ import annotations
 
+import json
 import warnings
 
 import numpy as np
@@ -297,6 +298,14 @@ def test_gap_names_a_sensor_lag_recovers_its_size_and_shrinks_the_gap(lag_gap):
 
     assert main(["predict", str(out / "run"), str(next(lag_gap_batch(out)).parent / "validation.csv"),
                  "--module", "TEM1", "--out", str(out.parent / "pred"), "--draws", "50", "--no-constant"]) == 0
+
+
+def test_a_run_that_misses_a_sensor_lag_says_its_model_does_not_fit_though_unconverged(lag_case):
+    """The adequacy verdict's negative control (its positive one: ``test_adequacy``)."""
+    _, run = lag_case
+    m = json.loads((run / "summary.json").read_text())["modules"]["TEM1"]
+    assert m["diagnostics"]["adequacy"]["verdict"] == "does_not_fit", m["diagnostics"]["adequacy"]
+    assert m["diagnostics"]["adequacy"]["reasons"]
 
 
 @pytest.mark.slow  # a blind calibration and diagnosis: ~4 min

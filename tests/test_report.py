@@ -23,8 +23,8 @@ from benchdata import record_validation
 from tembayes.cli import main
 from tembayes.report.tolerances import DEFAULT_TOLERANCES, Tolerance, parse_tolerance
 
-SECTIONS = ("acceptance", "overview", "quality", "laws", "population", "hysteresis", "convergence", "corner",
-            "validation", "gap", "provenance")
+SECTIONS = ("acceptance", "overview", "quality", "laws", "population", "hysteresis", "convergence", "adequacy",
+            "corner", "validation", "gap", "provenance")
 
 
 def test_tolerances_parse_and_bad_ones_are_named():
@@ -84,6 +84,10 @@ def test_report_is_one_self_contained_file_with_every_section(report):
     assert sorted(p.name for p in out.iterdir()) == [".tembayes-output.json", "report.html", "report.json"]
     for sid in SECTIONS:
         assert f"<section id='{sid}'>" in html
+    # which model the laws rest on, and whether it fits each module's run
+    assert 'calibration model</td><td class="l">paper (Evers' in html and "discrepancy: none" in html
+    adequacy = html.split("<section id='adequacy'>")[1].split("</section>")[0]
+    assert adequacy.count('<td class="pass">fits</td>') == len(doc["modules"]) == 3, adequacy
     # nothing outside the file: no external source, link, script or stylesheet
     assert not re.search(r'(src|href)\s*=\s*["\'](?!data:|#)', html)
     assert "<script" not in html and "<link" not in html

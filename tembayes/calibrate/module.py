@@ -43,13 +43,14 @@ from scipy.optimize import least_squares
 from threadpoolctl import threadpool_limits
 
 from tembayes.calibrate import sampler as smp
-from tembayes.calibrate.likelihood import NOISE_SCALE, OFFSET_SD, LevelErrors, StepLikelihood, noise_priors
+from tembayes.calibrate.likelihood import OFFSET_SD, LevelErrors, StepLikelihood, noise_priors
 from tembayes.calibrate.model import SHIFT, LinearisedModel, StepResponseModel
 from tembayes.calibrate.parameters import ParameterSpace
+from tembayes.calibrate.adequacy import adequacy_numbers, assess
 from tembayes.calibrate.discrepancy import held_nuisance_spread, window_sandwich
 from tembayes.calibrate.modelform import DEFAULT_FORM, get_form
 from tembayes.calibrate.priors import ParameterPrior, effect_priors, law_priors, rig_prior
-from tembayes.calibrate.stepdata import CHANNELS, step_data
+from tembayes.calibrate.stepdata import step_data
 from tembayes.constants import MODULE_PARAMETERS
 from tembayes.data.write import atomic_write_text
 from tembayes.errors import ModelError
@@ -475,28 +476,6 @@ def calibrate_module(module, datasheet, **kw):
         return _calibrate_module(module, datasheet, **kw)
 
 
-def _adequacy_numbers(scatter, values, data, resid):
-    """What says whether the model fits its own run: the windows' score scatter against the
-    posterior (1 when the model is right), the inferred noise scale and window offsets (in noise
-    sds), and the residuals' lag-1 autocorrelation within windows (their offsets removed)."""
-    starts = np.append(data.window_starts, resid.shape[1])
-    rho = {}
-    for c, name in enumerate(CHANNELS):
-        num = den = 0.0
-        for a, b in zip(starts[:-1], starts[1:]):
-            r = resid[c, a:b] - resid[c, a:b].mean()
-            num += float(r[1:] @ r[:-1])
-            den += float(r @ r)
-        rho[name] = num / den if den > 0 else float("nan")
-    return {
-        "window_score_variance_ratio_max": float(np.max(scatter.ratios)),  # per law parameter, 1 if right
-        "window_score_variance_ratios": [float(r) for r in scatter.ratios],
-        "noise_scale_median": {n: float(np.median(values[n])) for n in NOISE_SCALE},
-        "offset_sd_over_noise_median": {n: float(np.median(values[n]) / sd) for n, sd in zip(OFFSET_SD, data.noise)},
-        "residual_lag1_autocorrelation": rho,
-    }
-
-
 def _read_state(path):
     """A module's resume state, or None (set aside as ``*.damaged``, with a warning) if it cannot be read."""
     try:
@@ -631,7 +610,7 @@ def _calibrate_module(module, datasheet, *, rig_config=None, seed=0, options=Non
     laws = [space.names.index(k) for k in MODULE_PARAMETERS]
     scatter = window_sandwich(flat_kept, step_ll, laws)  # always: how far the windows disagree
     fitted = lin.predict(flat_kept[:, :p].mean(axis=0)[None])[0]
-    adequacy = _adequacy_numbers(scatter, space.values(flat_kept), data, data.obs - fitted)
+    adequacy = assess(adequacy_numbers(scatter, space.values(flat_kept), data, data.obs - fitted, MODULE_PARAMETERS))
     widened = spread = None
     if opt.discrepancy in ("window-sandwich", "robust"):
         widened = scatter
@@ -684,7 +663,7 @@ def _calibrate_module(module, datasheet, *, rig_config=None, seed=0, options=Non
         "discrepancy": ({"method": "none"} if widened is None else
                         {**widened.to_json(MODULE_PARAMETERS), "method": opt.discrepancy,
                          **({"held_sd_over_posterior_sd": spread_json} if spread is not None else {})}),
-        "adequacy": adequacy,
+        "adequacy": adequacy.to_json(),
     }
     timings["total_s"] = time.perf_counter() - t_start
     diag["timings"] = timings

@@ -291,7 +291,7 @@ class RunModel:
     def _initial_states(self, m, current, t, rec, modes=4):
         """``(nd, N)``: the steady states under ``current`` [A] moved along the ``modes`` slowest modes
         of the network until the sensors ``rec`` read the run's first samples."""
-        nd, N = m["nd"], len(m["network"].nodes)
+        N = len(m["network"].nodes)
         G = np.stack([t - 1e-3, t], axis=1)
         I = np.ascontiguousarray(np.repeat(np.asarray(current, float)[:, None], 2, axis=1))
         xs, _, _, _ = integrate_on_grids(m, G, I, np.full(2, self._tw[0]), np.full(2, self._ta[0]),

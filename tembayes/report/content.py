@@ -184,6 +184,9 @@ def build_report(run, batch, *, tolerances=DEFAULT_TOLERANCES, confidence=DEFAUL
                               "at_C": ds.th - KELVIN},
         "modules": ids, "n_modules": len(ids), "run": str(run.path), "batch": str(batch.path),
         "tref_C": run.tref_C, "rig": summ.get("calibration", {}).get("rig"),
+        "model": summ.get("calibration", {}).get("model", "paper"),
+        "effects": summ.get("calibration", {}).get("effects", []),
+        "discrepancy": summ.get("calibration", {}).get("discrepancy", "none"),
         "data_files_dated": _dates([e.path for m in batch.modules.values() for e in
                                     (m.identification, *m.validations)]),
         "run_files_dated": _dates([run.path / "summary.json", run.path / "posterior.nc"]),

@@ -95,6 +95,10 @@ def _acceptance(rep):
               "set them with <code>--tolerance</code>).</p>" + _table(header, rows, left=len(header)))
 
 
+_MODELS = {"paper": "paper (Evers et al.: S(T̄) at both junctions, one-node plates)",
+           "full": "full (Peltier heat at each junction's own S, Thomson heat, two-layer plates, sensor lag, K(T))"}
+
+
 def _overview(rep):
     o = rep.overview
     ds = o["datasheet"]
@@ -105,7 +109,10 @@ def _overview(rep):
              f"mV/K, K = {dd['K_W_per_K']:.4g} W/K"],
             ["modules", f"{o['n_modules']}: " + _e(", ".join(o["modules"]))],
             ["batch folder", f"<code>{_e(o['batch'])}</code>"], ["run folder", f"<code>{_e(o['run'])}</code>"],
-            ["calibration rig model", _e(o.get("rig") or "–")], ["law reference temperature", f"{o['tref_C']:g} °C"],
+            ["calibration rig model", _e(o.get("rig") or "–")],
+            ["calibration model", _e(_MODELS.get(o.get("model", "paper"), o.get("model")))
+             + (f"; with {_e(', '.join(o['effects']))}" if o.get("effects") else "")
+             + f"; discrepancy: {_e(o.get('discrepancy', 'none'))}"], ["law reference temperature", f"{o['tref_C']:g} °C"],
             ["data files dated", _e(o.get("data_files_dated") or "–")],
             ["run files dated", _e(o.get("run_files_dated") or "–")]]
     return _table(["", ""], rows, left=2)
@@ -203,6 +210,30 @@ def _convergence(rep):
                       "PSIS k̂", "seconds"], rows))
 
 
+def _adequacy(rep):
+    rows = []
+    for m in rep.modules:
+        a = m["diagnostics"].get("adequacy") or {}
+        if "verdict" not in a:
+            continue
+        fits = a["verdict"] == "fits"
+        rows.append([_e(m["id"]), ("fits", "pass") if fits else ("does not fit", "fail")]
+                    + [_num(c["value"], "{:.2f}") + f" ({_e(c['where'])})" for c in a["checks"].values()]
+                    + [_e("; ".join(a["reasons"]) or "–")])
+    if not rows:
+        return "<p class='muted'>This run predates the adequacy verdict.</p>"
+    limits = next(m["diagnostics"]["adequacy"]["checks"] for m in rep.modules
+                  if "verdict" in (m["diagnostics"].get("adequacy") or {}))
+    head = [f"{name.replace('_', ' ')} (≤ {c['limit']:g})" for name, c in limits.items()]
+    return ("<p>Whether the model explains the identification run it was calibrated on, from the run's own "
+            "step windows: do the windows agree about the laws (score variance against the posterior's, 1 "
+            "when the model is right), the noise the model leaves against the sensors' own (1), the windows' "
+            "level errors in noise sds, and the residuals' lag-1 autocorrelation (0 for white noise). Each "
+            "shows its worst value and where. A module that does not fit has laws that rest on a model that "
+            "misses something: <code>tembayes gap</code> finds what.</p>"
+            + _table(["", "verdict"] + head + ["what it means"], rows))
+
+
 def _validation(rep):
     if not rep.validation:
         return "<p>No validation runs in this report.</p>"
@@ -294,6 +325,7 @@ SECTIONS = (("acceptance", "Acceptance", _acceptance), ("overview", "Batch overv
             ("quality", "Data quality", _quality), ("laws", "Laws R(T), S(T) and K", _laws),
             ("population", "Modules against the population", _population),
             ("hysteresis", "Hysteresis", _hysteresis), ("convergence", "Convergence", _convergence),
+            ("adequacy", "Model adequacy", _adequacy),
             ("corner", "Corner plots", lambda rep: "".join(_figure(rep, k) for k in rep.figures
                                                            if k.startswith("corner_") and k != "corner_population")),
             ("validation", "Validation", _validation), ("gap", "Sim-to-real gap", _gap),
