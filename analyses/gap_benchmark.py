@@ -225,6 +225,7 @@ def main(argv=None):
     ap.add_argument("--shard", default="0/1", metavar="I/N",
                     help="run every N-th case from the I-th (two shards fill 2 cores while one calibrates)")
     ap.add_argument("--summarise", action="store_true", help="only summarise the cases already cached")
+    ap.add_argument("--label", default="", help="results as gap_benchmark_LABEL.{json,md} (a partial rerun)")
     args = ap.parse_args(argv)
     i_shard, n_shard = (int(x) for x in args.shard.split("/"))
     cases = {}
@@ -248,8 +249,9 @@ def main(argv=None):
         print(_markdown(s))  # this shard's cases; `--summarise` writes the whole table
         return
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "gap_benchmark.json").write_text(json.dumps(s, indent=1))
-    (RESULTS / "gap_benchmark.md").write_text(_markdown(s))
+    name = "gap_benchmark" + (f"_{args.label}" if args.label else "")
+    (RESULTS / f"{name}.json").write_text(json.dumps(s, indent=1))
+    (RESULTS / f"{name}.md").write_text(_markdown(s))
     print(_markdown(s))
 
 

@@ -43,7 +43,7 @@ TYPES = {
 
 
 def label(args):
-    return f"{args.fidelity}-{args.physics}-{args.model}-{args.discrepancy}"
+    return f"{args.fidelity}-{args.physics}-{args.model}-{args.discrepancy}" + (f"-{args.tag}" if args.tag else "")
 
 
 def run(cmd):
@@ -79,7 +79,8 @@ def rows(work, args):
         truth = json.loads((bdir / "truth.json").read_text())
         for mid, m in s["modules"].items():
             row = {"batch": bdir.name, "module": mid, "converged": bool(m["diagnostics"]["converged"]),
-                   "seconds": m["diagnostics"].get("timings", {}).get("total_s")}
+                   "seconds": m["diagnostics"].get("seconds"),
+                   "adequacy": m["diagnostics"].get("adequacy", {}).get("verdict")}
             for p in PARAMS:
                 tv = truth["modules"][mid][p]
                 e = m[p]
@@ -93,7 +94,9 @@ def summarise(r):
     n = len(r)
     lo, hi = binom.ppf(0.025, n, 0.9) / n, binom.ppf(0.975, n, 0.9) / n
     doc = {"n_modules": n, "band90": [lo, hi], "converged": sum(x["converged"] for x in r),
-           "median_seconds": float(np.median([x["seconds"] for x in r if x["seconds"]])) if n else None}
+           "median_seconds": float(np.median([x["seconds"] for x in r if x["seconds"]])) if n else None,
+           # runs made before the adequacy verdict have none
+           "adequacy_fits": sum(x.get("adequacy") == "fits" for x in r) if any(x.get("adequacy") for x in r) else None}
     for p in PARAMS:
         doc[p] = {"coverage90": float(np.mean([x[p]["inside"] for x in r])),
                   "median_abs_err_pct": float(np.median([abs(x[p]["err_pct"]) for x in r])),
@@ -115,6 +118,7 @@ def main():
     ap.add_argument("--work", type=Path, default=Path("/tmp/tembayes-law-coverage"))
     ap.add_argument("--shard", default="0/1", help="K/N: this process does every N-th batch from K")
     ap.add_argument("--summarise", action="store_true")
+    ap.add_argument("--tag", default="", help="appended to the results' label (a variant of the code)")
     args = ap.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
     if not args.summarise:
@@ -131,7 +135,7 @@ def main():
     (res / f"law_coverage_{label(args)}.json").write_text(json.dumps(doc, indent=1) + "\n")
     s = doc["summary"]
     lines = [f"# Law coverage: {label(args)}", "",
-             f"{s['n_modules']} modules ({s['converged']} converged), 90 % band "
+             f"{s['n_modules']} modules ({s['converged']} converged, {s['adequacy_fits'] if s['adequacy_fits'] is not None else 'no verdict:'} whose model fits), 90 % band "
              f"[{s['band90'][0]:.3f}, {s['band90'][1]:.3f}]; median {s['median_seconds']} s per module", "",
              "| | coverage 90 % | median abs error % | median 90 % width % | median abs z | max abs z |",
              "|---|---|---|---|---|---|"]

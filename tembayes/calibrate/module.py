@@ -65,9 +65,6 @@ from tembayes.physics.rig import rig_from_config
 LEG_CELLS = 4
 BLOCK_CELLS = 6
 
-#: Rig parameters whose documented range is narrower than this ratio
-#: (high/low) are fixed at nominal (the steel: known material and size).
-NUISANCE_MIN_RANGE = 1.2
 #: How a calibration widens its laws for a model that is not the rig (``CalibrationOptions.discrepancy``).
 DISCREPANCIES = ("none", "window-sandwich", "robust")
 #: An expansion whose PSIS k_hat on the first ``psis_probe`` steps of a
@@ -261,7 +258,7 @@ def parameter_space(rig, datasheet, data, shift_bound, effects=(), form=DEFAULT_
     if inside:
         raise ModelError(f"the '{form.name}' model already contains {', '.join(inside)}; add it only to a "
                          "--model paper calibration")
-    nuis = [p for p in rig.parameters if p.high / p.low > NUISANCE_MIN_RANGE and not p.held]
+    nuis = [p for p in rig.parameters if p.high / p.low > form.min_range and not p.held]
     fixed = {p.name: p.nominal for p in rig.parameters if p not in nuis}
     pri = (list(law_priors(datasheet)) + [rig_prior(p) for p in nuis] + list(form.priors)
            + list(effect_priors(effects)))
