@@ -202,3 +202,18 @@ def test_report_renders_in_headless_chromium_with_its_figures(report, tmp_path):
     with_figs, without = _plotted_rows(shot), _plotted_rows(control)
     assert with_figs > 0.15, with_figs
     assert with_figs > 5 * without, (with_figs, without)
+
+
+def test_the_gap_section_shows_the_laws_before_and_after_the_recalibration():
+    from tembayes.report.html import _recalibrated
+
+    law = {"mean": 1.8, "sd": 0.002, "q05": 1.797, "q95": 1.803}
+    before = {p: dict(law) for p in ("R0_ohm", "R1_ohm_per_K", "S0_V_per_K", "S1_V_per_K2", "K_W_per_K")}
+    after = {**before, "R0_ohm": {**law, "mean": 1.81, "sd": 0.003}}
+    html = _recalibrated({"effects": ["sensor_lag"], "run": "run", "laws_before": {"TEM1": before, "TEM2": before},
+                          "laws_after": {"TEM1": after}, "modules_not_recalibrated": ["TEM2"]})
+    row = html.split("<tr>")[2]  # the first module's R0
+    assert ">TEM1<" in row and "1.8 ± 0.002" in row and "1.81 ± 0.003" in row and "+5.0" in row
+    assert html.count("<tr>") == 1 + 5 and "Not recalibrated (laws as before): TEM2" in html
+    assert "sensor_lag added" in html
+    assert _recalibrated(None) == ""

@@ -302,8 +302,32 @@ def _gap(rep):
                                  for mid, c in conf], left=2))
         elif isinstance(doc.get("conflicts"), dict):
             out.append("<p>No prior–posterior conflicts: every rig parameter inside its documented range.</p>")
+        out.append(_recalibrated(doc.get("recalibrated")))
         out.append("".join(_figure(rep, k) for k in g["figures"]))
     return "".join(out)
+
+
+def _recalibrated(rec):
+    """The laws before and after the best explanation was added to the model, side by side."""
+    if not rec:
+        return ""
+    rows = []
+    for mid, after in rec["laws_after"].items():
+        before = rec["laws_before"][mid]
+        for p in MODULE_PARAMETERS:
+            short, unit, f = _UNITS[p]
+            b, a = before[p], after[p]
+            shift = (a["mean"] - b["mean"]) / b["sd"] if b["sd"] > 0 else float("nan")
+            rows.append([_e(mid), f"{short} [{unit}]", f"{f * b['mean']:.5g} ± {f * b['sd']:.2g}",
+                         f"{f * a['mean']:.5g} ± {f * a['sd']:.2g}", f"{shift:+.1f}"])
+    note = ""
+    if rec.get("modules_not_recalibrated"):
+        note = (f"<p class='muted'>Not recalibrated (laws as before): "
+                f"{_e(', '.join(rec['modules_not_recalibrated']))}.</p>")
+    return (f"<p>The laws with {_e(', '.join(rec['effects']))} added to the model (the recalibrated run "
+            f"<code>{_e(rec['run'])}</code>, which predict, report and export take), against the laws "
+            "before:</p>"
+            + _table(["module", "parameter", "before", "after", "moved [sd before]"], rows, left=2) + note)
 
 
 def _provenance(rep):
