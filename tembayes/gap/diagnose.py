@@ -749,9 +749,10 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
     unknown = [e for e in exclude if e not in E.CATALOGUE]
     if unknown:
         raise DataError("--exclude", f"names no catalogue effect: {unknown}", f"Choose from {list(E.CATALOGUE)}.")
-    base = run.calibration_options()
+    base_opt = run.calibration_options()
     # the effects the run's model already contains are no candidates
-    inside = {*get_form(base.model).includes, *base.effects, *(E.EFFECT_PARAMETERS[k] for k in base.effect_values)}
+    inside = {*get_form(base_opt.model).includes, *base_opt.effects,
+              *(E.EFFECT_PARAMETERS[k] for k in base_opt.effect_values)}
     allowed = [e for e in E.CATALOGUE if e not in set(exclude) and e not in inside]
     rig = run.rig_for(batch)
     ids = [m for m in run.module_ids if batch.modules[m].validations]
@@ -759,8 +760,8 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
         raise DataError(batch.path, "has no validation*.csv in any module folder",
                         "The diagnosis needs held-out runs: add at least one validation experiment per module.")
     if options is None:
-        options = replace(base, max_steps=min(base.max_steps, RECAL_MAX_STEPS),
-                          stage_steps=min(base.stage_steps, RECAL_MAX_STEPS))
+        options = replace(base_opt, max_steps=min(base_opt.max_steps, RECAL_MAX_STEPS),
+                          stage_steps=min(base_opt.stage_steps, RECAL_MAX_STEPS))
     # the family-wise level split over every map: each validation run and each identification run
     alpha = ALPHA / (sum(len(batch.modules[m].validations) for m in ids) + len(ids))
     raws = {mid: module_raw_draws(run, mid) for mid in ids}  # read once: anchoring, conflicts, the refits' start
@@ -770,7 +771,7 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
         return {**starts[mid], **_suspect_start(e, conflicts.get(mid, ()))}
 
     def refit_job(mid, e, heldout=False):
-        return _refit_job, (batch.modules[mid], batch.datasheet, batch.rig_config, base, e, start(mid, e), seed,
+        return _refit_job, (batch.modules[mid], batch.datasheet, batch.rig_config, base_opt, e, start(mid, e), seed,
                             min(n_draws, SCREEN_DRAWS), alpha, heldout)
 
     with _executor(jobs) as ex:
@@ -865,7 +866,7 @@ def diagnose(run, batch, *, exclude=(), candidates=CANDIDATES, n_draws=N_DRAWS, 
         # evidence there go on to the other modules
         def job(mid, e):
             r = screened.get(("refit", mid, e)) if mid == lead else None
-            return (batch.modules[mid], batch.datasheet, batch.rig_config, base, e, seed, options, n_draws, alpha,
+            return (batch.modules[mid], batch.datasheet, batch.rig_config, base_opt, e, seed, options, n_draws, alpha,
                     start(mid, e), None if r is None or r["failed"] else r["refit"])
 
         lead_done, why = {}, {}
