@@ -308,6 +308,26 @@ def test_a_run_that_misses_a_sensor_lag_says_its_model_does_not_fit_though_uncon
     assert m["diagnostics"]["adequacy"]["reasons"]
 
 
+def test_a_gap_is_screened_and_recalibrated_in_this_process_with_the_runs_own_options(lag_case):
+    """jobs=1 and one effect screened: the short path through screen and recalibration (the whole
+    diagnosis is the slow tier's). Its options are the run's, not the base metrics'."""
+    import importlib
+
+    from tembayes.calibrate.run import load_run
+    from tembayes.data import load_batch
+    from tembayes.physics.effects import CATALOGUE
+
+    diagnose = importlib.import_module("tembayes.gap.diagnose").diagnose
+    batch, run = lag_case
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # short budgets: not converged
+        diag = diagnose(load_run(run), load_batch(batch), exclude=[e for e in CATALOGUE if e != "sensor_lag"],
+                        candidates=1, n_draws=40, jobs=1)
+    assert [r["effect"] for r in diag.screen if r["effect"]] == ["sensor_lag"]
+    assert diag.best == "sensor_lag" and diag.recalibration_options.model == "paper"
+    assert diag.recalibration_options.effects == ("sensor_lag",)
+
+
 @pytest.mark.slow  # a blind calibration and diagnosis: ~4 min
 def test_screen_puts_the_true_effect_first_at_the_noise_floor(lag_gap):
     """The screen's refits of the identification run (known answer): with the lag added the fit
