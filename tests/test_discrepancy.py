@@ -103,6 +103,6 @@ def test_a_held_parameter_moves_the_mode_as_its_linear_response_says():
     A = np.column_stack([t, np.ones_like(t)])
     move = np.linalg.lstsq(A, y_true - y_held, rcond=None)[0]
     np.testing.assert_allclose(spread.shift[:, 0] * 0.2, -move, rtol=1e-6)  # the held value errs by -0.2
-    np.testing.assert_allclose(spread.log_sd, [0.2])  # a quarter of the log range
+    np.testing.assert_allclose(spread.log_sd, [0.8 / np.sqrt(12.0)])  # uniform over the log range
     X = spread.apply(np.zeros((20000, 2)), np.random.default_rng(0))
-    np.testing.assert_allclose(X.std(axis=0), np.abs(spread.shift[:, 0]) * 0.2, rtol=0.03)
+    np.testing.assert_allclose(X.std(axis=0), np.abs(spread.shift[:, 0]) * 0.8 / np.sqrt(12.0), rtol=0.03)

@@ -524,3 +524,28 @@ def test_simulate_rejects_unknown_and_missing_parameters():
     # a rig parameter of another rig is unknown to this one
     with pytest.raises(ModelError, match="g_cell"):
         simulate(inp, {**PAPER, "g_cell": 300.0})
+
+
+def test_a_sensor_off_its_cells_centre_reads_the_steel_at_its_own_depth():
+    """Depth from the face the sensor is named against; at the nominal depth the node itself."""
+    from tembayes.physics.rig import SENSOR_DEPTH, reference_rig
+    from tembayes.physics.simulate import Inputs, simulate
+
+    rig = reference_rig(leg_cells=2, block_cells=6)
+    dx = 0.010 / 6
+    t = np.linspace(0.0, 600.0, 61)
+    inputs = Inputs(time=t, current=np.full_like(t, 3.0), t_water=np.full_like(t, 298.15),
+                    t_amb=np.full_like(t, 296.15))
+    laws = {"R0_ohm": 2.0, "R1_ohm_per_K": 0.01, "S0_V_per_K": 0.05, "S1_V_per_K2": 1e-4, "K_W_per_K": 0.5}
+    # T2 one cell deeper (towards the cooler) reads the next cell's centre, the T1 side unchanged
+    nominal, deeper = (simulate(inputs, {**laws, "depth_T2": d}, rig=rig).sensors[0]
+                       for d in (SENSOR_DEPTH, SENSOR_DEPTH + dx))
+    assert np.array_equal(nominal[[0, 2, 3]], deeper[[0, 2, 3]])
+    profile = simulate(inputs, laws, rig=reference_rig(leg_cells=2, block_cells=6)).sensors[0]
+    assert np.array_equal(profile, nominal)
+    # in steady state, heat flows from the module up through the top block: the deeper cell is cooler,
+    # and by the flux times the steel's resistance over one cell
+    assert np.all(deeper[1, -5:] < nominal[1, -5:] - 0.05)
+    half = SENSOR_DEPTH + 0.5 * dx
+    mid = simulate(inputs, {**laws, "depth_T2": half}, rig=rig).sensors[0]
+    np.testing.assert_allclose(mid[1], 0.5 * (nominal[1] + deeper[1]), rtol=0, atol=1e-9)

@@ -41,7 +41,7 @@ from tembayes.bench.protocols import (
     sample_times,
     validation_cycle,
 )
-from tembayes.physics.rig import CERAMIC
+from tembayes.physics.rig import CERAMIC, DEPTHS
 from tembayes.physics.simulate import Inputs, simulate
 
 #: The reference module type (``shared/spec/reference-rig.md``).
@@ -181,6 +181,8 @@ def draw_truth(config, rng):
         shared.update({k: _draw_rig(rng, k, params) for k in ("c_cell", "g_cell")})
         if not high:
             shared["g_half_cell"] = 2.0 * shared["g_cell"]
+            # the holes' depths, as the out-of-model bench draws its sensors' (outside.draw_sensor_depths)
+            shared.update({p.name: float(rng.uniform(p.low, p.high)) for p in DEPTHS})
     modules = {}
     for mid in config.module_ids:
         laws = {k: v * (1.0 + UNIT_SPREAD[k] * rng.standard_normal()) for k, v in population.items()}

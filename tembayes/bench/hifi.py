@@ -18,7 +18,8 @@ It reuses the same compiled kernel: a leg chain is just a longer module chain.
 
 from __future__ import annotations
 
-from tembayes.physics.rig import AREA, CERAMIC, JUNCTION_SHARE, K_STEEL, REFERENCE, RHO_C, RigDescription, RigParameter
+from tembayes.physics.rig import (AREA, CERAMIC, DEPTHS, JUNCTION_SHARE, K_STEEL, REFERENCE, RHO_C, SENSOR_DEPTH,
+                                  RigDescription, RigParameter, SensorDepth)
 
 N_BLOCK_CELLS = 6
 N_LEG_CELLS = 4
@@ -27,7 +28,7 @@ N_LEG_CELLS = 4
 #: and documented range), so a calibration's rig posterior can be checked.
 SHARED_WITH_REFERENCE = (
     "g_cooler", "g_paste_hot", "g_paste_cold", "c_plate_hot", "c_plate_cold", "c_legs", "leak_top", "leak_bottom",
-    "g_ceramic",
+    "g_ceramic", *(p.name for p in DEPTHS),
 )
 
 _DX = 0.010 / N_BLOCK_CELLS  # cell thickness [m]
@@ -84,6 +85,8 @@ def hifi_rig(n_leg=N_LEG_CELLS, layers=False):
         # 6 cells of 1.67 mm: centres 2, 5 are 2.5 mm from a face
         sensors={"T1_C": top[1], "T2_C": top[4], "T3_C": bottom[1], "T4_C": bottom[4]},
         legs=tuple(legs),
+        depths={ch: SensorDepth(deeper, f"depth_{ch[:2]}", SENSOR_DEPTH, _DX)
+                for ch, deeper in (("T1_C", top[2]), ("T2_C", top[3]), ("T3_C", bottom[2]), ("T4_C", bottom[3]))},
     )
 
 

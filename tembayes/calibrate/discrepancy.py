@@ -25,7 +25,8 @@ correctly specified module keeps its posterior up to a few percent.
 
 The windows can agree on a wrong value, though: a rig parameter the
 calibration holds fixed (the ceramic's conductance, held because sampling it
-does not converge; the steel's) moves every window the same way.  Its
+does not converge; the sensors' depths, which the data cannot tell from the
+junctions' temperature difference) moves every window the same way.  Its
 documented range is carried over to the posterior to first order
 (:func:`held_nuisance_spread`): every draw moves by the mode's response to
 a draw of the held parameter.
@@ -119,7 +120,7 @@ class HeldSpread:
     names : tuple of str
         The held parameters.
     log_sd : ndarray, shape (m,)
-        Their uncertainty (log scale: a quarter of the log of their documented range).
+        Their uncertainty (log scale: the sd of a uniform draw over their documented range).
     shift : ndarray, shape (p, m)
         Shift of the posterior mode's coordinates per unit of each one's log.
     """
@@ -190,5 +191,6 @@ def held_nuisance_spread(model, space, x, J, noise, held, h=0.05):
     prec = np.array([0.0 if p.kind == "uniform" else 1.0 / p.scale ** 2 for p in space.priors])
     JtWD = np.einsum("icn,qcn,c->iq", J, D, w)
     shift = -np.linalg.solve(JtWJ + np.diag(prec), JtWD)
-    log_sd = np.array([np.log(held[q].high / held[q].low) / 4.0 for q in names])
+    # a documented range read as uniform: sd = width / sqrt(12)
+    log_sd = np.array([np.log(held[q].high / held[q].low) / np.sqrt(12.0) for q in names])
     return HeldSpread(names=names, log_sd=log_sd, shift=shift)

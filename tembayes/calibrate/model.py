@@ -60,8 +60,6 @@ class StepResponseModel:
         self.rig = rig
         self.atol = float(atol)
         self.hmax = float(hmax)
-        sensor_nodes = [rig.sensors[c] for c in ("T2_C", "T3_C")]
-        self._sensor_nodes = sensor_nodes
         ns = data.n_steps
         # grid: t0, observed samples, regular input points, and two points per step
         extra = np.arange(data.t0, data.time[-1], input_spacing)[1:]
@@ -124,8 +122,8 @@ class StepResponseModel:
         nd = m["nd"]
         shift = np.broadcast_to(shift, (nd,))
         names = m["network"].nodes
-        rec = np.array([names.index(x) for x in self._sensor_nodes] + [names.index(self.rig.hot),
-                                                                        names.index(self.rig.cold)], dtype=np.int64)
+        a, b, f = self.rig.readout(("T2_C", "T3_C"), m["params"])
+        rec = np.concatenate([a, [names.index(self.rig.hot), names.index(self.rig.cold)], b]).astype(np.int64)
         G = self.grid(shift)
         if levels is None:
             Ic = np.repeat(self._current[None, :], nd, axis=0)
@@ -135,7 +133,8 @@ class StepResponseModel:
         if strict and np.any(failed):
             raise ModelError("the step-response simulation failed (no steady start, step budget exceeded or "
                              "non-finite values)")
-        sensors = np.ascontiguousarray(out[:, :, :2].transpose(0, 2, 1))
+        sensors = out[:, :, :2] + f[:, None, :] * (out[:, :, 4:] - out[:, :, :2])
+        sensors = np.ascontiguousarray(sensors.transpose(0, 2, 1))
         if effects.has_sensor_effect(m["params"]):
             effects.apply_sensors(G[0], sensors, m["params"])
         o = self.obs_pos

@@ -88,7 +88,11 @@ class _Rig:
         self.A, self.Bb, self.Cinv = m["A"][0], m["Bb"][0], m["Cinv"][0]
         self.p, self.tem = m["P"][0], m["tem"]
         self.nodes = tuple(m["network"].nodes)
-        self.sensor_idx = [self.nodes.index(rig.sensors[c]) for c in rig.sensors]
+        a, b, f = rig.readout(tuple(rig.sensors), {k: float(v) for k, v in params.items()})
+        # each sensor reads a blend of two nodes (its depth, RigDescription.readout)
+        self.read = np.zeros((len(a), len(self.nodes)))
+        self.read[np.arange(len(a)), a] += 1.0 - f[0]
+        self.read[np.arange(len(a)), b] += f[0]
         self.hot, self.cold = self.nodes.index(rig.hot), self.nodes.index(rig.cold)
 
     def steady(self, current, tw, ta, guess=None):
@@ -104,7 +108,7 @@ class _Rig:
 
     def outputs(self, x, current):
         v = K.tem_voltage(x[self.tem], K.true_current(current, self.p), self.p)
-        return np.concatenate([x[self.sensor_idx], [v]])
+        return np.concatenate([self.read @ x, [v]])
 
     def point(self, tavg_K, current, ta):
         """Steady state whose mean junction temperature is ``tavg_K``: the water temperature solved."""
@@ -129,8 +133,7 @@ class _Rig:
         B[:, 0] = (self.rhs(x0, current + h, tw, ta) - self.rhs(x0, current - h, tw, ta)) / (2 * h)
         B[:, 1:] = self.Bb  # the network is linear in the boundary temperatures
         C = np.zeros((len(OUTPUTS), n))
-        for r, i in enumerate(self.sensor_idx):
-            C[r, i] = 1.0
+        C[:len(self.read)] = self.read
         hx = 1e-3  # K: the voltage is smooth (quadratic) in the temperatures
         for i in self.tem:
             e = np.zeros(n)

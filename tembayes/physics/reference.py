@@ -43,7 +43,8 @@ def simulate_reference(inputs, params, *, rig=REFERENCE, method="BDF", rtol=1e-9
     t = inputs.time
     names = m["network"].nodes
     channels = tuple(rig.sensors)
-    rec = [names.index(rig.sensors[c]) for c in channels]
+    a, b, f = rig.readout(channels, m["params"])
+    f = np.broadcast_to(f, (nd, len(channels)))
     tem = m["tem"]
     sensors = np.empty((nd, len(channels), len(t)))
     volt = np.empty((nd, len(t)))
@@ -73,7 +74,7 @@ def simulate_reference(inputs, params, *, rig=REFERENCE, method="BDF", rtol=1e-9
         if not sol.success:
             raise ModelError(f"reference solve_ivp failed: {sol.message}")
         Y = sol.y
-        sensors[d] = Y[rec]
+        sensors[d] = Y[a] + f[d][:, None] * (Y[b] - Y[a])
         t_hot[d] = Y[tem[0]]
         t_cold[d] = Y[tem[-1]]
         i_true = K.true_current(inputs.current, p)

@@ -66,6 +66,34 @@ class RigParameter:
 
 
 @dataclass(frozen=True)
+class SensorDepth:
+    """Where a sensor sits between its node's centre and a neighbour.
+
+    The reading is ``T_node + f (T_toward - T_node)`` with
+    ``f = (depth - centre) / spacing``: a sensor off its cell's centre reads
+    the steel's temperature profile at its own depth (linear between the
+    two centres; a little beyond, for the other side).
+
+    Attributes
+    ----------
+    toward : str
+        The neighbouring node deeper into the block (away from the face the
+        depth is measured from).
+    parameter : str
+        The rig parameter giving the sensor's depth below that face [m].
+    centre : float
+        Depth of the sensor node's centre [m].
+    spacing : float
+        Distance between the two nodes' centres [m].
+    """
+
+    toward: str
+    parameter: str
+    centre: float
+    spacing: float
+
+
+@dataclass(frozen=True)
 class Network:
     """The arrays of a rig network for a batch of parameter draws.
 
@@ -125,6 +153,9 @@ class RigDescription:
         Values of effect parameters this description includes (e.g.
         ``thomson_fraction = 1``): :func:`~tembayes.physics.simulate.build`
         uses them unless a parameter mapping gives its own.
+    depths : mapping of str to SensorDepth
+        Sensors whose depth is a parameter (read between two nodes, see
+        :meth:`readout`); the others read their node.
     """
 
     name: str
@@ -136,6 +167,7 @@ class RigDescription:
     sensors: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
     legs: tuple = ()
     physics: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
+    depths: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
 
     def __post_init__(self):
         names = [p.name for p in self.parameters]
@@ -163,8 +195,13 @@ class RigDescription:
         for ch, node in self.sensors.items():
             if node not in known:
                 raise ModelError(f"rig '{self.name}': sensor {ch} reads unknown node '{node}'")
+        for ch, d in self.depths.items():
+            if ch not in self.sensors or d.toward not in known or d.parameter not in names:
+                raise ModelError(f"rig '{self.name}': depth of {ch} needs a sensor, a node to read towards and a "
+                                 f"parameter; got {d}")
         object.__setattr__(self, "sensors", MappingProxyType(dict(self.sensors)))
         object.__setattr__(self, "physics", MappingProxyType(dict(self.physics)))
+        object.__setattr__(self, "depths", MappingProxyType(dict(self.depths)))
 
     # -- parameters ---------------------------------------------------------
     @property
@@ -198,15 +235,46 @@ class RigDescription:
             near = difflib.get_close_matches(name, self.parameter_names, n=1, cutoff=0.6)
             raise ModelError(f"unknown rig parameter '{name}'" + (f" (did you mean '{near[0]}'?)" if near else "")
                              + f"; rig '{self.name}' has {', '.join(self.parameter_names)}")
-        return RigDescription(
-            self.name, tuple(params), self.nodes, self.links, self.hot, self.cold, self.sensors, self.legs,
-            self.physics,
-        )
+        return dataclasses.replace(self, parameters=tuple(params))
 
     @property
     def tem_chain(self):
         """Node names of (hot plate, leg cells..., cold plate)."""
         return (self.hot, *self.legs, self.cold)
+
+    def readout(self, channels, values=None):
+        """How each channel reads the nodes: ``T = T[a] + f (T[b] - T[a])``.
+
+        Parameters
+        ----------
+        channels : sequence of str
+            Sensor columns.
+        values : mapping of str to float or ndarray of shape (nd,), optional
+            Parameter values; missing ones take their nominal value.
+
+        Returns
+        -------
+        a, b : ndarray of int, shape (nch,)
+            Node indices (``b = a`` for a sensor that reads its node).
+        f : ndarray, shape (nd, nch)
+            Share of node ``b`` [1]; 0 at a sensor's nominal depth.
+        """
+        names = self.node_names
+        a = np.array([names.index(self.sensors[c]) for c in channels], dtype=np.int64)
+        b = a.copy()
+        values = values or {}
+        cols = []
+        for i, c in enumerate(channels):
+            d = self.depths.get(c)
+            if d is None:
+                cols.append(np.zeros(1))
+                continue
+            b[i] = names.index(d.toward)
+            depth = np.atleast_1d(np.asarray(values.get(d.parameter, self.parameter(d.parameter).nominal), float))
+            cols.append((depth - d.centre) / d.spacing)
+        nd = max(len(x) for x in cols) if cols else 1
+        f = np.column_stack([np.broadcast_to(x, (nd,)) for x in cols]) if cols else np.zeros((1, 0))
+        return a, b, f
 
     # -- network ------------------------------------------------------------
     @property
@@ -346,6 +414,18 @@ CERAMIC = RigParameter("g_ceramic", 50.0, 35.0, 70.0, "W/K",
                        "through a module's alumina plate to its junctions (the plate's two layers)", held=True)
 #: Share of a plate's heat capacity at its junctions (copper and solder); the rest is alumina.
 JUNCTION_SHARE = 0.2
+#: Nominal depth of every sensor below its block's nearer face [m].
+SENSOR_DEPTH = 2.5e-3
+#: The sensors' depths: the hole's depth and the thermistor's seat in it are
+#: known to about a quarter of a millimetre.  In a heat-flux path of steel a
+#: quarter millimetre is ~0.1 K at 10 W, which the calibration cannot tell
+#: from the junctions' temperature difference, so the laws' R0-S0-K ridge
+#: moves with it; a calibration holds the depths at nominal and carries their
+#: range over (``--discrepancy robust``).
+DEPTHS = tuple(RigParameter(f"depth_{s}", SENSOR_DEPTH, SENSOR_DEPTH - 0.25e-3, SENSOR_DEPTH + 0.25e-3, "m",
+                            f"depth of {s} below its block's nearer face", held=True)
+               for s in ("T1", "T2", "T3", "T4"))
+
 
 def reference_rig(leg_cells=0, block_cells=2, layers=False):
     """The reference identification rig.
@@ -427,13 +507,16 @@ def reference_rig(leg_cells=0, block_cells=2, layers=False):
         name += "-layers"
     return RigDescription(
         name=name,
-        parameters=_REFERENCE_PARAMETERS + ((CERAMIC,) if layers else ()),
+        parameters=_REFERENCE_PARAMETERS + ((CERAMIC,) if layers else ()) + DEPTHS,
         nodes=nodes,
         links=tuple(links),
         hot="hot_plate",
         cold="cold_plate",
         sensors={"T1_C": top[k], "T2_C": top[nb - 1 - k], "T3_C": bottom[k], "T4_C": bottom[nb - 1 - k]},
         legs=legs,
+        depths={ch: SensorDepth(deeper, f"depth_{ch[:2]}", SENSOR_DEPTH, 0.010 / nb)
+                for ch, deeper in (("T1_C", top[k + 1]), ("T2_C", top[nb - 2 - k]), ("T3_C", bottom[k + 1]),
+                                   ("T4_C", bottom[nb - 2 - k]))},
     )
 
 

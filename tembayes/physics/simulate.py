@@ -201,8 +201,8 @@ def simulate(inputs, params, *, rig=REFERENCE, y0=None, steady_start=True, atol=
     names = m["network"].nodes
     N = len(names)
     channels = tuple(rig.sensors)
-    rec = np.array([names.index(rig.sensors[c]) for c in channels] + [names.index(rig.hot), names.index(rig.cold)],
-                   dtype=np.int64)
+    a, b, f = rig.readout(channels, m["params"])
+    rec = np.concatenate([a, [names.index(rig.hot), names.index(rig.cold)], b]).astype(np.int64)
     if y0 is None:
         Y0 = np.full((nd, N), inputs.t_water[0])
     else:
@@ -221,7 +221,8 @@ def simulate(inputs, params, *, rig=REFERENCE, y0=None, steady_start=True, atol=
     if not np.all(np.isfinite(volt)):
         raise ModelError("the simulation diverged (non-finite values); check the parameters")
     nch = len(channels)
-    sensors = np.ascontiguousarray(out[:, :, :nch].transpose(0, 2, 1))
+    sensors = out[:, :, :nch] + f[:, None, :] * (out[:, :, nch + 2:] - out[:, :, :nch])
+    sensors = np.ascontiguousarray(sensors.transpose(0, 2, 1))
     effects.apply_sensors(inputs.time, sensors, m["params"])
     return Simulation(
         time=inputs.time,

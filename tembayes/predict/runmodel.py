@@ -70,8 +70,8 @@ class RunModel:
     rig : RigDescription
         The calibration rig (the run's ``leg_cells``/``block_cells``).
     dense : float, optional
-        Every sample in the first ``dense`` seconds after a step is a grid
-        point [s].
+        Every sample in the first ``dense`` seconds of the run and after a
+        step is a grid point [s].
     spacing : float, optional
         Grid spacing elsewhere [s].
     smooth : float, optional
@@ -126,7 +126,9 @@ class RunModel:
         self.sample_hold = np.searchsorted(first_new, np.arange(len(t)), side="right")
         # grid points among the samples: dense after steps, every `spacing` s elsewhere
         keep = np.zeros(len(t), bool)
-        keep[0] = keep[-1] = True
+        keep[-1] = True
+        # the run's start is a step too when it starts away from the first level's steady state
+        keep[:np.searchsorted(t, t[0] + dense, side="right")] = True
         mark = np.floor((t - t[0]) / spacing)
         keep[1:] |= mark[1:] != mark[:-1]
         for s in steps:
@@ -204,7 +206,8 @@ class RunModel:
         m = build(params, self.rig)
         nd = m["nd"]
         names = m["network"].nodes
-        rec = np.array([names.index(self.rig.sensors[c]) for c in SENSOR_CHANNELS], dtype=np.int64)
+        a, b, f = self.rig.readout(SENSOR_CHANNELS, m["params"])
+        rec = np.concatenate([a, b]).astype(np.int64)
         shift = np.broadcast_to(np.atleast_1d(np.asarray(shift, dtype=float)), (nd,))
         G = self.grid(shift)
         Ic = np.repeat(self.levels[self._grid_hold][None, :], nd, axis=0)
@@ -214,12 +217,14 @@ class RunModel:
         first = Ic[:, :1] if start is None else np.broadcast_to(np.asarray(start, float), (nd,))[:, None]
         Ic = np.ascontiguousarray(np.concatenate([first, Ic], axis=1))
         tw, ta = np.concatenate([self._tw[:1], self._tw]), np.concatenate([self._ta[:1], self._ta])
-        y0 = self._initial_states(m, Ic[:, 0], G[:, 0], rec) if self.start == "data" else None
+        y0 = self._initial_states(m, Ic[:, 0], G[:, 0], (a, b, f)) if self.start == "data" else None
         out, volt, failed, _ = integrate_on_grids(m, G, Ic, tw, ta, rec, self.atol, self.hmax, y0=y0)
         if strict and np.any(failed):
             raise ModelError(f"the simulation of {self.exp.path} failed for {int(failed.sum())} of {nd} draws "
                              "(no steady start, step budget exceeded or non-finite values)")
-        sensors = np.ascontiguousarray(out.transpose(0, 2, 1))
+        nch = len(a)
+        sensors = out[:, :, :nch] + f[:, None, :] * (out[:, :, nch:] - out[:, :, :nch])
+        sensors = np.ascontiguousarray(sensors.transpose(0, 2, 1))
         if effects.has_sensor_effect(m["params"]):
             effects.apply_sensors(G[0], sensors, m["params"])
         sensors, volt = sensors[:, :, 1:], volt[:, 1:]
@@ -288,9 +293,10 @@ class RunModel:
                 return float(np.clip(s[k] + 0.5 * (s[1] - s[0]) * (c0 - c2) / den, -b * (1 - 1e-9), b * (1 - 1e-9)))
         return float(s[k])
 
-    def _initial_states(self, m, current, t, rec, modes=4):
+    def _initial_states(self, m, current, t, readout, modes=4):
         """``(nd, N)``: the steady states under ``current`` [A] moved along the ``modes`` slowest modes
-        of the network until the sensors ``rec`` read the run's first samples."""
+        of the network until the sensors (``readout``: ``(a, b, f)`` of :meth:`RigDescription.readout`)
+        read the run's first samples."""
         N = len(m["network"].nodes)
         G = np.stack([t - 1e-3, t], axis=1)
         I = np.ascontiguousarray(np.repeat(np.asarray(current, float)[:, None], 2, axis=1))
@@ -312,8 +318,9 @@ class RunModel:
         w, U = np.linalg.eigh(L / root[:, :, None] / root[:, None, :])
         V = U[:, :, -modes:] / root[:, :, None]  # the slowest: eigenvalues nearest zero
         first = np.asarray(self.exp.sensors, float)[:, 0]
-        M = V[:, rec, :]
-        r = first[None] - xs[:, rec]
+        a, b, f = readout
+        M = V[:, a, :] + f[:, :, None] * (V[:, b, :] - V[:, a, :])
+        r = first[None] - (xs[:, a] + f * (xs[:, b] - xs[:, a]))
         MtM = np.einsum("dij,dik->djk", M, M) + 1e-9 * np.eye(modes)
         coef = np.linalg.solve(MtM, np.einsum("dij,di->dj", M, r)[..., None])[..., 0]
         x0 = xs + np.einsum("dnk,dk->dn", V, coef)
@@ -324,8 +331,9 @@ class RunModel:
         """Take the run's initial state from its first minute; sets and returns :attr:`start_current`.
 
         The pre-history current whose steady state, followed by the run's own
-        current, fits the four sensors over the first :data:`START_WINDOW_S`
-        seconds best (least squares, each sensor in units of its noise), on
+        current, fits the four sensors and the voltage over the first
+        :data:`START_WINDOW_S` seconds best (least squares, each channel in
+        units of its noise), on
         ``n`` currents across +-:data:`START_SPAN` x the run's largest level,
         refined by the parabola through the best three.
 
@@ -344,11 +352,14 @@ class RunModel:
         span = START_SPAN * max(float(np.max(np.abs(self.levels))), 0.1)
         cand = np.linspace(-span, span, n)
         P = {k: np.repeat(np.ravel(np.asarray(v, float))[:1], n) for k, v in params.items()}
-        sens, _ = self.simulate(P, 0.0, at="grid", strict=False, start=cand)
+        sens, volt = self.simulate(P, 0.0, at="grid", strict=False, start=cand)
         idx = self.grid_samples
         early = self.time[idx] <= self.time[0] + START_WINDOW_S
         y = np.asarray(self.exp.sensors, float)[:, idx][:, early]
-        cost = np.sum(((y[None] - sens[:, :, early]) / self.noise[None, :4, None]) ** 2, axis=(1, 2))
+        v = np.asarray(self.exp.voltage, float)[idx][early]
+        # the voltage too: it reads the junctions, whose fast modes the block sensors barely see
+        cost = (np.sum(((y[None] - sens[:, :, early]) / self.noise[None, :4, None]) ** 2, axis=(1, 2))
+                + np.sum(((v[None] - volt[:, early]) / self.noise[4]) ** 2, axis=1))
         cost = np.where(np.isfinite(cost), cost, np.inf)
         k = int(np.argmin(cost))
         best = float(cand[k])
