@@ -81,6 +81,11 @@ def rows(work, args):
             row = {"batch": bdir.name, "module": mid, "converged": bool(m["diagnostics"]["converged"]),
                    "seconds": m["diagnostics"].get("seconds"),
                    "adequacy": m["diagnostics"].get("adequacy", {}).get("verdict")}
+            sides = truth.get("bench_layout", {}).get("depth_sides")
+            if sides:  # the out-of-model bench's sensor offsets [mm], towards the next cell from the cooler
+                rb = truth["modules"][mid]["rig_bench"]
+                dx_mm = 10.0 / 18
+                row["depth_offset_mm"] = {c: sides[c] * rb[f"v_{c}"] * dx_mm for c in ("T2", "T3")}
             for p in PARAMS:
                 tv = truth["modules"][mid][p]
                 e = m[p]
@@ -97,6 +102,11 @@ def summarise(r):
            "median_seconds": float(np.median([x["seconds"] for x in r if x["seconds"]])) if n else None,
            # runs made before the adequacy verdict have none
            "adequacy_fits": sum(x.get("adequacy") == "fits" for x in r) if any(x.get("adequacy") for x in r) else None}
+    off = [x for x in r if "depth_offset_mm" in x]
+    if len(off) > 2:  # does the laws' error follow the sensors' depths?
+        doc["corr_z_with_depth_offset"] = {
+            p: {c: float(np.corrcoef([x["depth_offset_mm"][c] for x in off], [x[p]["z"] for x in off])[0, 1])
+                for c in ("T2", "T3")} for p in ("R0_ohm", "S0_V_per_K", "K_W_per_K")}
     for p in PARAMS:
         doc[p] = {"coverage90": float(np.mean([x[p]["inside"] for x in r])),
                   "median_abs_err_pct": float(np.median([abs(x[p]["err_pct"]) for x in r])),
@@ -143,6 +153,10 @@ def main():
         q = s[p]
         lines.append(f"| {p} | {q['coverage90']:.3f} | {q['median_abs_err_pct']:.3f} | {q['median_width90_pct']:.3f} "
                      f"| {q['median_abs_z']:.2f} | {q['max_abs_z']:.1f} |")
+    if "corr_z_with_depth_offset" in s:
+        lines += ["", "Correlation of the error in posterior sds (z) with the sensors' depth offsets:", "",
+                  "| | T2 | T3 |", "|---|---|---|"]
+        lines += [f"| {p} | {c['T2']:+.2f} | {c['T3']:+.2f} |" for p, c in s["corr_z_with_depth_offset"].items()]
     (res / f"law_coverage_{label(args)}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
