@@ -36,7 +36,8 @@ writes DIR/identify.json (per module: the step table with R, S and their
 uncertainties, the corrected fit and the paper's recipe, the hysteresis check,
 the fitted rig parameters, validation errors; the batch average) and figures
 (the paper's Figures 5-9: the run, R(T) and S(T) laws, validation with
-constant and temperature-dependent laws, error against T_avg).
+constant and temperature-dependent laws, error against T_avg).  Every key:
+docs/outputs.md, 'identify.json (identify)'.
 """
 
 _EPILOG_CALIBRATE = """\
@@ -50,17 +51,18 @@ examples:
   tembayes calibrate factory/lot42 --out runs/lot42 --scheduler tcp://10.0.0.5:8786   # a running Dask cluster
   tembayes calibrate factory/lot42 --out runs/lot42 --scheduler tcp://10.0.0.5:8786 --resume   # only missing modules
 
-writes RUN/summary.json (contract section 4: per module R0, R1, S0, S1 and K
-with mean, sd and 90 % interval, outlier_prob, convergence diagnostics; the
-population's predictive distribution for a new module), RUN/posterior.nc
+writes RUN/summary.json (per module R0, R1, S0, S1 and K with mean, sd and
+90 % interval, outlier_prob, convergence diagnostics; the population's
+predictive distribution for a new module), RUN/posterior.nc
 (arviz InferenceData: posterior, log_likelihood per step window,
 sample_stats, observed_data, constant_data, prior, population),
 RUN/modules/<id>.nc as each module finishes, and corner plots in
 RUN/figures.  Interrupted runs continue with --resume (finished modules are
 reused, a running one continues from its sampler checkpoint).  Known
 unit-to-unit spreads of the type go in batch.toml's optional [population]
-table (see the README); summary.json's population_spreads gives them for the
-next batch.
+table (docs/data-format.md, '[population]'); summary.json's
+population_spreads gives them for the next batch.  Every output key:
+docs/outputs.md, 'summary.json (calibrate)' and 'posterior.nc (calibrate)'.
 """
 
 _EPILOG_EXPORT = """\
@@ -104,15 +106,16 @@ examples:
   tembayes gap runs/lag-cal runs/lag --out runs/lag-gap
   tembayes gap runs/lag-cal runs/lag --out runs/lag-blind --exclude sensor_lag   # withheld
 
-writes DIR/gap.json (contract section 4: verdict, where, ranking with the
-held-out evidence and the gap before/after and its shrink, best; plus the
-screen, the range conflicts, the best group of effects the data cannot tell
-apart and the settings) and the figures ranking.png, gap_map_*.png and
-residuals_*.png.  Held out are the validation runs and, one at a time, the
-identification run's step windows.  The gap is the excess RMSE over T1..T4
-[K] of the validation runs beyond the predictive's own uncertainty (or,
-when only the identification windows show one, their excess RMS in noise
-sds: gap.json's "metric"); the evidence the held-out ELPD difference [nats].
+writes DIR/gap.json (docs/outputs.md, 'gap.json (gap)'): verdict, where,
+ranking with the held-out evidence and the gap before/after and its shrink,
+best; plus the screen, the range conflicts, the best group of effects the
+data cannot tell apart and the settings; and the figures ranking.png,
+gap_map_*.png and residuals_*.png.  Held out are the validation runs and,
+one at a time, the identification run's step windows.  The gap is the
+excess RMSE over T1..T4 [K] of the validation runs beyond the predictive's
+own uncertainty (or, when only the identification windows show one, their
+excess RMS in noise sds: gap.json's "metric"); the evidence the held-out
+ELPD difference [nats].
 """
 
 _EPILOG_PREDICT = """\
@@ -121,14 +124,15 @@ examples:
   tembayes predict runs/example data/example/TEM2/validation.csv --module population --out runs/pop-pred
   tembayes predict RUN new.csv --module SN0042 --batch path/to/batch --draws 1000 --seed 1 --no-constant
 
-writes DIR/metrics.json (contract section 4: per channel T1_C..T4_C and
-voltage_V the RMSE and max |error| of the predictive mean, in K or V, and the
-fraction of samples inside the central 50/90/95 % predictive bands, noise
-included; plus the errors per 5 K bin of T-bar, the anchoring of the rig and,
-unless --no-constant, the same for R and S constant at 35 degC under
-"constant_laws") and the figures prediction.png, residuals.png (and
-*_constant.png, error_vs_tavg.png).  The run's batch folder (recorded in
-summary.json, or --batch) is needed: its identification runs anchor the rig.
+writes DIR/metrics.json (docs/outputs.md, 'metrics.json (predict)'): per
+channel T1_C..T4_C and voltage_V the RMSE and max |error| of the predictive
+mean, in K or V, and the fraction of samples inside the central 50/90/95 %
+predictive bands, noise included; plus the errors per 5 K bin of T-bar, the
+anchoring of the rig and, unless --no-constant, the same for R and S
+constant at 35 degC under "constant_laws"; and the figures prediction.png,
+residuals.png (and *_constant.png, error_vs_tavg.png).  The run's batch
+folder (recorded in summary.json, or --batch) is needed: its identification
+runs anchor the rig.
 --module population predicts a new unit known only through its batch.
 """
 
@@ -528,7 +532,7 @@ def build_parser():
     p = sub.add_parser(
         "simulate",
         help="make a synthetic batch on the virtual bench",
-        description="Make a synthetic batch folder (contract section 1) plus truth.json on the "
+        description="Make a synthetic batch folder (docs/data-format.md, 'The batch folder') plus truth.json on the "
         "virtual bench: a higher-fidelity rig and module than the calibration model, with "
         "unit-to-unit spread, sensor noise and water/ambient drifts.",
         epilog=_EPILOG_SIMULATE.format(effects=_effects_table()),
@@ -643,7 +647,7 @@ def build_parser():
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("run", type=Path, help="calibration run folder (tembayes calibrate --out)")
-    p.add_argument("experiment", type=Path, help="experiment CSV (contract section 2)")
+    p.add_argument("experiment", type=Path, help="experiment CSV (docs/data-format.md, 'CSV columns')")
     p.add_argument("--module", required=True, metavar="ID", help="module id of the run, or 'population'")
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder to create")
     _add_batch_option(p)
@@ -718,7 +722,7 @@ def build_parser():
         "laws, K and the rig parameters (and thinned draws), the sensors' measurement-noise covariance, a "
         "process-noise suggestion (an OU disturbance per output, fitted to the held-out residuals), and the "
         "rig linearised at operating points (A, B, C, D, state/input/output names) with its sensitivities "
-        "to the parameters.  Schema: tembayes/export/formats.py.",
+        "to the parameters.  Schema: docs/outputs.md, 'The export file (export)'.",
         epilog=_EPILOG_EXPORT,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -742,7 +746,7 @@ def build_parser():
     p = sub.add_parser(
         "inspect",
         help="load and validate a batch folder, print a data-quality summary",
-        description="Load a batch folder with every contract check and print, per experiment, "
+        description="Load a batch folder with every check of docs/data-format.md and print, per experiment, "
         "samples, duration, sampling interval, current and temperature ranges and noise.",
         epilog=_EPILOG_INSPECT,
         formatter_class=argparse.RawDescriptionHelpFormatter,

@@ -1,4 +1,4 @@
-"""Names and numbers fixed by the data contract (``shared/spec/contract.md``).
+"""Names and numbers fixed by the data contract (``docs/data-format.md``, ``docs/outputs.md``).
 
 Everything inside tembayes is SI: temperatures in kelvin, times in seconds,
 currents in amperes, voltages in volts.  The CSV's degrees Celsius appear only
@@ -11,7 +11,7 @@ KELVIN = 273.15
 #: Reference temperature of the linear laws, 25 degC [K].
 T_REF = 25.0 + KELVIN
 
-#: Columns every experiment CSV must carry, in contract order.
+#: Columns every experiment CSV must carry, in the order of docs/data-format.md, 'CSV columns'.
 CSV_COLUMNS = (
     "time_s",
     "current_A",
@@ -36,7 +36,7 @@ LAW_PARAMETERS = ("R0_ohm", "R1_ohm_per_K", "S0_V_per_K", "S1_V_per_K2")
 #: Law parameters plus the module's thermal conductance.
 MODULE_PARAMETERS = LAW_PARAMETERS + ("K_W_per_K",)
 
-#: The effect catalogue of contract section 5.
+#: The effect catalogue (docs/outputs.md, 'Effect catalogue').
 EFFECTS = (
     "k_temperature",
     "thomson",

@@ -13,7 +13,7 @@ class TembayesError(Exception):
 
 
 class DataError(TembayesError, ValueError):
-    """An input file or folder breaks the data contract.
+    """An input file or folder breaks the data contract (``docs/data-format.md``).
 
     Parameters
     ----------

@@ -158,7 +158,7 @@ def default_identification(tmp_path_factory):
 def test_identification_temperature_span(default_identification):
     exp = default_identification
     bottom = exp.sensors[2:] - KELVIN
-    # reference-rig.md: the cold block spans ~4-77 degC
+    # docs/data-format.md, 'The identification run': the cold block spans ~4-77 degC
     assert bottom.min() < 10.0
     assert bottom.max() > 65.0
     assert bottom.min() > 0.0 and bottom.max() < 90.0  # and not absurdly beyond

@@ -115,7 +115,7 @@ def test_level_errors_give_the_dense_multivariate_normal():
 def test_priors_are_normalised_densities_with_the_jacobian():
     pri = law_priors(TEC1_12706)
     assert [p.name for p in pri] == ["R0_ohm", "R1_ohm_per_K", "S0_V_per_K", "S1_V_per_K2", "K_W_per_K"]
-    # centred on the datasheet conversions (contract section 1), whatever the type
+    # centred on the datasheet conversions (docs/data-format.md, '[module_type]'), whatever the type
     assert pri[0].center == pytest.approx(TEC1_12706.resistance())
     assert pri[2].center == pytest.approx(TEC1_12706.seebeck())
     assert pri[4].center == pytest.approx(TEC1_12706.conductance())

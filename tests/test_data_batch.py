@@ -42,7 +42,7 @@ def test_tec1_12706_conversions():
 
 
 def test_other_datasheet_gives_other_numbers():
-    # TEC1-12706 at Th = 50 degC (reference-rig.md) and a small 3 A module
+    # TEC1-12706 at Th = 50 degC (docs/data-format.md, '[module_type]') and a small 3 A module
     hot = Datasheet.from_table({"th_C": 50.0, "imax_A": 6.4, "vmax_V": 16.4, "dtmax_K": 75.0,
                                 "qmax_W": 57.0}, "batch.toml")
     small = Datasheet.from_table({"name": "TEC1-12703", "th_C": 27.0, "imax_A": 3.0, "vmax_V": 15.4,

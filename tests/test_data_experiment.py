@@ -1,4 +1,4 @@
-"""load_experiment: what a valid CSV gives, and every refusal of contract section 2."""
+"""load_experiment: what a valid CSV gives, and every refusal of docs/data-format.md, 'CSV columns'."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """The typical module and rig boundaries the physics tests share (SI)."""
 
-# TEC1-12706 class (shared/spec/reference-rig.md)
+# TEC1-12706 class (docs/data-format.md, 'The reference rig')
 PAPER = {
     "R0_ohm": 1.75,
     "R1_ohm_per_K": 0.0087,

@@ -44,7 +44,7 @@ from tembayes.bench.protocols import (
 from tembayes.physics.rig import CERAMIC, DEPTHS
 from tembayes.physics.simulate import Inputs, simulate
 
-#: The reference module type (``shared/spec/reference-rig.md``).
+#: The reference module type (``docs/data-format.md``, 'The reference rig').
 TEC1_12706 = Datasheet(name="TEC1-12706", th=25.0 + KELVIN, imax=6.4, vmax=14.4, dtmax=66.0, qmax=50.0)
 
 #: Measurement noise (rms) of the reference rig.
@@ -275,7 +275,7 @@ def run_experiment(protocol, module, effect_params, rng, *, rate=5.0, rig=None, 
 
 
 def simulate_batch(out, config, *, overwrite=False, progress=None):
-    """Make a synthetic batch folder (contract section 1) with ``truth.json``.
+    """Make a synthetic batch folder (``docs/data-format.md``, 'The batch folder') with ``truth.json``.
 
     Parameters
     ----------

@@ -1,4 +1,4 @@
-"""The experiments a test bench runs (``shared/spec/reference-rig.md``).
+"""The experiments a test bench runs (``docs/data-format.md``, 'The identification run').
 
 A protocol is a list of current holds.  :func:`identification_staircase`
 is the paper's identification run (0 -> +0.8 A -> -1.6 A -> 0 in 0.2 A steps,

@@ -354,7 +354,8 @@ def finish_run(batch, out, *, seed=0, options=None, population=True, progress=No
             "seed": int(seed), "rig": rig, "options": dict(opt.__dict__), "versions": _versions(),
             "model": opt.model,
             "discrepancy": opt.discrepancy,
-            # the catalogue effects in the model: sampled, or at a fixed value (contract section 4)
+            # the catalogue effects in the model: sampled, or at a fixed value
+            # (docs/outputs.md, 'summary.json (calibrate)')
             "effects": sorted({*opt.effects, *(EFFECT_PARAMETERS[k] for k in opt.effect_values)}),
             "effect_values": dict(opt.effect_values),
             "command": None if argv is None else "tembayes " + " ".join(shlex.quote(a) for a in argv),

@@ -1,6 +1,6 @@
 """Priors of a module calibration, scaled by the module type's datasheet.
 
-Contract section 1: the datasheet gives the *scale* of the priors through the
+docs/data-format.md, '[module_type]': the datasheet gives the *scale* of the priors through the
 standard conversions (``Datasheet.resistance/seebeck/conductance``).  Nothing
 here knows the TEC1-12706 numbers, so another module type needs no code
 change.
@@ -144,7 +144,7 @@ def effect_priors(names):
     Parameters
     ----------
     names : sequence of str
-        Effect names (contract section 5).
+        Effect names (docs/outputs.md, 'Effect catalogue').
 
     Returns
     -------

@@ -3,7 +3,7 @@
 A run folder::
 
     RUN/
-      summary.json            contract section 4
+      summary.json            docs/outputs.md, 'summary.json (calibrate)'
       posterior.nc            arviz InferenceData, all modules
       modules/<id>.nc         one module's posterior, written when it finishes
       modules/<id>.failed.json  a module whose calibration raised (error, traceback)
@@ -233,7 +233,7 @@ def stats(x):
 
 
 def module_entry(r, outlier_prob=None):
-    """One module's ``summary.json`` entry (contract section 4, plus extras).
+    """One module's ``summary.json`` entry (docs/outputs.md, 'summary.json (calibrate)').
 
     The five parameters, ``outlier_prob`` (null without a population fit or
     for a module left out of it), ``diagnostics`` (``rhat_max``,
@@ -259,7 +259,7 @@ def module_entry(r, outlier_prob=None):
 
 
 def summary(results, population=None, *, extra=None, entries=None):
-    """``summary.json`` content (contract section 4, plus documented extras).
+    """``summary.json`` content (docs/outputs.md, 'summary.json (calibrate)').
 
     Parameters
     ----------

@@ -12,8 +12,8 @@ posterior).  Not emcee's ``DESnookerMove``: it does not leave the target
 invariant (emcee 3.1.6 normalises the snooker axis by the square root of its
 length, and halves the Jacobian's exponent).  Measured on that Gaussian,
 started in it, 20 000 steps: sampled variances are 56 % of the true ones
-with the snooker move alone, 75 % with the 80/20 DE/snooker mix the
-api-notes suggest, 100 % with DE alone and with DE plus independence
+with the snooker move alone, 75 % with the 80/20 DE/snooker mix used
+before, 100 % with DE alone and with DE plus independence
 proposals from a deliberately wrong fit
 (``tests/test_calibrate_parts.py::test_sampler_returns_the_variance_of_a_known_gaussian``).
 
@@ -43,8 +43,8 @@ A ``kill -9`` therefore leaves only whole chunks; ``resume=True`` rebuilds the
 run from them and continues bit-identically, losing at most one check
 interval.  (emcee's ``HDFBackend`` is not safe for this: it writes the random
 state before the iteration counter, so a kill inside a write resumes with a
-random state one stored iteration ahead of the chain.)  Seeding follows
-``shared/notes/api-notes.md``: the sampler's private ``RandomState`` is set from
+random state one stored iteration ahead of the chain.)  Seeding
+(``docs/outputs.md``, 'Seeds'): the sampler's private ``RandomState`` is set from
 the run's seed, never from the global one.
 """
 

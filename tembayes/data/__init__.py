@@ -1,4 +1,4 @@
-"""The data-contract layer: experiment CSVs, batch folders, atomic outputs.
+"""The data layer (``docs/data-format.md``): experiment CSVs, batch folders, atomic outputs.
 
 Everything loaded here is SI (kelvin, seconds, amperes, volts); degrees
 Celsius appear only in the files.  Inputs that break the data format

@@ -1,4 +1,4 @@
-"""A batch folder (contract section 1): ``batch.toml`` plus one folder per module."""
+"""A batch folder (``docs/data-format.md``, 'The batch folder'): ``batch.toml`` plus one folder per module."""
 
 from __future__ import annotations
 
@@ -339,7 +339,7 @@ def _read_batch_toml(path):
     if not path.is_file():
         raise DataError(path, "batch.toml does not exist",
                         "Every batch folder needs a batch.toml with a [module_type] table "
-                        "(see the data contract, section 1)")
+                        "(see docs/data-format.md, 'batch.toml')")
     try:
         raw = path.read_bytes()
     except OSError as e:
@@ -473,7 +473,7 @@ def _refuse_colliding_ids(path, ids):
 
 
 def load_batch(path, *, lazy=False, strict=True) -> Batch:
-    """Load and validate a batch folder (contract section 1).
+    """Load and validate a batch folder (``docs/data-format.md``, 'The batch folder').
 
     Parameters
     ----------

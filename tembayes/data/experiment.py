@@ -1,4 +1,4 @@
-"""One experiment CSV (contract section 2): loading, validation, SI arrays.
+"""One experiment CSV (``docs/data-format.md``, 'CSV columns'): loading, validation, SI arrays.
 
 The CSV carries degrees Celsius; everything an :class:`Experiment` hands out
 is SI (kelvin, seconds, amperes, volts).  Every refusal is a
@@ -197,7 +197,7 @@ _CHUNK_BYTES = 8 << 20
 
 
 def load_experiment(path, *, datasheet=None) -> Experiment:
-    """Load and validate one experiment CSV (contract section 2).
+    """Load and validate one experiment CSV (``docs/data-format.md``, 'CSV columns').
 
     Parameters
     ----------
@@ -288,7 +288,8 @@ def _check_file(path: Path) -> None:
         raise DataError(path, f"the file cannot be read ({e.strerror or e})",
                         "Check the file's permissions") from None
     raise DataError(path, "the file is empty",
-                    "Export the experiment again: the contract needs a header row and data rows")
+                    "Export the experiment again: a CSV needs a header row and data rows "
+                    "(docs/data-format.md, 'CSV columns')")
 
 
 def _decode(raw: bytes) -> str:
@@ -375,7 +376,8 @@ class _Table:
             k, c = (int(x) for x in bad[0])
             field = next(csv.reader([lines[k]]))[self.contract[c]].strip()
             raise DataError(self.path, f"{field!r} is not a finite number",
-                            "Every contract field needs a finite number: fill the gap or delete the row",
+                            "Every field of the required columns (docs/data-format.md, 'CSV columns') needs a "
+                            "finite number: fill the gap or delete the row",
                             line=int(numbers[k]), column=CSV_COLUMNS[c])
 
     def result(self):
@@ -485,7 +487,8 @@ def _to_float(path, strings, column, row_lines) -> np.ndarray:
             if re.fullmatch(r"[+-]?\d+,\d*", t):
                 hint = "Use '.' as the decimal point (and commas only between fields)"
             else:
-                hint = "Every contract field must be a plain number ('.' decimal point)"
+                hint = ("Every field of the required columns must be a plain number ('.' decimal point; "
+                        "docs/data-format.md, 'CSV columns')")
             raise DataError(path, f"{t!r} is not a number", hint,
                             line=row_lines[i], column=column) from None
     raise AssertionError("unreachable: numpy refused a column that float() accepts")

@@ -314,7 +314,7 @@ def _toml_table(lines: list, name: str, table: dict) -> None:
 
 
 def write_batch_toml(path, datasheet: Datasheet, rig_config=None) -> Path:
-    """Write ``batch.toml`` (contract section 1), atomically.
+    """Write ``batch.toml`` (``docs/data-format.md``, 'batch.toml'), atomically.
 
     Parameters
     ----------

@@ -100,7 +100,7 @@ from tembayes.predict.predictive import (
 )
 from tembayes.predict.runmodel import CHANNELS, RunModel
 
-#: The held-out gap, one unit for every effect (contract section 4).
+#: The held-out gap, one unit for every effect (docs/outputs.md, 'gap.json (gap)').
 GAP_METRIC = ("excess RMSE [K] over T1..T4: sqrt(max(0, mean (y - predictive mean)^2 - mean predictive variance)), "
               "the predictive variance being the draws' spread plus the measurement noise; pooled over every "
               "held-out run of every module.  0 when the error is what the model's own uncertainty says")
@@ -588,7 +588,7 @@ class GapDiagnosis:
     recalibration_options: object = None
 
     def to_json(self):
-        """``gap.json``: the contract's keys and the diagnosis's details."""
+        """``gap.json`` (docs/outputs.md, 'gap.json (gap)'): the verdict and the diagnosis's details."""
         return {
             "verdict": self.verdict,
             "where": self.where,

@@ -47,8 +47,9 @@ class ModuleIdentification:
     ----------
     module : str
     steps : list of dict
-        One row per step (contract ``steps`` table, CSV units at the edges
-        are added when written).
+        One row per step (the ``steps`` table of docs/outputs.md,
+        'identify.json (identify)'; CSV units at the edges are added when
+        written).
     lines : dict of LineFit
         ``R``, ``S`` (corrected), ``R_paper``, ``S_paper``.
     hysteresis : dict
@@ -292,7 +293,7 @@ def batch_average(results):
 
 
 def to_json(results, batch):
-    """The ``identify.json`` document (contract section 4) for a batch."""
+    """The ``identify.json`` document (docs/outputs.md, 'identify.json (identify)') for a batch."""
 
     def c(T):
         return None if not np.isfinite(T) else float(T - KELVIN)

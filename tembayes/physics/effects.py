@@ -1,4 +1,4 @@
-"""The effect catalogue (contract section 5) as parameterised model extensions.
+"""The effect catalogue (``docs/outputs.md``, 'Effect catalogue') as parameterised model extensions.
 
 Every effect adds named parameters to the model.  With all of them at zero the
 model is exactly the paper's; :func:`tembayes.physics.simulate.simulate`
@@ -68,7 +68,7 @@ class Effect:
     Attributes
     ----------
     name : str
-        Catalogue name (contract section 5).
+        Catalogue name (docs/outputs.md, 'Effect catalogue').
     doc : str
     parameters : tuple of EffectParameter
     stage : {"tem", "network", "sensors", "input"}

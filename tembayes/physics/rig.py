@@ -14,7 +14,7 @@ Capacitance and conductance entries are *expressions* over the parameters:
 - a sum of those: ``"c_plate_hot + 0.5*c_legs"``
 - a list: conductances in series, ``["g_cooler", "g_steel_quarter"]``
 
-The reference rig (``shared/spec/reference-rig.md``) splits each steel block
+The reference rig (``docs/data-format.md``, 'The reference rig') splits each steel block
 into two 5 mm cells whose centres sit exactly at the sensor depths (2.5 mm
 away from each face), so the four sensors read node temperatures.  Its module is
 the paper's lumped element by default (``leg_cells=0``: each plate carries

@@ -6,7 +6,7 @@
 
 ``params`` maps names to scalars or arrays of shape ``(nd,)``:
 
-- the module laws and conductance (contract section 3, SI): ``R0_ohm``,
+- the module laws and conductance (docs/outputs.md, 'Module parameters', SI): ``R0_ohm``,
   ``R1_ohm_per_K``, ``S0_V_per_K``, ``S1_V_per_K2``, ``K_W_per_K`` (required);
 - any rig parameter (:class:`~tembayes.physics.rig.RigParameter`), nominal if
   absent;

@@ -2,7 +2,7 @@
 
 The functions read what the calibration *saved* -- ``RUN/posterior.nc``
 (layout in :mod:`tembayes.calibrate.results`) and ``RUN/summary.json``
-(contract section 4 plus the documented extras) -- through
+(docs/outputs.md, 'summary.json (calibrate)') -- through
 :func:`load_run`; they never rerun or recompute the calibration, only
 quantiles, medians and densities of the stored draws.
 

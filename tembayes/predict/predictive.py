@@ -18,7 +18,7 @@ The pipeline, each step a plain function of the previous one's result:
    the sampling interval), plus measurement noise and discrepancy from the
    residual processes, reduced to central 50/90/95 % bands per sample;
 4. :meth:`Prediction.metrics` -- RMSE, max error and band coverage per
-   channel (contract section 4) and the errors binned by T-bar.
+   channel (docs/outputs.md, 'metrics.json (predict)') and the errors binned by T-bar.
 
 Everything is SI inside (K, V); ``metrics.json`` errors of the sensor
 channels are in K, which equal degC differences.
@@ -41,7 +41,7 @@ from tembayes.physics.effects import EFFECT_PARAMETERS
 from tembayes.predict.anchor import UNPINNED_FRACTION, anchor_rig, unpinned
 from tembayes.predict.runmodel import CHANNELS, RunModel
 
-#: Central band levels [%] (contract section 4).
+#: Central band levels [%] (docs/outputs.md, 'metrics.json (predict)').
 LEVELS = (50, 90, 95)
 #: Temperature of the constant-law model [degC] (the paper's Figure 8).
 CONSTANT_AT_C = 35.0
@@ -322,7 +322,8 @@ class Prediction:
         return np.mean((self.measured >= lo) & (self.measured <= hi), axis=1)
 
     def metrics(self):
-        """Contract section 4: ``{channel: {rmse, max_abs, coverage50, coverage90, coverage95}}``."""
+        """``{channel: {rmse, max_abs, coverage50, coverage90, coverage95}}`` (docs/outputs.md,
+        'metrics.json (predict)')."""
         r = self.residual
         cov = {lv: self.coverage(lv) for lv in LEVELS}
         return {ch: {"rmse": float(np.sqrt(np.mean(r[c] ** 2))), "max_abs": float(np.max(np.abs(r[c]))),
@@ -449,7 +450,7 @@ class PredictResult:
     seconds: float
 
     def to_json(self):
-        """``metrics.json``: contract section 4 plus the context."""
+        """``metrics.json`` (docs/outputs.md, 'metrics.json (predict)'): the metrics plus the context."""
         doc = {"channels": self.linear.metrics()}
         doc.update({
             "module": self.linear.label, "experiment": self.linear.source, "laws": "linear",

@@ -48,7 +48,7 @@ from tembayes.errors import DataError, ModelError
 from tembayes.physics import effects
 from tembayes.physics.simulate import build, integrate_on_grids
 
-#: Sensor channels in the order of the sensor axis (contract section 2).
+#: Sensor channels in the order of the sensor axis (docs/data-format.md, 'CSV columns').
 SENSOR_CHANNELS = ("T1_C", "T2_C", "T3_C", "T4_C")
 #: All predicted channels (``metrics.json``): the sensors and the voltage.
 CHANNELS = SENSOR_CHANNELS + ("voltage_V",)

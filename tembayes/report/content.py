@@ -25,7 +25,7 @@ from tembayes.report.tolerances import DEFAULT_CONFIDENCE, DEFAULT_TOLERANCES, c
 
 #: Most modules given their own figures (laws, corner, validation); all are in the tables.
 MAX_FIGURE_MODULES = 12
-#: Keys a ``gap.json`` must have (contract section 4).
+#: Keys a ``gap.json`` must have (docs/outputs.md, 'gap.json (gap)').
 GAP_KEYS = ("verdict", "where", "ranking", "best")
 
 
@@ -95,7 +95,7 @@ def step_estimates(run, batch, module_id):
 
 
 def read_gap(folder):
-    """``folder/gap.json`` checked against the contract, and the folder's PNG figures."""
+    """``folder/gap.json`` checked for the keys of docs/outputs.md, 'gap.json (gap)', and the folder's PNG figures."""
     f = Path(folder) / "gap.json"
     if not f.is_file():
         raise DataError(f, "is not there", "Give the --out folder of a `tembayes gap` run with --gap.")
@@ -105,7 +105,8 @@ def read_gap(folder):
         raise DataError(f, f"is not JSON ({err})", "Rerun `tembayes gap`.") from None
     missing = [k for k in GAP_KEYS if k not in doc]
     if missing:
-        raise DataError(f, f"lacks the contract's key(s) {missing}", "Give a gap.json written by `tembayes gap`.")
+        raise DataError(f, f"lacks the key(s) {missing} (docs/outputs.md, 'gap.json (gap)')",
+                        "Give a gap.json written by `tembayes gap`.")
     return doc, sorted(Path(folder).glob("*.png"))
 
 
@@ -116,7 +117,8 @@ def read_predict(folder):
         raise DataError(f, "is not there", "Give the --out folder of a `tembayes predict` run with --predict.")
     doc = json.loads(f.read_text())
     if "channels" not in doc:
-        raise DataError(f, "lacks the contract's key 'channels'", "Give a metrics.json written by `tembayes predict`.")
+        raise DataError(f, "lacks the key 'channels' (docs/outputs.md, 'metrics.json (predict)')",
+                        "Give a metrics.json written by `tembayes predict`.")
     fig = Path(folder) / "prediction.png"
     return doc, (fig if fig.is_file() else None)
 

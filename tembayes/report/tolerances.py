@@ -3,7 +3,8 @@
 A tolerance is one text, as on the command line (``--tolerance``):
 
 - ``R0=5%`` -- within +-5 % of the **datasheet-derived value** (``R0``,
-  ``S0`` and ``K`` only: the contract's conversions of Vmax, Imax, dTmax at
+  ``S0`` and ``K`` only: the standard conversions (docs/data-format.md,
+  '[module_type]') of Vmax, Imax, dTmax at
   the datasheet's hot-side temperature ``th_C``; the law is evaluated at
   ``th_C``, so a datasheet quoted at 27 degC is compared with R(27 degC));
 - ``R1=0.008:0.012`` -- inside an absolute range, SI units
@@ -14,8 +15,8 @@ A tolerance is one text, as on the command line (``--tolerance``):
 A parameter check **passes** when the posterior probability of the range is
 at least ``confidence`` (default 0.95): a module whose value is probably,
 but not surely, inside fails with that probability shown, rather than
-passing on its mean.  Parameters may be named short (``R0``) or as in the
-contract (``R0_ohm``).
+passing on its mean.  Parameters may be named short (``R0``) or as in
+docs/outputs.md, 'Module parameters' (``R0_ohm``).
 """
 
 from __future__ import annotations
