@@ -260,20 +260,13 @@ class RigDescription:
             Share of node ``b`` [1]; 0 at a sensor's nominal depth.
         """
         names = self.node_names
-        a = np.array([names.index(self.sensors[c]) for c in channels], dtype=np.int64)
-        b = a.copy()
         values = values or {}
-        cols = []
-        for i, c in enumerate(channels):
-            d = self.depths.get(c)
-            if d is None:
-                cols.append(np.zeros(1))
-                continue
-            b[i] = names.index(d.toward)
-            depth = np.atleast_1d(np.asarray(values.get(d.parameter, self.parameter(d.parameter).nominal), float))
-            cols.append((depth - d.centre) / d.spacing)
-        nd = max(len(x) for x in cols) if cols else 1
-        f = np.column_stack([np.broadcast_to(x, (nd,)) for x in cols]) if cols else np.zeros((1, 0))
+        a = np.array([names.index(self.sensors[c]) for c in channels], dtype=np.int64)
+        b = np.array([names.index(self.depths[c].toward) if c in self.depths else i for c, i in zip(channels, a)],
+                     dtype=np.int64)
+        cols = [(np.atleast_1d(np.asarray(values.get(d.parameter, self.parameter(d.parameter).nominal), float))
+                 - d.centre) / d.spacing if (d := self.depths.get(c)) else np.zeros(1) for c in channels]
+        f = np.column_stack(np.broadcast_arrays(*cols)) if cols else np.zeros((1, 0))
         return a, b, f
 
     # -- network ------------------------------------------------------------
