@@ -1,4 +1,4 @@
-"""Blind check of the gap diagnosis (issue 6): does ``tembayes gap`` name the effect it was not told?
+"""Blind check of the gap diagnosis: does ``tembayes gap`` name the effect it was not told?
 
 For every row -- the null bench (no effect), each catalogue effect at its
 default magnitude, and each effect *withheld* (the diagnosis run with that
@@ -123,7 +123,7 @@ def _true_row(doc, effect):
 
 
 def summarise(cases):
-    """Confusion matrix and the issue's scores from ``{(effect, seed): {"gap": doc, "gap_withheld": doc}}``."""
+    """Confusion matrix and the benchmark's scores from ``{(effect, seed): {"gap": doc, "gap_withheld": doc}}``."""
     from tembayes.physics.effects import CATALOGUE
 
     rows = {}

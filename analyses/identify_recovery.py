@@ -12,7 +12,7 @@ afterwards its laws are compared with the truth:
   corrected S0 (physics predicts > 0);
 - hysteresis z-scores (no hysteresis on the bench: |z| mostly < 2).
 
-Targets (issue 3): R0, S0 within 2 %, R1, S1 within 20 % for ``fit``.
+Targets: R0, S0 within 2 %, R1, S1 within 20 % for ``fit``.
 
 Run:  python analyses/identify_recovery.py [--seeds 10 11 12 13] [--validation]
       (about 2 min per batch on 2 cores)

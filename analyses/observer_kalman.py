@@ -1,6 +1,6 @@
 """A Kalman filter for the cold side, designed from ``tembayes export``: is the exported uncertainty honest?
 
-Issue 7, point 3.  A bench batch (one module, two 4 h validation runs at 1 Hz)
+A bench batch (one module, two 4 h validation runs at 1 Hz)
 is simulated, calibrated and exported with ``--heldout validation.csv``: the
 process noise is fitted on ``validation.csv`` only, so ``validation2.csv`` is
 never seen by the calibration or the export.  A discrete-time Kalman filter
@@ -34,7 +34,7 @@ Design (everything from the exported ``.npz`` except the model-reduction term)
   ``Q = diag(sqrt q) corr diag(sqrt q)`` (drive correlation = ``corr``; the
   stationary correlation of channels with different taus is attenuated by
   ``2 sqrt(a b) / (a + b)``, ``a, b = 1/tau``, i.e. x0.99 for T3-V, x0.6 for
-  T3-T2).  The brief's plain drive ``q = s_k^2 (1 - phi^2)`` lets T3's variance
+  T3-T2).  The plain OU drive ``q = s_k^2 (1 - phi^2)`` lets T3's variance
   reach a new bin only after ~tau/2 = 40 s, i.e. after the transient it is
   meant to cover (kept as an ablation: after steps NEES 3.0).
 - **What to take from the profile (double counting)**: the profile is the

@@ -222,7 +222,7 @@ def rates(rows, key):
 
 
 def target_summary(rows, key):
-    """The brief's targets as rates over the study's batches."""
+    """The study's targets as rates over its batches."""
     out = {}
     for n, (hi, lo) in TARGETS.items():
         sel = [r for r in rows if r["n"] == n and r["kind"] != "none"]

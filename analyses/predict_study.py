@@ -11,7 +11,7 @@ catalogue effect) and predicts it with ``tembayes.predict.predict`` exactly as
 drawn from the bench's population, the batch's cooler and enclosure, a new
 mount) and predicts its validation run with ``--module population``.
 
-Targets (issue 5): linear-law RMSE <= 0.25 K on each of T1-T4; 90 % band
+Targets: linear-law RMSE <= 0.25 K on each of T1-T4; 90 % band
 coverage within 85-95 % on a correctly specified bench; the constant model
 visibly worse at T-bar far from 35 degC.
 

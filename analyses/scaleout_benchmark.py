@@ -26,7 +26,7 @@ What it does, side by side in one run:
    1-worker (serial) run: every number of ``summary.json`` and every array of
    ``posterior.nc``;
 4. times ``--probe`` modules at the default (production) budget on one
-   thread, for the extrapolation to 10^4 modules in the README.
+   thread, for the extrapolation to 10^4 modules in docs/benchmarks.md.
 
 Results: ``analyses/results/scaleout_benchmark.{json,md}``.
 """

@@ -561,9 +561,9 @@ def build_parser():
                         "and module the model does not contain -- finer steel, the module's layers, sensor bodies "
                         "at uncertain depths, Thomson heat, K(T), re-mounting spread, slow sensor noise (measures "
                         "the method)")
-    p.add_argument("--physics", choices=("paper", "full"), default="paper",
-                   help="the standard bench's physics: that of a calibration model form (default paper, the "
-                        "default model's)")
+    p.add_argument("--physics", choices=("paper", "full"), default="full",
+                   help="the standard bench's physics: that of a calibration model form (default full, the "
+                        "default model's; paper: Evers et al.'s form)")
     p.add_argument("--validation-start", choices=("steady", "rest"), default="steady",
                    help="steady: a validation run starts with 300 s at 0 A; rest: the rig at rest and the current "
                         "switched straight to the first level")
@@ -611,13 +611,13 @@ def build_parser():
                    help="sampler budget per module (default 60000 steps)")
     p.add_argument("--walkers", type=int, metavar="N",
                    help="emcee walkers (default 2 x parameters + 2)")
-    p.add_argument("--model", choices=("paper", "full"), default="paper",
-                   help="the model's physics: paper (default: Evers et al.'s form) or full (Thomson heat, the "
-                        "plates' two layers, the sensors' response time, a temperature slope of K)")
-    p.add_argument("--discrepancy", choices=("none", "window-sandwich", "robust"), default="none",
+    p.add_argument("--model", choices=("paper", "full"), default="full",
+                   help="the model's physics: full (default: Thomson heat, the plates' two layers, the sensors' "
+                        "response time and depth, a temperature slope of K) or paper (Evers et al.'s form)")
+    p.add_argument("--discrepancy", choices=("none", "window-sandwich", "robust"), default="robust",
                    help="for a model that is not the rig: window-sandwich widens the laws' posterior to the scatter "
-                        "of the step windows' scores; robust also carries over the uncertainty of the rig "
-                        "parameters held fixed (default none)")
+                        "of the step windows' scores; robust (default) also carries over the uncertainty of the rig "
+                        "parameters held fixed; none trusts the model")
     p.add_argument("--effect", action="append", metavar="NAME[=VALUE]",
                    help="add a catalogue effect to the model (repeatable): its size sampled under its prior, or "
                         "fixed at VALUE (the first parameter's, SI; see tembayes simulate --help)")

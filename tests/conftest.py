@@ -105,11 +105,14 @@ def data_factory(tmp_path) -> DataFactory:
 
 @pytest.fixture(scope="session")
 def batch3(tmp_path_factory):
-    """A 3-module bench batch (300 s holds, TEM2 an outlier), no validation runs."""
+    """A 3-module bench batch (300 s holds, TEM2 an outlier), no validation runs, the paper's physics: the
+    pipeline's tests run on the paper's form, the fast one (the default form is the shipped example's, the
+    main job's)."""
     from tembayes.bench import BenchConfig, simulate_batch
 
     path = tmp_path_factory.mktemp("b3") / "batch"
-    simulate_batch(path, BenchConfig(n_modules=3, seed=21, outlier="TEM2", hold=300.0, n_validations=0),
+    simulate_batch(path, BenchConfig(n_modules=3, seed=21, outlier="TEM2", hold=300.0, n_validations=0,
+                                     physics="paper"),
                    progress=lambda msg: None)
     return path
 
@@ -128,11 +131,12 @@ def batch4(tmp_path_factory):
 @pytest.fixture(scope="session")
 def run3(batch3, tmp_path_factory):
     """``batch3`` calibrated: ``(run folder, summary, truth)``."""
-    from tembayes.calibrate import calibrate_batch
+    from tembayes.calibrate import CalibrationOptions, calibrate_batch
     from tembayes.data import load_batch
 
     out = tmp_path_factory.mktemp("r3") / "run"
     # two worker processes: test_same_seed_same_module_result then also checks
     # that a module calibrated in a worker equals one calibrated in-process
-    summ = calibrate_batch(load_batch(batch3), out, seed=0, figures=True, jobs=2)
+    summ = calibrate_batch(load_batch(batch3), out, seed=0, figures=True, jobs=2,
+                           options=CalibrationOptions(model="paper", discrepancy="none"))
     return out, summ, json.loads((batch3 / "truth.json").read_text())

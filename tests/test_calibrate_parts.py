@@ -373,3 +373,49 @@ def test_expansion_pulls_a_probe_the_model_cannot_simulate_back_and_stays_exact(
     assert lin.predict(X) == pytest.approx(want, rel=1e-9, abs=1e-9)
     with pytest.raises(ModelError, match="expansion point"):
         LinearisedModel(Quadratic(), sp, np.array([0.8, 0.0]), np.array([0.1, 0.1]))
+
+
+def test_nested_rhat_passes_a_mixed_ensemble_and_fails_walkers_that_stay_apart():
+    rng = np.random.default_rng(0)
+    mixed = rng.standard_normal((2000, 54))
+    assert smp.nested_rhat(mixed) < 1.005
+    # every walker moves only around its own start (a start spread of one posterior sd): the
+    # ensemble has not mixed, although each walker's chain looks stationary
+    stuck = rng.standard_normal(54) + 0.1 * rng.standard_normal((2000, 54))
+    assert smp.nested_rhat(stuck) > 1.01
+    # one group of walkers half a posterior sd off the rest
+    shifted = mixed.copy()
+    shifted[:, :14] += 0.5
+    assert smp.nested_rhat(shifted) > 1.01
+
+
+def test_step_data_assumes_no_less_noise_than_the_data_and_the_model_resolve(monkeypatch):
+    import dataclasses
+
+    from tembayes.bench import bench
+    from tembayes.bench.hifi import hifi_rig
+    from tembayes.bench.protocols import identification_staircase
+    from tembayes.calibrate.stepdata import NOISE_FLOOR, step_data
+    from tembayes.data.quality import noise_estimate
+
+    module = bench.draw_truth(bench.BenchConfig(n_modules=1), np.random.default_rng(0))["modules"]["TEM1"]
+
+    def run():
+        return bench.run_experiment(identification_staircase(hold=300.0), module, {}, np.random.default_rng(1),
+                                    rate=1.0, rig=hifi_rig(layers=True))
+
+    noisy = step_data(run())  # the floors leave a run with the bench's noise alone
+    assert noisy.noise[1] == pytest.approx(np.sqrt(2) * bench.NOISE["temperature_K"], rel=0.15)
+    monkeypatch.setattr(bench, "NOISE", {k: 0.0 for k in bench.NOISE})
+    exp = run()
+    clean = step_data(exp)
+    assert np.all(clean.noise >= [NOISE_FLOOR["voltage_V"], np.sqrt(2) * NOISE_FLOOR["temperature_K"],
+                                  NOISE_FLOOR["temperature_K"] / np.sqrt(2)]) and np.all(clean.level_sd > 0)
+    # a logger at 10 mK, 1 mV and 1 mA: its quiet holds repeat values, the second differences' noise
+    # estimate is ~0, and the rounding error (q / sqrt(12)) is what the likelihood must assume
+    q = {"sensors": 0.01, "voltage": 1e-3, "current": 1e-3}
+    coarse = dataclasses.replace(exp, **{k: np.round(getattr(exp, k) / v) * v for k, v in q.items()})
+    assert noise_estimate(coarse.sensors[1]) < 1e-3
+    rounded = step_data(coarse)
+    assert rounded.noise[1] == pytest.approx(np.sqrt(2) * 0.01 / np.sqrt(12), rel=1e-6)
+    assert rounded.noise[0] >= 1e-3 / np.sqrt(12)  # the voltage keeps moving with the temperatures

@@ -3,7 +3,7 @@
 The generator here is the test's own: truths drawn from a known population
 (type values near TEC1-12706's, unit spread ``UNIT_SPREAD``), each module's
 likelihood Gaussian in the population coordinates (log R0, R1/R, log S0, S1/S,
-log K) with posterior sds in the middle of the brief's ranges and correlated
+log K) with posterior sds in the middle of realistic ranges and correlated
 errors, and exact posterior draws (likelihood x interim prior, which is
 Gaussian in those coordinates).
 
@@ -40,7 +40,7 @@ REF = np.array([DS.resistance(), DS.resistance(), DS.seebeck(), DS.seebeck(), DS
 PRIOR_SD = np.where(LEVEL, LEVEL_LOG_SD, SLOPE_REL_SD)
 TYPE = np.array([1.7, 0.0085, 0.048, 9.0e-5, 0.53])
 SPREAD = np.array([UNIT_SPREAD[p] for p in MODULE_PARAMETERS])
-#: Posterior sd relative to the value: the middle of the brief's ranges.
+#: Posterior sd relative to the value: the middle of realistic ranges.
 POST_SD = np.array([0.001, 0.02, 0.002, 0.06, 0.006])
 #: The population's spreads in PopulationResult.hyper units (levels relative, slopes SI).
 TRUE_TAU = {name: (SPREAD[j] if LEVEL[j] else SPREAD[j] * TYPE[j]) for j, name in enumerate(P._TAU_NAMES)}

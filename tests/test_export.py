@@ -1,4 +1,4 @@
-"""Uncertainty inputs for observer design (``tembayes export``, issue 7)."""
+"""Uncertainty inputs for observer design (``tembayes export``)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The gap diagnosis (issue 6), part 1 -- where: the gap map's posterior-predictive
+"""The gap diagnosis, first where: the gap map's posterior-predictive
 check on synthetic predictives whose truth is known, and its figures."""
 
 from __future__ import annotations
@@ -102,8 +102,9 @@ def test_refit_of_a_correct_model_sits_at_the_noise_floor_and_an_absent_effect_s
     module = batch.modules["TEM1"]
     raw = load_run(run3[0]).draws("TEM1", ["R0_ohm", "R1_ohm_per_K", "S0_V_per_K", "S1_V_per_K2", "K_W_per_K"])
     start = dict(zip(["R0_ohm", "R1_ohm_per_K", "S0_V_per_K", "S1_V_per_K2", "K_W_per_K"], np.median(raw, axis=0)))
-    base = refit(module, batch.datasheet, None, start=start)
-    split = refit(module, batch.datasheet, "joule_split", start=start)
+    paper = load_run(run3[0]).calibration_options()  # run3's: the paper's form, as batch3's physics
+    base = refit(module, batch.datasheet, None, start=start, options=paper)
+    split = refit(module, batch.datasheet, "joule_split", start=start, options=paper)
     assert base.effect is None and base.size() == {}
     assert 0.8 < base.chi2_total < 1.3
     size = split.size()["joule_hot_excess"]
@@ -123,12 +124,16 @@ def test_refit_names_a_sensor_lag_at_the_noise_floor_and_recovers_its_time_const
     from tembayes.gap.which import refit
 
     b = tmp_path / "lag"
-    simulate_batch(b, BenchConfig(n_modules=1, seed=31, hold=300.0, n_validations=0,
+    from tembayes.calibrate import CalibrationOptions
+
+    # the paper's form, which has no sensor lag (the full form already samples one)
+    simulate_batch(b, BenchConfig(n_modules=1, seed=31, hold=300.0, n_validations=0, physics="paper",
                                   effects={"sensor_lag": {"sensor_tau_s": 6.0}}), progress=lambda m: None)
     truth = __import__("json").loads((b / "truth.json").read_text())["modules"]["TEM1"]
     batch = load_batch(b)
     start = {k: truth[k] for k in MODULE_PARAMETERS}
-    fits = {e: refit(batch.modules["TEM1"], batch.datasheet, e, start=start)
+    paper = CalibrationOptions(model="paper", discrepancy="none")
+    fits = {e: refit(batch.modules["TEM1"], batch.datasheet, e, start=start, options=paper)
             for e in (None, "sensor_lag")}
     lag = fits["sensor_lag"]
     assert lag.chi2_total < 1.3 < 3.0 < fits[None].chi2_total
@@ -161,7 +166,7 @@ def test_range_conflicts_flag_a_leak_far_above_the_enclosure_and_nothing_inside(
     assert "leak_bottom" not in [r["parameter"] for r in range_conflicts(draws, rig) if r["conflict"]]
 
 
-# --- the whole diagnosis (issue 6, parts 2-4) -----------------------------------------------------
+# --- the whole diagnosis: which, how far, the verdict -----------------------------------------------------
 def test_block_log_density_is_the_exact_ou_density():
     """The innovation decomposition equals the joint Gaussian density of an OU residual (known answer)."""
     from scipy.stats import multivariate_normal
@@ -236,8 +241,8 @@ def test_race_decisions_do_not_depend_on_which_candidate_finishes_first():
 
 @pytest.fixture(scope="module")
 def lag_case(tmp_path_factory):
-    """One bench module with a 6 s sensor lag, calibrated with the base model (short runs and
-    budget: the lag is many sds away from zero either way)."""
+    """One bench module with a 6 s sensor lag, calibrated with the paper's form, which has no lag (short runs
+    and budget: the lag is many sds away from zero either way)."""
     from tembayes.bench import BenchConfig, simulate_batch
     from tembayes.calibrate import calibrate_batch
     from tembayes.calibrate.module import CalibrationOptions
@@ -245,14 +250,14 @@ def lag_case(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("gap")
     b = root / "b_lag"
-    simulate_batch(b, BenchConfig(n_modules=1, seed=31, hold=300.0, validation_rate=1.0,
+    simulate_batch(b, BenchConfig(n_modules=1, seed=31, hold=300.0, validation_rate=1.0, physics="paper",
                                   validation_duration=2700.0, effects={"sensor_lag": {"sensor_tau_s": 6.0}}),
                    progress=lambda m: None)
     (b / "truth.json").rename(root / "truth_lag.json")  # the diagnosis is blind
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # short budget: convergence not the point here
-        calibrate_batch(load_batch(b), root / "r_lag", seed=0, options=CalibrationOptions(max_steps=5000, pilot=1000),
-                        figures=False, population=False)
+        opts = CalibrationOptions(max_steps=5000, pilot=1000, model="paper", discrepancy="none")
+        calibrate_batch(load_batch(b), root / "r_lag", seed=0, options=opts, figures=False, population=False)
     return b, root / "r_lag"
 
 

@@ -162,7 +162,7 @@ def test_jump_extrapolation_beats_the_first_sample():
     is unbiased to ~0.2 % at 5 Hz, the first sample +1.8 %.
     """
     rng = np.random.default_rng(0)
-    module = draw_truth(BenchConfig(n_modules=1, seed=0), rng)["modules"]["TEM1"]
+    module = draw_truth(BenchConfig(n_modules=1, seed=0, physics="paper"), rng)["modules"]["TEM1"]
     proto = identification_staircase(hold=90.0)
     truth = _true_jumps(module, proto)
     ext, first, z = [], [], []

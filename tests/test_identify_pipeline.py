@@ -1,4 +1,4 @@
-"""The step method end to end against the bench truth (issue 3's targets).
+"""The step method end to end against the bench truth.
 
 The method never reads truth.json; the tests compare afterwards.  Targets:
 R0 and S0 within 2 %, R1 and S1 within 20 % for the corrected method, on the
@@ -33,6 +33,16 @@ def _identified(folder, modules=None):
 @pytest.fixture(scope="module")
 def example():
     return _identified(EXAMPLE, modules=("TEM1", "TEM2"))  # TEM1 the outlier, TEM2 a regular unit
+
+
+@pytest.fixture(scope="module")
+def paper_bench(tmp_path_factory):
+    """A module on a bench with the paper's physics (no Thomson heat, one node per plate, no sensor lag,
+    constant K): the rig the paper's validation point (+-0.5 K) was made on."""
+    out = tmp_path_factory.mktemp("paper") / "b"
+    simulate_batch(out, BenchConfig(n_modules=1, seed=2, physics="paper", validation_rate=1.0),
+                   progress=lambda m: None)
+    return _identified(out)
 
 
 @pytest.fixture(scope="module")
@@ -76,8 +86,8 @@ def test_no_hysteresis_is_reported_where_there_is_none(example):
             assert abs(h["z"]) < 3.5, (law, h)
 
 
-def test_rig_fit_and_the_papers_validation_point(example):
-    _, results, truth = example
+def test_rig_fit_and_the_papers_validation_point(paper_bench):
+    _, results, truth = paper_bench
     for mid, r in results.items():
         # K from the rig fit with the laws held: within 5 % of truth
         assert abs(r.rig_fit.values["K_W_per_K"] / truth[mid]["K_W_per_K"] - 1) < 0.05

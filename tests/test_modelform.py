@@ -50,7 +50,7 @@ def test_the_full_form_samples_its_physics_and_refuses_what_it_already_holds():
         with pytest.raises(ModelError, match="already contains"):
             CalibrationOptions(model="full", effects=(name,))
     with pytest.raises(ModelError, match="both sampled and at a fixed value"):
-        CalibrationOptions(effects=("sensor_lag",), effect_values={"sensor_tau_s": 5.0})
+        CalibrationOptions(model="paper", effects=("sensor_lag",), effect_values={"sensor_tau_s": 5.0})
 
 
 def _datasheet():
@@ -76,12 +76,12 @@ def test_calibrate_effect_option_samples_or_fixes_an_effect(monkeypatch, tmp_pat
     shutil.copy(EXAMPLE / "batch.toml", b)
     shutil.copy(EXAMPLE / "TEM1" / "identification.csv", b / "TEM1")
     argv = ["calibrate", str(b), "--out", str(tmp_path / "run"), "--effect", "k_temperature", "--effect",
-            "sensor_lag=5", "--workers", "1"]
+            "sensor_lag=5", "--workers", "1", "--model", "paper"]
     assert main(argv) == 2 and "stop here" in capsys.readouterr().err
     opt = seen["options"]
     assert opt.effects == ("k_temperature",) and opt.effect_values == {"sensor_tau_s": 5.0}
     assert calibration_rig({}, opt).physics["sensor_tau_s"] == 5.0
     assert main([*argv[:4], "--effect", "no_such"]) == 2
     assert "the catalogue has" in capsys.readouterr().err
-    assert main([*argv[:4], "--model", "full", "--effect", "thomson"]) == 2
+    assert main([*argv[:4], "--effect", "thomson"]) == 2  # the default form, full, holds Thomson heat
     assert "already contains thomson" in capsys.readouterr().err

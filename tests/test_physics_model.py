@@ -280,7 +280,7 @@ def test_jacobian_matches_finite_differences(legs, current):
     J = K.jac_one(y, current, A, Cinv, tem, p)
     # h = 1e-3 K: truncation (h^2 f'''/6) and rounding (~1e-16 |A y| / h) are
     # both below 1e-10 relative (observed 5e-11), so 1e-8 -- stricter than the
-    # brief's 1e-6 -- keeps a factor 200 of margin and catches a Jacobian off by
+    # usual 1e-6 -- keeps a factor 200 of margin and catches a Jacobian off by
     # 1e-6 relative (which a 1e-6 tolerance would not)
     h = 1e-3
     Jfd = np.empty_like(J)

@@ -26,7 +26,7 @@ DRAWS = {
 
 EFFECTS_ON = {"thomson_fraction": 1.0, "K1_per_K": 0.004, "sensor_tau_s": 6.0}
 
-# Targets of the issue: the fast simulator within 0.01 K and 1 mV of an
+# Targets: the fast simulator within 0.01 K and 1 mV of an
 # accurate reference (observed ~1e-4 K and ~4e-5 V at the default atol 2e-4 K).
 TOL_K = 0.01
 TOL_V = 1e-3
@@ -123,7 +123,7 @@ def test_uneven_sampling_matches_regular_sampling():
     a, b = simulate(inputs(t_reg), PAPER), simulate(inputs(t_jit), PAPER)
     # compare in the last 80 % of each hold, where the signals are smooth on
     # the 1 s scale so that linear interpolation of the jittered run is exact
-    # to ~1 mK; the tolerance is the brief's 0.01 K
+    # to ~1 mK; the tolerance is the target's 0.01 K
     sel = np.zeros(a.time.size, bool)
     for k in range(4):
         sel |= (a.time > k * hold + 0.2 * hold) & (a.time < (k + 1) * hold - 1.0)

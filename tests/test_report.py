@@ -1,4 +1,4 @@
-"""The batch-calibration report (``tembayes report``, issue 7): tolerances, structure and
+"""The batch-calibration report (``tembayes report``): tolerances, structure and
 content of the HTML, and a render in headless Chromium whose screenshot is checked.
 
 Uses the calibrated 3-module bench batch of ``conftest.run3`` (TEM2 the

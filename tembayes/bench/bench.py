@@ -100,10 +100,10 @@ class BenchConfig:
         straight to the first level at the first sample.
     physics : str
         The standard bench's physics, that of a calibration model form:
-        ``"paper"`` (the default model's) or ``"full"`` (Thomson heat,
-        layered plates, a sensor response time drawn in
-        :data:`SENSOR_TAU_RANGE`, a temperature slope of K).  The
-        high-fidelity bench has its own.
+        ``"full"`` (the default model's: Thomson heat, layered plates, a
+        sensor response time drawn in :data:`SENSOR_TAU_RANGE`, sensor depths
+        drawn in their range, a temperature slope of K) or ``"paper"``
+        (Evers et al.'s form).  The high-fidelity bench has its own.
     """
 
     n_modules: int = 3
@@ -119,7 +119,7 @@ class BenchConfig:
     validation_duration: float = 4 * 3600.0
     fidelity: str = "standard"
     validation_start: str = "steady"
-    physics: str = "paper"
+    physics: str = "full"
 
     def __post_init__(self):
         if self.fidelity not in FIDELITIES:

@@ -94,6 +94,16 @@ def reference_equivalent(bench_values):
     """The reference rig's parameter values that correspond to bench rig values.
 
     Written to ``truth.json`` so that a calibration's rig posterior can be
-    checked; the steel's cell parameters have no counterpart.
+    checked.  A bench that draws its steel (``c_cell``, ``g_cell``) gives the
+    reference rig's steel at the same ratio to nominal (one material, one
+    heat capacity and one conductivity), and its bottom leak's even split
+    between side walls and tabs is ``tab_share`` 0.5.
     """
-    return {k: bench_values[k] for k in SHARED_WITH_REFERENCE if k in bench_values}
+    out = {k: bench_values[k] for k in SHARED_WITH_REFERENCE if k in bench_values}
+    if "c_cell" in bench_values and "g_cell" in bench_values:
+        ref = {p.name: p.nominal for p in REFERENCE.parameters}
+        out["c_half_block"] = ref["c_half_block"] * bench_values["c_cell"] / _C_CELL
+        for k in ("g_steel_half", "g_steel_quarter"):
+            out[k] = ref[k] * bench_values["g_cell"] / _G_CELL
+        out["tab_share"] = 0.5
+    return out

@@ -1,4 +1,4 @@
-"""Which physics the calibration model has: the paper's (the default for now) or ``full``.
+"""Which physics the calibration model has: ``full`` (the default) or the paper's.
 
 ``full`` holds what every real module and rig has, beyond the paper's form:
 
@@ -28,10 +28,8 @@ junction temperature, and K is the conductance at T_ref.  ``paper`` is the
 form of Evers et al. (S at the mean temperature at both junctions, one node
 per plate, no sensor lag, constant K).
 
-``full`` is selected with ``tembayes calibrate --model full``; it becomes
-the default once the law coverage study on the out-of-model bench has
-measured it (its R0-S0-K ridge is wider, and a module takes about twice the
-paper form's sampling steps).
+``paper`` is selected with ``tembayes calibrate --model paper``, for
+comparison with the source study.
 """
 
 from __future__ import annotations
@@ -83,7 +81,7 @@ FORMS = {f.name: f for f in (
 )}
 
 #: The form a calibration uses unless told otherwise.
-DEFAULT_FORM = "paper"
+DEFAULT_FORM = "full"
 
 
 def get_form(name) -> ModelForm:

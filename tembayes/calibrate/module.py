@@ -83,7 +83,7 @@ EXPANSION_STEP_SD = 3.0 ** 0.5
 
 @dataclass(frozen=True)
 class CalibrationOptions:
-    """Settings of a module calibration (defaults meet the issue's targets).
+    """Settings of a module calibration.
 
     Attributes
     ----------
@@ -148,7 +148,7 @@ class CalibrationOptions:
     model: str = DEFAULT_FORM
     effects: tuple = ()
     effect_values: dict = field(default_factory=dict)
-    discrepancy: str = "none"
+    discrepancy: str = "robust"
 
     def __post_init__(self):
         if self.discrepancy not in DISCREPANCIES:
@@ -640,6 +640,7 @@ def _calibrate_module(module, datasheet, *, rig_config=None, seed=0, options=Non
         "ess_tail": dict(zip(space.names, map(float, run.ess_tail))),
         "tau_steps": dict(zip(space.names, map(float, run.tau))),
         "rhat_max": float(np.max(run.rhat[mon])),
+        "rhat_walkers_max": float(np.max(run.rhat_walkers[mon])),
         "ess_bulk_min": float(np.min(run.ess_bulk[mon])),
         "tau_max_steps": float(np.max(run.tau[:len(MODULE_PARAMETERS)])),
         "tau_max_all_steps": float(np.max(run.tau)),

@@ -37,7 +37,7 @@ Population model
   component; a module is an outlier if any of its parameters is.  Why per
   parameter: a module-level outlier component that is broad in all five
   parameters pays for the four parameters that *are* in the population and
-  fails to flag a unit off in one only (the brief's back-of-envelope,
+  fails to flag a unit off in one only (a back-of-envelope estimate,
   confirmed by simulation).  The outlier component of parameter j is
 
   - with weight 1 - :data:`GROSS_SHARE` (0.8), "off by several spreads":
@@ -82,7 +82,7 @@ by how much an outlier is off.  Measured on the study of
 ``analyses/population_checks.py`` (200 batches of 3 and 8 modules, half with
 an outlier 3-5 spreads off, or S0 +-4 %):
 
-* default priors: the brief's targets are not met for 3 modules (no outlier
+* default priors: the study's targets are not met for 3 modules (no outlier
   gets > 0.5; from three units alone the spreads are the prior's) and met for
   a minority of 8-module batches; batches without an outlier rarely flag
   anybody (> 0.3 in 0 % of 3-module and ~8 % of 8-module batches);

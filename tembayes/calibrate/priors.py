@@ -5,7 +5,7 @@ standard conversions (``Datasheet.resistance/seebeck/conductance``).  Nothing
 here knows the TEC1-12706 numbers, so another module type needs no code
 change.
 
-Law parameters and K (weakly informative, documented in the README):
+Law parameters and K (weakly informative, documented in docs/methods.md):
 
 - ``R0_ohm``, ``S0_V_per_K``, ``K_W_per_K``: log-normal around the datasheet
   value with a log-sd of 0.3.  The conversions assume ideal material and

@@ -250,7 +250,7 @@ def module_entry(r, outlier_prob=None):
         "psis_k": d["psis"][-1]["k_hat"], "sampler_converged": d["sampler_converged"],
         "seconds": d["timings"]["total_s"],
     }
-    for k in ("discrepancy", "adequacy"):  # runs that predate them have neither
+    for k in ("rhat_walkers_max", "discrepancy", "adequacy"):  # runs that predate them have none
         if k in d:
             entry["diagnostics"][k] = d[k]
     entry["hysteresis"] = r.hysteresis

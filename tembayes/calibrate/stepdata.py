@@ -31,6 +31,23 @@ from tembayes.data.steps import current_noise, detect_steps
 #: Channels of the step likelihood, in the order of every channel axis.
 CHANNELS = ("voltage_V", "dT_K", "Tmean_K")
 
+#: Least noise sd the likelihood assumes per sensor temperature [K], voltage [V]
+#: and current [A].  Data cleaner than this (a simulation without noise) would
+#: ask the model for more precision than its integration gives
+#: (``tembayes.calibrate.model.ATOL``, 0.1 mK), and a noise estimate of zero
+#: makes the posterior mode's least squares singular.  A logger's resolution
+#: raises the floor to its rounding error (:func:`_rounding_sd`).
+NOISE_FLOOR = {"temperature_K": 1e-4, "voltage_V": 1e-5, "current_A": 1e-6}
+
+
+def _rounding_sd(*channels):
+    """The sd of rounding to the channels' resolution, ``q / sqrt(12)``: ``q`` the smallest change any of them
+    shows.  A quiet signal logged at a coarse resolution repeats its values, and the noise estimate from
+    second differences is then zero however large the rounding error is."""
+    steps = np.concatenate([np.abs(np.diff(np.asarray(c, dtype=float))) for c in channels])
+    steps = steps[steps > 0]
+    return float(steps.min()) / np.sqrt(12.0) if steps.size else 0.0
+
 #: Duration of the current ramp of a step in the model [s] (an amplifier
 #: slews in about a millisecond; the exact value does not matter below 10 ms).
 RAMP = 1e-3
@@ -250,7 +267,7 @@ def step_data(exp, *, dense=2.0, per_decade=16, pre=1.0, lead=30.0, min_steps=4,
     cur = exp.current
     levels = hold_levels(cur, holds)
     counts = np.array([max(b - a - 4, 1) for a, b in holds], dtype=float)
-    level_sd = current_noise(cur) / np.sqrt(counts)
+    level_sd = max(current_noise(cur), _rounding_sd(cur), NOISE_FLOOR["current_A"]) / np.sqrt(counts)
     idx, win = [], []
     for k, s in enumerate(steps):
         start, stop = s.index, s.hold_end
@@ -275,8 +292,9 @@ def step_data(exp, *, dense=2.0, per_decade=16, pre=1.0, lead=30.0, min_steps=4,
     T2 = exp.sensors[1]
     T3 = exp.sensors[2]
     obs = np.vstack([exp.voltage[idx], (T2 - T3)[idx], 0.5 * (T2 + T3)[idx]])
-    sT = np.nanmean([noise_estimate(T2), noise_estimate(T3)])
-    noise = np.array([noise_estimate(exp.voltage), np.sqrt(2.0) * sT, sT / np.sqrt(2.0)])
+    sT = max(np.nanmean([noise_estimate(T2), noise_estimate(T3)]), _rounding_sd(T2, T3), NOISE_FLOOR["temperature_K"])
+    sV = max(noise_estimate(exp.voltage), _rounding_sd(exp.voltage), NOISE_FLOOR["voltage_V"])
+    noise = np.array([sV, np.sqrt(2.0) * sT, sT / np.sqrt(2.0)])
     tw = _smooth(t, exp.t_water, smooth)
     ta = _smooth(t, exp.t_amb, smooth)
     step_time = np.array([s.t for s in steps])
