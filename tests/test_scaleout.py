@@ -254,6 +254,20 @@ def test_posterior_nc_streamed_module_by_module_equals_the_in_memory_one(serial4
     assert set(MODULE_PARAMETERS) <= set(b.posterior.data_vars)
 
 
+def test_real_run_posterior_nc_has_units_and_a_prior_shaped_like_the_posterior(serial4):
+    import arviz as az
+
+    out, _ = serial4
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        idata = az.from_netcdf(out / "posterior.nc", engine="h5netcdf")
+    missing = [f"{g}/{v}" for g in idata.groups() for v, da in getattr(idata, g).data_vars.items()
+               if not da.attrs.get("units")]
+    assert not missing, f"variables without units: {missing}"
+    for k in MODULE_PARAMETERS:
+        assert idata.prior[k].dims == idata.posterior[k].dims
+
+
 def test_cli_refuses_an_unreachable_scheduler_and_writes_nothing(batch4, tmp_path, capsys):
     from tembayes.cli import main
 

@@ -23,9 +23,12 @@ A run folder::
   ``step_time_s``, ``step_dI_A``, ``step_direction``, ``step_Tavg_C``
   [module, step]; ``noise_sd`` [module, channel].
 - ``prior``: draws of the module parameters from the datasheet prior
-  [chain, draw] (the same for every module).
+  [chain, draw, module], shaped like ``posterior`` (every module of a batch
+  has the same datasheet prior, so the same draws).
 - ``population`` (if fitted): ``R0_ohm``... draws for a new module
   [chain, draw], and the hyperparameters.
+
+Every data variable has a ``units`` attribute (:func:`variable_unit`).
 
 Per-module metadata (diagnostics, hysteresis, priors, mode, seeds) is kept as
 JSON in the attributes, so a module file alone restores its
@@ -35,8 +38,10 @@ JSON in the attributes, so a module file alone restores its
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import os
+import re
 import tempfile
 import warnings
 from pathlib import Path
@@ -60,6 +65,76 @@ def _pad(arrays, fill=np.nan):
     return out
 
 
+# -- units -------------------------------------------------------------------
+#: Name tokens that are a unit: the parameter names end in their unit
+#: (``R0_ohm``, ``K_W_per_K``, ``step_shift_s``, ``offset_sd_dT_K``).
+_UNIT_TOKENS = {"ohm": "ohm", "V": "V", "K": "K", "W": "W", "A": "A", "J": "J", "s": "s", "m": "m",
+                "C": "degC", "rel": "1", "fraction": "1"}
+#: Variables whose name does not end in a unit.
+_FIXED_UNITS = {
+    "step_response": "nat", "lp": "nat", "obs_step": "1", "step_direction": "1",
+    "noise_sd": "per channel: " + ", ".join(_UNIT_TOKENS[c.rsplit("_", 1)[1]] for c in CHANNELS),
+}
+
+
+@functools.lru_cache(maxsize=1)
+def _table_units():
+    """Units of the rig's parameters and the effect catalogue's (no suffix: ``g_cooler``, ``tab_share``)."""
+    from tembayes.physics.effects import CATALOGUE
+    from tembayes.physics.rig import reference_rig
+
+    out = {p.name: p.unit for p in reference_rig(layers=True).parameters}
+    out.update({p.name: p.unit for e in CATALOGUE.values() for p in e.parameters})
+    return out
+
+
+def _suffix_unit(name):
+    """Unit from a name's ending (``_ohm``, ``_V_per_K``, ``_per_K2``), or None."""
+    tok = name.split("_")
+    if len(tok) >= 2 and tok[-2] == "per":
+        m = re.fullmatch(r"([A-Za-z]+?)(\d*)", tok[-1])
+        den = _UNIT_TOKENS.get(m.group(1)) if m else None
+        if den is None or den in ("1", "degC"):
+            return None
+        den += f"^{m.group(2)}" if m.group(2) not in ("", "1") else ""
+        num = _UNIT_TOKENS.get(tok[-3], "1") if len(tok) >= 3 else "1"  # K1_per_K: 1/K
+        return f"{num}/{den}"
+    return _UNIT_TOKENS.get(tok[-1]) if len(tok) >= 2 else None
+
+
+def variable_unit(name):
+    """SI unit of a ``posterior.nc`` variable (its ``units`` attribute), or None if unknown.
+
+    From, in turn: the log-likelihoods (``"nat"``) and indices (``"1"``); the
+    rig's and the effect catalogue's parameter tables
+    (:class:`~tembayes.physics.rig.RigParameter`,
+    :class:`~tembayes.physics.effects.EffectParameter`); the noise scales
+    (``"1"``); the population's ``hyper_``/``mu_``/``tau_`` prefixes; the name's
+    unit suffix (``R1_ohm_per_K`` -> ``"ohm/K"``, ``S1_V_per_K2`` -> ``"V/K^2"``,
+    ``step_Tavg_C`` -> ``"degC"``, ``tau_R0_rel`` -> ``"1"``).
+    """
+    if name in _FIXED_UNITS:
+        return _FIXED_UNITS[name]
+    table = _table_units()
+    if name in table:
+        return table[name]
+    if name.startswith("noise_scale_"):
+        return "1"
+    for prefix in ("hyper_", "mu_", "tau_"):
+        if name.startswith(prefix):
+            return variable_unit(name[len(prefix):])
+    return _suffix_unit(name)
+
+
+def _set_units(ds):
+    """Put ``units`` on every data variable of ``ds`` whose unit is known (in place)."""
+    for k, v in ds.data_vars.items():
+        u = variable_unit(k)
+        if u is not None:
+            v.attrs["units"] = u
+    return ds
+
+
 def _meta(r: ModuleCalibration):
     return json.dumps(to_jsonable({
         "module_id": r.module_id, "names": list(r.names), "priors": r.priors, "map": r.map,
@@ -76,7 +151,8 @@ def to_inference_data(results, *, population=None, prior_draws=None, attrs=None)
     results : list of ModuleCalibration
     population : PopulationResult, optional
     prior_draws : dict, optional
-        ``name -> ndarray (n,)`` prior draws of the module parameters.
+        ``name -> ndarray (n,)`` prior draws of the module parameters (the
+        datasheet prior the modules share; repeated for each module).
     attrs : dict, optional
         Extra attributes (seed, command, versions).
     """
@@ -120,9 +196,11 @@ def to_inference_data(results, *, population=None, prior_draws=None, attrs=None)
     groups = {"posterior": post, "log_likelihood": loglik, "sample_stats": stats, "observed_data": observed,
               "constant_data": const}
     if prior_draws is not None:
-        groups["prior"] = prior_dataset(prior_draws)
+        groups["prior"] = prior_dataset(prior_draws, mods)
     if population is not None:
         groups["population"] = population_dataset(population)
+    for ds in groups.values():
+        _set_units(ds)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # "population" is not one of arviz's standard groups
         idata = az.InferenceData(**groups)
@@ -135,11 +213,14 @@ def to_inference_data(results, *, population=None, prior_draws=None, attrs=None)
     return idata
 
 
-def prior_dataset(prior_draws):
-    """The ``prior`` group: ``name -> (n,)`` draws as one chain [chain, draw]."""
+def prior_dataset(prior_draws, modules):
+    """The ``prior`` group: ``name -> (n,)`` draws as one chain, the same for every module
+    (they share the datasheet prior) [chain, draw, module], with units."""
     n = len(next(iter(prior_draws.values())))
-    return xr.Dataset({k: (("chain", "draw"), np.asarray(v)[None, :]) for k, v in prior_draws.items()},
-                      coords={"chain": [0], "draw": np.arange(n)})
+    data = {k: (("chain", "draw", "module"),
+                np.repeat(np.asarray(v, dtype=float)[None, :, None], len(modules), axis=2))
+            for k, v in prior_draws.items()}
+    return _set_units(xr.Dataset(data, coords={"chain": [0], "draw": np.arange(n), "module": list(modules)}))
 
 
 def population_dataset(pop):
@@ -157,7 +238,7 @@ def population_dataset(pop):
         nw, nd = 1, len(pred)
     data = {k: (("chain", "draw"), shaped[:, :, j]) for j, k in enumerate(MODULE_PARAMETERS)}
     hyper = {f"hyper_{k}": (("hyper_chain", "hyper_draw"), np.asarray(v)) for k, v in pop.hyper.items()}
-    ds = xr.Dataset({**data, **hyper})
+    ds = _set_units(xr.Dataset({**data, **hyper}))
     ds.attrs["outlier_prob"] = json.dumps(to_jsonable(pop.outlier_prob))
     ds.attrs["diagnostics"] = json.dumps(to_jsonable(pop.diagnostics))
     return ds
@@ -329,7 +410,8 @@ def write_run_posterior(path, module_files, *, population=None, prior_draws=None
         draws per module.
     population : PopulationResult, optional
     prior_draws : dict, optional
-        ``name -> ndarray (n,)``.
+        ``name -> ndarray (n,)``, the datasheet prior all the modules share
+        (written for each module, [chain, draw, module]).
     attrs : dict, optional
         Run attributes on the posterior group (seed, command, versions).
     progress : callable, optional
@@ -379,8 +461,25 @@ def write_run_posterior(path, module_files, *, population=None, prior_draws=None
                     chunks = tuple(1 if d == "module" else sizes[d] for d in dims)
                     v = grp.create_variable(k, dims, dtype="f8", chunks=chunks, fillvalue=np.nan)
                     v.attrs["_FillValue"] = np.nan
+                    if variable_unit(k) is not None:
+                        v.attrs["units"] = variable_unit(k)
                 grp.attrs["tembayes_tref_C"] = tref
                 groups[g] = grp
+            if prior_draws is not None:  # prior_dataset's layout, written a module at a time
+                prior = {k: np.asarray(v, dtype=float) for k, v in prior_draws.items()}
+                nd = len(next(iter(prior.values())))
+                grp = f.create_group("prior")
+                grp.dimensions = {"chain": 1, "draw": nd, "module": n}
+                grp.create_variable("chain", ("chain",), data=np.zeros(1, dtype=np.int64))
+                grp.create_variable("draw", ("draw",), data=np.arange(nd, dtype=np.int64))
+                grp.create_variable("module", ("module",), dtype=_vlen_str(), data=np.array(mods, dtype=object))
+                for k in prior:
+                    v = grp.create_variable(k, ("chain", "draw", "module"), dtype="f8", chunks=(1, nd, 1),
+                                            fillvalue=np.nan)
+                    v.attrs["_FillValue"] = np.nan
+                    if variable_unit(k) is not None:
+                        v.attrs["units"] = variable_unit(k)
+                grp.attrs["tembayes_tref_C"] = tref
             for i, (p, m) in enumerate(zip(module_files, lay)):
                 with h5netcdf.File(p, "r") as src:
                     for g, variables in layout.items():
@@ -395,13 +494,14 @@ def write_run_posterior(path, module_files, *, population=None, prior_draws=None
                                 a = full
                             tgt[tuple(i if d == "module" else slice(None) for d in dims)] = a
                     groups["posterior"].attrs[f"module_{m['module']}"] = src["posterior"].attrs[f"module_{m['module']}"]
+                if prior_draws is not None:
+                    for k, a in prior.items():
+                        f["prior"][k][0, :, i] = a
                 if progress and (i + 1) % 500 == 0:
                     progress(f"posterior.nc: {i + 1}/{n} modules")
             for k, v in (attrs or {}).items():
                 groups["posterior"].attrs[k] = v if isinstance(v, str) else json.dumps(to_jsonable(v))
         extra = {}
-        if prior_draws is not None:
-            extra["prior"] = prior_dataset(prior_draws)
         if population is not None:
             extra["population"] = population_dataset(population)
         for g, ds in extra.items():

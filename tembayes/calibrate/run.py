@@ -174,13 +174,19 @@ class CalibrationRun:
         out = _rows(cols, max_draws)
         return out if len(out) else None
 
-    def prior_draws(self, params=MODULE_PARAMETERS):
-        """Draws of the datasheet prior, ``(n, len(params))`` SI, or None."""
+    def prior_draws(self, params=MODULE_PARAMETERS, module_id=None):
+        """Draws of the datasheet prior, ``(n, len(params))`` SI, or None.
+
+        ``module_id``: the module's (default the first; a batch's modules share
+        the datasheet prior).  Older runs' prior group has no ``module`` dimension.
+        """
         if "prior" not in self.idata.groups():
             return None
         pr = self.idata.prior
         if any(p not in pr for p in params):
             return None
+        if "module" in pr.dims:
+            pr = pr.sel(module=module_id) if module_id is not None else pr.isel(module=0)
         return _rows([np.asarray(pr[p].values, dtype=float) for p in params], None)
 
     # -- steps ----------------------------------------------------------------

@@ -235,7 +235,7 @@ def _prior_density(run, module_id, name, x_si):
             return np.exp(ParameterPrior(name=name, **spec).logpdf(x_si))
         except (TypeError, ValueError):
             pass
-    d = run.prior_draws((name,))
+    d = run.prior_draws((name,), module_id)
     if d is None or len(d) < 10 or np.ptp(d[:, 0]) <= 0:
         return None
     from scipy.stats import gaussian_kde
