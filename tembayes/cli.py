@@ -262,7 +262,7 @@ def _cmd_calibrate(args):
     from tembayes.data import load_batch
     from tembayes.data.outputs import check_output
 
-    workers = args.workers if args.jobs is None else args.jobs
+    workers = args.workers
     if workers < 1:  # before anything is touched
         print(f"tembayes calibrate: --workers must be at least 1, got {workers}", file=sys.stderr)
         return 2
@@ -630,7 +630,6 @@ def build_parser():
     p.add_argument("--scheduler", metavar="ADDRESS",
                    help="calibrate the modules on a running dask.distributed cluster (tcp://host:8786, or a "
                         "scheduler file) instead; its workers need tembayes installed")
-    p.add_argument("--jobs", type=int, default=None, help=argparse.SUPPRESS)  # the old name of --workers
     p.add_argument("--keep-unconverged", action="store_true",
                    help="let modules that did not converge into the population (default: left out, with the "
                         "reason in summary.json)")
