@@ -101,9 +101,8 @@ def reference_equivalent(bench_values):
     """
     out = {k: bench_values[k] for k in SHARED_WITH_REFERENCE if k in bench_values}
     if "c_cell" in bench_values and "g_cell" in bench_values:
-        ref = {p.name: p.nominal for p in REFERENCE.parameters}
-        out["c_half_block"] = ref["c_half_block"] * bench_values["c_cell"] / _C_CELL
+        out["c_half_block"] = REFERENCE.parameter("c_half_block").nominal * bench_values["c_cell"] / _C_CELL
         for k in ("g_steel_half", "g_steel_quarter"):
-            out[k] = ref[k] * bench_values["g_cell"] / _G_CELL
+            out[k] = REFERENCE.parameter(k).nominal * bench_values["g_cell"] / _G_CELL
         out["tab_share"] = 0.5
     return out

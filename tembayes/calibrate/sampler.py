@@ -382,12 +382,10 @@ def sample(log_prob, p0, *, seed, monitor, checkpoint=None, resume=False, thin_b
             if long_enough:
                 rhat, rhat_w, ess_b, ess_t = diagnostics(post, monitor)
                 converged = bool(np.all(rhat[mon] <= RHAT_MAX) and np.all(ess_b[mon] >= ESS_MIN))
-            if not converged and (sampler.iteration >= max_iter
-                                  or (stop is not None and stop(post, int(sampler.iteration * thin_by)))):
+            if converged or sampler.iteration >= max_iter or (stop is not None
+                                                              and stop(post, int(sampler.iteration * thin_by))):
                 if not long_enough:
                     rhat, rhat_w, ess_b, ess_t = diagnostics(post, monitor)
-                break
-            if converged:
                 break
         done = sampler.iteration
         target = min(max_iter, (done // check_every + 1) * check_every)

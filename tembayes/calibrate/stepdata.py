@@ -36,17 +36,19 @@ CHANNELS = ("voltage_V", "dT_K", "Tmean_K")
 #: ask the model for more precision than its integration gives
 #: (``tembayes.calibrate.model.ATOL``, 0.1 mK), and a noise estimate of zero
 #: makes the posterior mode's least squares singular.  A logger's resolution
-#: raises the floor to its rounding error (:func:`_rounding_sd`).
+#: raises the floor to its rounding error (:func:`_noise_sd`).
 NOISE_FLOOR = {"temperature_K": 1e-4, "voltage_V": 1e-5, "current_A": 1e-6}
 
 
-def _rounding_sd(*channels):
-    """The sd of rounding to the channels' resolution, ``q / sqrt(12)``: ``q`` the smallest change any of them
-    shows.  A quiet signal logged at a coarse resolution repeats its values, and the noise estimate from
-    second differences is then zero however large the rounding error is."""
+def _noise_sd(estimate, floor, *channels):
+    """A noise sd no smaller than ``floor`` nor the channels' rounding error ``q / sqrt(12)``, ``q`` the smallest
+    change any of them shows: a quiet signal logged at a coarse resolution repeats its values, and the
+    noise estimate from differences is then zero however large the rounding error is."""
     steps = np.concatenate([np.abs(np.diff(np.asarray(c, dtype=float))) for c in channels])
     steps = steps[steps > 0]
-    return float(steps.min()) / np.sqrt(12.0) if steps.size else 0.0
+    rounding = float(steps.min()) / np.sqrt(12.0) if steps.size else 0.0
+    return max(estimate, rounding, floor)
+
 
 #: Duration of the current ramp of a step in the model [s] (an amplifier
 #: slews in about a millisecond; the exact value does not matter below 10 ms).
@@ -267,7 +269,7 @@ def step_data(exp, *, dense=2.0, per_decade=16, pre=1.0, lead=30.0, min_steps=4,
     cur = exp.current
     levels = hold_levels(cur, holds)
     counts = np.array([max(b - a - 4, 1) for a, b in holds], dtype=float)
-    level_sd = max(current_noise(cur), _rounding_sd(cur), NOISE_FLOOR["current_A"]) / np.sqrt(counts)
+    level_sd = _noise_sd(current_noise(cur), NOISE_FLOOR["current_A"], cur) / np.sqrt(counts)
     idx, win = [], []
     for k, s in enumerate(steps):
         start, stop = s.index, s.hold_end
@@ -292,8 +294,8 @@ def step_data(exp, *, dense=2.0, per_decade=16, pre=1.0, lead=30.0, min_steps=4,
     T2 = exp.sensors[1]
     T3 = exp.sensors[2]
     obs = np.vstack([exp.voltage[idx], (T2 - T3)[idx], 0.5 * (T2 + T3)[idx]])
-    sT = max(np.nanmean([noise_estimate(T2), noise_estimate(T3)]), _rounding_sd(T2, T3), NOISE_FLOOR["temperature_K"])
-    sV = max(noise_estimate(exp.voltage), _rounding_sd(exp.voltage), NOISE_FLOOR["voltage_V"])
+    sT = _noise_sd(np.nanmean([noise_estimate(T2), noise_estimate(T3)]), NOISE_FLOOR["temperature_K"], T2, T3)
+    sV = _noise_sd(noise_estimate(exp.voltage), NOISE_FLOOR["voltage_V"], exp.voltage)
     noise = np.array([sV, np.sqrt(2.0) * sT, sT / np.sqrt(2.0)])
     tw = _smooth(t, exp.t_water, smooth)
     ta = _smooth(t, exp.t_amb, smooth)
