@@ -82,21 +82,34 @@ def main():
         tmp = Path(tmp)
         csv = make_batch(tmp / "big", args.mb)
         size = csv.stat().st_size / 1e6
-        old_src = subprocess.run(["git", "show", f"{args.baseline}:tembayes/data/experiment.py"], cwd=ROOT,
-                                 capture_output=True, text=True, check=True).stdout
+        old_src = subprocess.run(
+            ["git", "show", f"{args.baseline}:tembayes/data/experiment.py"],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout
         old = tmp / "baseline_experiment.py"
         old.write_text(old_src.replace("from ..", "from tembayes."))
         t0 = time.perf_counter()
         new = run(NEW, tmp / "big")
         base = run(OLD, tmp / "big", old)
         wall = time.perf_counter() - t0
-    result = {"csv_MB": round(size, 1), "new_inspect": new, "baseline_load_only": base,
-              "memory_ratio_baseline_over_new": base["peak_MB"] / new["peak_MB"], "target_peak_MB": 1024,
-              "baseline": args.baseline, "wall_s": wall}
-    print(f"{size:.0f} MB CSV: tembayes inspect (load + preflight + summary) peak {new['peak_MB']:.0f} MB in "
-          f"{new['seconds']:.1f} s (exit {new['exit']}); baseline loader ({args.baseline}, load only) peak "
-          f"{base['peak_MB']:.0f} MB in {base['seconds']:.1f} s; ratio {result['memory_ratio_baseline_over_new']:.1f}x; "
-          f"target <= 1024 MB: {'met' if new['peak_MB'] <= 1024 else 'MISSED'}")
+    result = {
+        "csv_MB": round(size, 1),
+        "new_inspect": new,
+        "baseline_load_only": base,
+        "memory_ratio_baseline_over_new": base["peak_MB"] / new["peak_MB"],
+        "target_peak_MB": 1024,
+        "baseline": args.baseline,
+        "wall_s": wall,
+    }
+    print(
+        f"{size:.0f} MB CSV: tembayes inspect (load + preflight + summary) peak {new['peak_MB']:.0f} MB in "
+        f"{new['seconds']:.1f} s (exit {new['exit']}); baseline loader ({args.baseline}, load only) peak "
+        f"{base['peak_MB']:.0f} MB in {base['seconds']:.1f} s; ratio {result['memory_ratio_baseline_over_new']:.1f}x; "
+        f"target <= 1024 MB: {'met' if new['peak_MB'] <= 1024 else 'MISSED'}"
+    )
     out = ROOT / "analyses" / "results" / "bench_big_csv.json"
     out.write_text(json.dumps(result, indent=2) + "\n")
 

@@ -40,12 +40,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from tembayes.calibrate import CalibrationOptions, calibrate_batch, calibrate_module  # noqa: E402
 from tembayes.calibrate.likelihood import NOISE_PARAMETERS  # noqa: E402
-from tembayes.calibrate.module import calibration_rig, parameter_space  # noqa: E402
 from tembayes.calibrate.model import StepResponseModel  # noqa: E402
+from tembayes.calibrate.module import calibration_rig, parameter_space  # noqa: E402
 from tembayes.calibrate.stepdata import step_data  # noqa: E402
 from tembayes.data import load_batch, write_json  # noqa: E402
 from tembayes.physics.reference import simulate_reference  # noqa: E402
 from tembayes.physics.simulate import Inputs  # noqa: E402
+from tembayes.plots.calibrate import save_calibration_figures  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "analyses" / "results" / "bench_calibrate.json"
@@ -74,23 +75,32 @@ def main(argv=None):
     threads = os.cpu_count()
 
     # --- tembayes, one module (a warm-up first: numba's compiled cache) ---
-    calibrate_module(module, batch.datasheet, rig_config=batch.rig_config, seed=1,
-                     options=CalibrationOptions(max_steps=1000, pilot=500))
+    calibrate_module(
+        module,
+        batch.datasheet,
+        rig_config=batch.rig_config,
+        seed=1,
+        options=CalibrationOptions(max_steps=1000, pilot=500),
+    )
     t0 = time.perf_counter()
     r = calibrate_module(module, batch.datasheet, rig_config=batch.rig_config, seed=0)
     t_module = time.perf_counter() - t0
     d = r.diagnostics
-    print(f"tembayes, {args.module}: {t_module:.1f} s to a converged posterior "
-          f"(converged {d['converged']}, {d['steps']} steps, tau max {d['tau_max_steps']:.0f}, "
-          f"R-hat {d['rhat_max']:.4f}, ESS {d['ess_bulk_min']:.0f}, k_hat {d['psis'][-1]['k_hat']:.2f}); "
-          f"stages {', '.join(f'{k} {v:.1f}' for k, v in d['timings'].items())}", flush=True)
+    print(
+        f"tembayes, {args.module}: {t_module:.1f} s to a converged posterior "
+        f"(converged {d['converged']}, {d['steps']} steps, tau max {d['tau_max_steps']:.0f}, "
+        f"R-hat {d['rhat_max']:.4f}, ESS {d['ess_bulk_min']:.0f}, k_hat {d['psis'][-1]['k_hat']:.2f}); "
+        f"stages {', '.join(f'{k} {v:.1f}' for k, v in d['timings'].items())}",
+        flush=True,
+    )
 
     # --- tembayes, the example batch end to end ---
     tmp = Path(tempfile.mkdtemp(prefix="tembayes-bench-"))
     try:
         t0 = time.perf_counter()
         # as `tembayes calibrate` runs it: modules in two worker processes
-        summ = calibrate_batch(batch, tmp / "run", seed=0, figures=True, jobs=min(2, threads))
+        summ = calibrate_batch(batch, tmp / "run", seed=0, workers=min(2, threads))
+        save_calibration_figures(tmp / "run")
         t_batch = time.perf_counter() - t0
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -108,8 +118,11 @@ def main(argv=None):
         t0 = time.perf_counter()
         ll = naive_loglike(module.identification, rig, params, data.noise)
         times.append(time.perf_counter() - t0)
-        print(f"naive log-likelihood (solve_ivp BDF, {len(module.identification.time)} samples): "
-              f"{times[-1]:.1f} s  (ll {ll:.0f})", flush=True)
+        print(
+            f"naive log-likelihood (solve_ivp BDF, {len(module.identification.time)} samples): "
+            f"{times[-1]:.1f} s  (ll {ll:.0f})",
+            flush=True,
+        )
     t_eval = float(np.median(times))
     nw = d["nwalkers"]
     tau = d["tau_max_steps"]
@@ -117,20 +130,34 @@ def main(argv=None):
     t_naive = steps * nw * t_eval / threads
     # tembayes reached more than the target ESS; its time to the target is at most t_module
     ratio = t_naive / t_module
-    print(f"\nnaive: {steps:.0f} steps x {nw} walkers x {t_eval:.1f} s / {threads} cores = {t_naive / 3600:.1f} h "
-          f"to a bulk ESS of {ESS_TARGET:.0f} (tau {tau:.0f} steps)")
+    print(
+        f"\nnaive: {steps:.0f} steps x {nw} walkers x {t_eval:.1f} s / {threads} cores = {t_naive / 3600:.1f} h "
+        f"to a bulk ESS of {ESS_TARGET:.0f} (tau {tau:.0f} steps)"
+    )
     print(f"tembayes: {t_module:.1f} s to a bulk ESS of {d['ess_bulk_min']:.0f} (target <= 30 s)")
     print(f"ratio of time to the same ESS (naive / tembayes): {ratio:,.0f}x")
     print(f"example batch end to end: {t_batch:.1f} s (target <= 120 s)")
-    write_json(RESULTS, {
-        "module": args.module, "cores": threads,
-        "tembayes_module_seconds": t_module, "tembayes_stage_seconds": d["timings"],
-        "tembayes_steps": d["steps"], "tembayes_tau_max_steps": tau, "tembayes_ess_bulk_min": d["ess_bulk_min"],
-        "tembayes_converged": d["converged"], "nwalkers": nw,
-        "example_batch_seconds": t_batch, "example_batch_converged": summ["converged"],
-        "naive_eval_seconds": times, "naive_steps_to_ess": steps, "naive_seconds_to_ess": t_naive,
-        "ratio_time_to_same_ess": ratio, "targets": {"module_s": 30, "batch_s": 120},
-    })
+    write_json(
+        RESULTS,
+        {
+            "module": args.module,
+            "cores": threads,
+            "tembayes_module_seconds": t_module,
+            "tembayes_stage_seconds": d["timings"],
+            "tembayes_steps": d["steps"],
+            "tembayes_tau_max_steps": tau,
+            "tembayes_ess_bulk_min": d["ess_bulk_min"],
+            "tembayes_converged": d["converged"],
+            "nwalkers": nw,
+            "example_batch_seconds": t_batch,
+            "example_batch_converged": summ["converged"],
+            "naive_eval_seconds": times,
+            "naive_steps_to_ess": steps,
+            "naive_seconds_to_ess": t_naive,
+            "ratio_time_to_same_ess": ratio,
+            "targets": {"module_s": 30, "batch_s": 120},
+        },
+    )
     print(f"wrote {RESULTS}")
 
 

@@ -24,7 +24,6 @@ Writes ``analyses/results/bench_convergence.json``.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 import warnings
@@ -54,15 +53,21 @@ def run(module, batch, rhat):
     t = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        r = calibrate_module(module, batch.datasheet, rig_config=batch.rig_config, seed=0,
-                             options=CalibrationOptions())
+        r = calibrate_module(module, batch.datasheet, rig_config=batch.rig_config, seed=0, options=CalibrationOptions())
     d = r.diagnostics
-    return {"seconds": time.perf_counter() - t, "steps": d["steps"], "converged": d["converged"],
-            "tau_max_steps": d["tau_max_steps"], "ess_bulk_min": d["ess_bulk_min"],
-            "mean": {p: float(r.draws[p].mean()) for p in MODULE_PARAMETERS},
-            "sd": {p: float(r.draws[p].std()) for p in MODULE_PARAMETERS},
-            "mcse": {p: float(r.draws[p].std() / np.sqrt(az.ess(np.ascontiguousarray(r.draws[p]), method="mean")))
-                     for p in MODULE_PARAMETERS}}
+    return {
+        "seconds": time.perf_counter() - t,
+        "steps": d["steps"],
+        "converged": d["converged"],
+        "tau_max_steps": d["tau_max_steps"],
+        "ess_bulk_min": d["ess_bulk_min"],
+        "mean": {p: float(r.draws[p].mean()) for p in MODULE_PARAMETERS},
+        "sd": {p: float(r.draws[p].std()) for p in MODULE_PARAMETERS},
+        "mcse": {
+            p: float(r.draws[p].std() / np.sqrt(az.ess(np.ascontiguousarray(r.draws[p]), method="mean")))
+            for p in MODULE_PARAMETERS
+        },
+    }
 
 
 def main():
@@ -80,19 +85,33 @@ def main():
         for mid in args.modules:
             res = {k: run(batch.modules[mid], batch, k) for k in ("walkers", "nested")}
             new, old = res["nested"], res["walkers"]
-            moved = {p: abs(new["mean"][p] - old["mean"][p]) / np.hypot(new["mcse"][p], old["mcse"][p])
-                     for p in MODULE_PARAMETERS}
+            moved = {
+                p: abs(new["mean"][p] - old["mean"][p]) / np.hypot(new["mcse"][p], old["mcse"][p])
+                for p in MODULE_PARAMETERS
+            }
             sd_ratio = {p: new["sd"][p] / old["sd"][p] for p in MODULE_PARAMETERS}
-            rows.append({"bench": bench, "module": mid, **{f"{k}_rhat": v for k, v in res.items()},
-                         "time_ratio": old["seconds"] / new["seconds"], "mean_moved_mcse": moved,
-                         "sd_ratio": sd_ratio})
-            print(f"{bench:8s} {mid}: per-walker R-hat {old['seconds']:6.1f} s ({old['steps']} steps) | "
-                  f"nested R-hat {new['seconds']:6.1f} s ({new['steps']} steps) | ratio {old['seconds'] / new['seconds']:.2f}x"
-                  f" | means moved <= {max(moved.values()):.1f} MCSE | sd ratio "
-                  f"{min(sd_ratio.values()):.3f}-{max(sd_ratio.values()):.3f}", flush=True)
+            rows.append(
+                {
+                    "bench": bench,
+                    "module": mid,
+                    **{f"{k}_rhat": v for k, v in res.items()},
+                    "time_ratio": old["seconds"] / new["seconds"],
+                    "mean_moved_mcse": moved,
+                    "sd_ratio": sd_ratio,
+                }
+            )
+            print(
+                f"{bench:8s} {mid}: per-walker R-hat {old['seconds']:6.1f} s ({old['steps']} steps) | "
+                f"nested R-hat {new['seconds']:6.1f} s ({new['steps']} steps) | ratio {old['seconds'] / new['seconds']:.2f}x"
+                f" | means moved <= {max(moved.values()):.1f} MCSE | sd ratio "
+                f"{min(sd_ratio.values()):.3f}-{max(sd_ratio.values()):.3f}",
+                flush=True,
+            )
     med_new = float(np.median([r["nested_rhat"]["seconds"] for r in rows]))
-    print(f"median module time with nested R-hat: {med_new:.1f} s (target <= 60 s); "
-          f"median ratio {np.median([r['time_ratio'] for r in rows]):.2f}x")
+    print(
+        f"median module time with nested R-hat: {med_new:.1f} s (target <= 60 s); "
+        f"median ratio {np.median([r['time_ratio'] for r in rows]):.2f}x"
+    )
     write_json(args.out, {"rows": rows, "median_seconds_nested": med_new})
 
 

@@ -64,8 +64,12 @@ def naive(exp, draws, rig, rng):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--run", type=Path, default=Path("runs/example"),
-                    help="a calibration run of data/example (made by the README's main job)")
+    ap.add_argument(
+        "--run",
+        type=Path,
+        default=Path("runs/example"),
+        help="a calibration run of data/example (made by the README's main job)",
+    )
     ap.add_argument("--batch", type=Path, default=Path("data/example"))
     ap.add_argument("--module", default="TEM2")
     ap.add_argument("--draws", type=int, default=500)
@@ -80,8 +84,11 @@ def main(argv=None):
     t0 = time.perf_counter()
     pred = simulate_predictive(model, draws, np.random.default_rng(2))
     t_tem = time.perf_counter() - t0
-    print(f"tembayes: {args.draws} draws of {exp.path} ({len(exp.time)} samples, "
-          f"{(exp.time[-1] - exp.time[0]) / 3600:.2f} h): {t_tem:.2f} s (target <= {TARGET_S:.0f} s)", flush=True)
+    print(
+        f"tembayes: {args.draws} draws of {exp.path} ({len(exp.time)} samples, "
+        f"{(exp.time[-1] - exp.time[0]) / 3600:.2f} h): {t_tem:.2f} s (target <= {TARGET_S:.0f} s)",
+        flush=True,
+    )
     t_naive, mean_naive = naive(exp, draws, rig, np.random.default_rng(2))
     print(f"naive (every sample, physics.simulate): {t_naive:.2f} s", flush=True)
     diff = np.abs(pred.mean - mean_naive)
@@ -90,16 +97,26 @@ def main(argv=None):
     t_predict = time.perf_counter() - t0
     doc = {
         "command": "python analyses/bench_predict.py " + " ".join(argv or sys.argv[1:]),
-        "cores": os.cpu_count(), "draws": args.draws, "samples": len(exp.time), "grid_points": model.n_grid,
-        "tembayes_s": t_tem, "naive_s": t_naive, "ratio": t_naive / t_tem, "target_s": TARGET_S,
-        "meets_target": t_tem <= TARGET_S, "predict_total_s": t_predict,
+        "cores": os.cpu_count(),
+        "draws": args.draws,
+        "samples": len(exp.time),
+        "grid_points": model.n_grid,
+        "tembayes_s": t_tem,
+        "naive_s": t_naive,
+        "ratio": t_naive / t_tem,
+        "target_s": TARGET_S,
+        "meets_target": t_tem <= TARGET_S,
+        "predict_total_s": t_predict,
         # the naive run takes the *measured* (noisy) current and steps mid-interval; the difference is
         # dominated by that, not by the grid (see tests/test_predict.py for the grid's own error)
-        "mean_abs_diff_sensors_K": float(diff[:4].max()), "mean_abs_diff_voltage_V": float(diff[4].max()),
+        "mean_abs_diff_sensors_K": float(diff[:4].max()),
+        "mean_abs_diff_voltage_V": float(diff[4].max()),
         "mean_rms_diff_sensors_K": float(np.sqrt(np.mean(diff[:4] ** 2))),
     }
-    print(f"ratio naive / tembayes: {doc['ratio']:.1f}x; whole predict (anchoring + {args.draws} draws): "
-          f"{t_predict:.1f} s; predictive means differ by rms {1e3 * doc['mean_rms_diff_sensors_K']:.2f} mK")
+    print(
+        f"ratio naive / tembayes: {doc['ratio']:.1f}x; whole predict (anchoring + {args.draws} draws): "
+        f"{t_predict:.1f} s; predictive means differ by rms {1e3 * doc['mean_rms_diff_sensors_K']:.2f} mK"
+    )
     write_json(RESULTS, doc)
 
 

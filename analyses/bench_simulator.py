@@ -85,7 +85,9 @@ def main(argv=None):
     t0 = time.perf_counter()
     fast = simulate(inputs, params)
     t_fast = time.perf_counter() - t0
-    print(f"tembayes: {t_fast:.2f} s for {args.sets} sets (first-call compile/cache load {t_compile:.1f} s)", flush=True)
+    print(
+        f"tembayes: {t_fast:.2f} s for {args.sets} sets (first-call compile/cache load {t_compile:.1f} s)", flush=True
+    )
     # the same on one thread, so the ratio per core is on record too
     threads = numba.get_num_threads()
     numba.set_num_threads(1)
@@ -142,8 +144,10 @@ def main(argv=None):
         print(f"{'max |err| ' + ch + ' [K]':28s}{a:12.2e}{b:14.2e}")
     print(f"{'max |err| voltage [V]':28s}{err_fast_V:12.2e}{err_base_V:14.2e}")
     print(f"{'wall time, 1 thread [s]':28s}{t_fast1:12.2f}{t_base:14.1f}")
-    print(f"\nspeed ratio (BDF / tembayes, {threads} threads): {ratio:.1f}x   (target >= 50x); "
-          f"on 1 thread: {t_base / t_fast1:.1f}x")
+    print(
+        f"\nspeed ratio (BDF / tembayes, {threads} threads): {ratio:.1f}x   (target >= 50x); "
+        f"on 1 thread: {t_base / t_fast1:.1f}x"
+    )
     print(f"agreement with tight reference: {err_fast_T.max():.2e} K, {err_fast_V:.2e} V (targets 0.01 K, 1 mV)")
     print("PASS" if result["pass"] else "FAIL")
     if not args.quick:
@@ -155,8 +159,9 @@ def main(argv=None):
 
 def Simulation_take(sim, idx):
     """The draws ``idx`` of a Simulation."""
-    return type(sim)(sim.time, sim.channels, sim.sensors[idx], sim.voltage[idx], sim.t_hot[idx], sim.t_cold[idx],
-                     sim.steps[idx])
+    return type(sim)(
+        sim.time, sim.channels, sim.sensors[idx], sim.voltage[idx], sim.t_hot[idx], sim.t_cold[idx], sim.steps[idx]
+    )
 
 
 if __name__ == "__main__":

@@ -52,8 +52,7 @@ from tembayes.constants import MODULE_PARAMETERS  # noqa: E402
 from tembayes.data import load_batch, write_json  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "calibration_study.json"
-RIG = ("g_cooler", "g_paste_hot", "g_paste_cold", "c_plate_hot", "c_plate_cold", "c_legs", "leak_top",
-       "leak_bottom")
+RIG = ("g_cooler", "g_paste_hot", "g_paste_cold", "c_plate_hot", "c_plate_cold", "c_legs", "leak_top", "leak_bottom")
 
 
 def design(quick=False):
@@ -73,8 +72,12 @@ def run_one(args):
     work = Path(work)
     bdir = work / "batches" / name
     if not (bdir / "truth.json").exists():
-        simulate_batch(bdir, BenchConfig(n_modules=n, seed=seed, outlier=outlier, n_validations=0), overwrite=True,
-                       progress=lambda m: None)
+        simulate_batch(
+            bdir,
+            BenchConfig(n_modules=n, seed=seed, outlier=outlier, n_validations=0),
+            overwrite=True,
+            progress=lambda m: None,
+        )
     rdir = work / "runs" / name
     t0 = time.perf_counter()
     if repopulate and (rdir / "summary.json").exists():
@@ -82,7 +85,7 @@ def run_one(args):
     if (rdir / "summary.json").exists():
         summ = json.loads((rdir / "summary.json").read_text())
     else:
-        summ = calibrate_batch(load_batch(bdir), rdir, seed=0, resume=True, figures=False)
+        summ = calibrate_batch(load_batch(bdir), rdir, seed=0, resume=True)
     truth = json.loads((bdir / "truth.json").read_text())
     return name, summ, truth, time.perf_counter() - t0
 
@@ -94,8 +97,13 @@ def coverage_table(records):
         z = np.array([r["z"][k] for r in records if k in r["z"]])
         n = len(inside)
         lo, hi = stats.binom.ppf([0.025, 0.975], n, 0.9) / n
-        out[k] = {"n": n, "coverage90": float(inside.mean()), "binomial_band": [float(lo), float(hi)],
-                  "z_mean": float(z.mean()), "z_sd": float(z.std(ddof=1))}
+        out[k] = {
+            "n": n,
+            "coverage90": float(inside.mean()),
+            "binomial_band": [float(lo), float(hi)],
+            "z_mean": float(z.mean()),
+            "z_sd": float(z.std(ddof=1)),
+        }
     return out
 
 
@@ -114,8 +122,9 @@ def outlier_table(batches):
             others = [v for mid, v in p.items() if mid != out]
             hi, lo = (0.5, 0.3) if n <= 3 else (0.9, 0.1)
             ok = max(p, key=p.get) == out and p[out] > hi and max(others) < lo
-            res[key].append({"batch": b["name"], "outlier": out, "prob": p[out], "max_other": max(others),
-                             "pass": bool(ok)})
+            res[key].append(
+                {"batch": b["name"], "outlier": out, "prob": p[out], "max_other": max(others), "pass": bool(ok)}
+            )
         else:
             res[key].append({"batch": b["name"], "max_prob": max(p.values()), "pass": bool(max(p.values()) <= 0.3)})
     summary = {k: {"n": len(v), "passed": int(sum(x["pass"] for x in v)), "batches": v} for k, v in res.items()}
@@ -124,9 +133,14 @@ def outlier_table(batches):
     calib = []
     for a, b in zip(edges[:-1], edges[1:]):
         sel = (probs >= a) & (probs < b)
-        calib.append({"bin": [a, min(b, 1.0)], "n": int(sel.sum()),
-                      "mean_prob": float(probs[sel].mean()) if sel.any() else None,
-                      "outlier_fraction": float(labels[sel].mean()) if sel.any() else None})
+        calib.append(
+            {
+                "bin": [a, min(b, 1.0)],
+                "n": int(sel.sum()),
+                "mean_prob": float(probs[sel].mean()) if sel.any() else None,
+                "outlier_fraction": float(labels[sel].mean()) if sel.any() else None,
+            }
+        )
     summary["calibration"] = calib
     return summary
 
@@ -144,10 +158,13 @@ def negative_control(work):
             ref = stats.uniform(pr.center - pr.scale, 2 * pr.scale)
         else:
             ref = stats.norm(np.log(pr.center) if pr.kind == "lognormal" else pr.center, pr.scale)
-        out[pr.name] = {"ks_pvalue": float(stats.kstest(x, ref.cdf).pvalue),
-                        "sd_ratio": float(np.std(x) / ref.std())}
-    return {"converged": bool(run.converged), "steps": run.steps, "parameters": out,
-            "min_pvalue": min(v["ks_pvalue"] for v in out.values())}
+        out[pr.name] = {"ks_pvalue": float(stats.kstest(x, ref.cdf).pvalue), "sd_ratio": float(np.std(x) / ref.std())}
+    return {
+        "converged": bool(run.converged),
+        "steps": run.steps,
+        "parameters": out,
+        "min_pvalue": min(v["ks_pvalue"] for v in out.values()),
+    }
 
 
 def main(argv=None):
@@ -155,10 +172,16 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="4 batches only")
     ap.add_argument("--jobs", type=int, default=2, help="batches calibrated in parallel (default 2)")
     ap.add_argument("--work", type=Path, default=Path("runs/calibration_study"), help="cache folder")
-    ap.add_argument("--repopulate", action="store_true",
-                    help="refit the population stage of cached runs (module posteriors are reused)")
-    ap.add_argument("--cached-only", action="store_true",
-                    help="summarise the batches already calibrated in --work (a partial study; n is reported)")
+    ap.add_argument(
+        "--repopulate",
+        action="store_true",
+        help="refit the population stage of cached runs (module posteriors are reused)",
+    )
+    ap.add_argument(
+        "--cached-only",
+        action="store_true",
+        help="summarise the batches already calibrated in --work (a partial study; n is reported)",
+    )
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     jobs = [(*d, str(args.work), args.repopulate) for d in design(args.quick)]
@@ -201,19 +224,25 @@ def main(argv=None):
     print(f"\n{len(records)} modules in {len(batches)} batches; converged {result['converged_fraction']:.0%}")
     print(f"{'parameter':<16s} {'coverage90':>10s} {'band':>13s} {'z mean':>7s} {'z sd':>6s}")
     for k, v in cov.items():
-        print(f"{k:<16s} {v['coverage90']:>10.1%} {v['binomial_band'][0]:>6.0%}-{v['binomial_band'][1]:<6.0%}"
-              f" {v['z_mean']:>+7.2f} {v['z_sd']:>6.2f}")
+        print(
+            f"{k:<16s} {v['coverage90']:>10.1%} {v['binomial_band'][0]:>6.0%}-{v['binomial_band'][1]:<6.0%}"
+            f" {v['z_mean']:>+7.2f} {v['z_sd']:>6.2f}"
+        )
     print("\noutliers (passed / batches):")
     for k in ("3_with", "3_without", "8_with", "8_without"):
         print(f"  {k:<10s} {out_tab[k]['passed']}/{out_tab[k]['n']}")
     print("calibration (outlier_prob bin: n, mean prob, observed outlier fraction):")
     for c in out_tab["calibration"]:
         if c["n"]:
-            print(f"  [{c['bin'][0]:.1f}, {c['bin'][1]:.1f}): {c['n']:>4d}  {c['mean_prob']:.2f}  "
-                  f"{c['outlier_fraction']:.2f}")
+            print(
+                f"  [{c['bin'][0]:.1f}, {c['bin'][1]:.1f}): {c['n']:>4d}  {c['mean_prob']:.2f}  "
+                f"{c['outlier_fraction']:.2f}"
+            )
     print(f"negative control: min KS p-value {neg['min_pvalue']:.3f} over {len(neg['parameters'])} coordinates")
-    print(f"seconds per module: median {result['seconds_per_module']['median']:.0f}, "
-          f"max {result['seconds_per_module']['max']:.0f}")
+    print(
+        f"seconds per module: median {result['seconds_per_module']['median']:.0f}, "
+        f"max {result['seconds_per_module']['max']:.0f}"
+    )
     if not args.quick:
         write_json(RESULTS, result)
         print(f"wrote {RESULTS}")

@@ -31,8 +31,11 @@ def runs(module, effect_params, seed, rate):
     out = []
     for kind in ("identification", "validation"):
         rng = np.random.default_rng(seed)
-        proto = identification_staircase() if kind == "identification" else validation_cycle(
-            np.random.default_rng(seed + 1))
+        proto = (
+            identification_staircase()
+            if kind == "identification"
+            else validation_cycle(np.random.default_rng(seed + 1))
+        )
         out.append(run_experiment(proto, module, dict(effect_params), rng, rate=rate))
     return out
 
@@ -45,8 +48,11 @@ def main(argv=None):
     module = draw_truth(BenchConfig(n_modules=1, seed=args.seed), np.random.default_rng(args.seed))["modules"]["TEM1"]
     base = runs(module, {}, args.seed, args.rate)
     table = {}
-    print(f"{'effect':<20s}{'run':<16s}" + "".join(f"{c + ' rms/max':>18s}" for c in ("T1", "T2", "T3", "T4"))
-          + f"{'V rms/max [mV]':>18s}{'I rms [mA]':>12s}")
+    print(
+        f"{'effect':<20s}{'run':<16s}"
+        + "".join(f"{c + ' rms/max':>18s}" for c in ("T1", "T2", "T3", "T4"))
+        + f"{'V rms/max [mV]':>18s}{'I rms [mA]':>12s}"
+    )
     for name, effect in CATALOGUE.items():
         with_fx = runs(module, effect.defaults(), args.seed, args.rate)
         table[name] = {}
@@ -56,19 +62,25 @@ def main(argv=None):
             dV = 1e3 * (e.voltage - b.voltage)
             dI = 1e3 * (e.current - b.current)
             row = {
-                "rms_mK": np.sqrt((dT ** 2).mean(axis=1)).tolist(),
+                "rms_mK": np.sqrt((dT**2).mean(axis=1)).tolist(),
                 "max_mK": np.abs(dT).max(axis=1).tolist(),
-                "V_rms_mV": float(np.sqrt((dV ** 2).mean())),
+                "V_rms_mV": float(np.sqrt((dV**2).mean())),
                 "V_max_mV": float(np.abs(dV).max()),
-                "I_rms_mA": float(np.sqrt((dI ** 2).mean())),
+                "I_rms_mA": float(np.sqrt((dI**2).mean())),
             }
             table[name][kind] = row
             cells = "".join(f"{r:9.1f}/{m:<8.1f}" for r, m in zip(row["rms_mK"], row["max_mK"]))
             print(f"{name:<20s}{kind:<16s}{cells}{row['V_rms_mV']:9.2f}/{row['V_max_mV']:<8.2f}{row['I_rms_mA']:10.2f}")
     RESULTS.mkdir(exist_ok=True)
-    write_json(RESULTS / "effect_sizes.json", {"seed": args.seed, "rate_Hz": args.rate,
-                                                "defaults": {n: e.defaults() for n, e in CATALOGUE.items()},
-                                                "table": table})
+    write_json(
+        RESULTS / "effect_sizes.json",
+        {
+            "seed": args.seed,
+            "rate_Hz": args.rate,
+            "defaults": {n: e.defaults() for n, e in CATALOGUE.items()},
+            "table": table,
+        },
+    )
     print(f"wrote {RESULTS / 'effect_sizes.json'}")
     return 0
 

@@ -73,8 +73,9 @@ def _group(effect):
 
 
 def _tembayes(*args, check=True):
-    subprocess.run([sys.executable, "-m", "tembayes", *args], check=check, stdout=subprocess.DEVNULL,
-                   stderr=subprocess.DEVNULL)
+    subprocess.run(
+        [sys.executable, "-m", "tembayes", *args], check=check, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
 
 
 def _case(work, effect, seed, withheld, compute=True):
@@ -93,11 +94,31 @@ def _case(work, effect, seed, withheld, compute=True):
     if not (run / "summary.json").is_file():
         d.mkdir(parents=True, exist_ok=True)
         eff = ["--effect", effect] if effect else []
-        _tembayes("simulate", str(batch), "--modules", "1", "--seed", str(1000 + seed), "--validation-rate", "1",
-                  "--overwrite", *eff)
+        _tembayes(
+            "simulate",
+            str(batch),
+            "--modules",
+            "1",
+            "--seed",
+            str(1000 + seed),
+            "--validation-rate",
+            "1",
+            "--overwrite",
+            *eff,
+        )
         # exit status 1 = a module not converged: a misspecified model often is; the run is written
-        _tembayes("calibrate", str(batch), "--out", str(run), "--seed", str(seed), "--no-figures", "--quiet",
-                  "--overwrite", check=False)
+        _tembayes(
+            "calibrate",
+            str(batch),
+            "--out",
+            str(run),
+            "--seed",
+            str(seed),
+            "--no-figures",
+            "--quiet",
+            "--overwrite",
+            check=False,
+        )
         if not (run / "summary.json").is_file():
             raise RuntimeError(f"calibrating {batch} wrote no run")
     out, cache = {}, {}  # the withheld diagnosis reuses the other candidates' recalibrations
@@ -127,12 +148,12 @@ def summarise(cases):
     from tembayes.physics.effects import CATALOGUE
 
     rows = {}
-    for (effect, seed), docs in sorted(cases.items(), key=lambda kv: (kv[0][0] or "", kv[0][1])):
+    for (effect, _seed), docs in sorted(cases.items(), key=lambda kv: (kv[0][0] or "", kv[0][1])):
         rows.setdefault(effect or "null", []).append(_called(docs["gap"]))
         if "gap_withheld" in docs:
             rows.setdefault(f"withheld {effect}", []).append(_called(docs["gap_withheld"]))
     strict, grouped, n_cat, shrinks, resolved, sizes, times, group_sizes = 0, 0, 0, {}, {}, {}, [], []
-    for (effect, seed), docs in cases.items():
+    for (effect, _seed), docs in cases.items():
         doc = docs["gap"]
         times.append(doc["seconds"])
         if doc["best"]:
@@ -152,7 +173,7 @@ def summarise(cases):
         elif "parameters" in gap_in:
             resolved.setdefault(effect, []).append(bool(r.get("conflicts_resolved")))
         first = CATALOGUE[effect].parameters[0]
-        for m, sz in (r.get("size") or {}).items():
+        for _m, sz in (r.get("size") or {}).items():
             est = sz[first.name].get("median", sz[first.name].get("mode"))
             sizes.setdefault(effect, []).append(est / first.default)
     all_shrinks = [x for v in shrinks.values() for x in v]
@@ -168,62 +189,98 @@ def summarise(cases):
         "n_null": len(null),
         "withheld_not_explained": float(np.mean([v != "explained" for v in held])) if held else None,
         "n_withheld": len(held),
-        "shrink_true_effect": {k: {"median": float(np.median(v)), "min": float(np.min(v)), "n": len(v)}
-                               for k, v in shrinks.items()},
+        "shrink_true_effect": {
+            k: {"median": float(np.median(v)), "min": float(np.min(v)), "n": len(v)} for k, v in shrinks.items()
+        },
         "shrink_true_effect_all": float(np.median(all_shrinks)) if all_shrinks else None,
         "shrink_true_effect_min": float(np.min(all_shrinks)) if all_shrinks else None,
-        "conflicts_resolved_true_effect": {k: {"fraction": float(np.mean(v)), "n": len(v)} for k, v in resolved.items()},
-        "size_over_truth": {k: {"median": float(np.median(v)), "min": float(np.min(v)), "max": float(np.max(v)),
-                                "n": len(v)} for k, v in sizes.items()},
+        "conflicts_resolved_true_effect": {
+            k: {"fraction": float(np.mean(v)), "n": len(v)} for k, v in resolved.items()
+        },
+        "size_over_truth": {
+            k: {"median": float(np.median(v)), "min": float(np.min(v)), "max": float(np.max(v)), "n": len(v)}
+            for k, v in sizes.items()
+        },
         "diagnosis_seconds": {"median": float(np.median(times)), "max": float(np.max(times))} if times else None,
         "groups": [list(g) for g in GROUPS],
-        "targets": {"top1_grouped": 0.85, "null_false_alarm": 0.10, "withheld_not_explained": 0.80,
-                    "shrink": 0.50},
+        "targets": {"top1_grouped": 0.85, "null_false_alarm": 0.10, "withheld_not_explained": 0.80, "shrink": 0.50},
     }
 
 
 def _markdown(s):
-    lines = ["# Gap diagnosis: blind benchmark", "",
-             "`python analyses/gap_benchmark.py` (one-module bench batches, 4 h validation at 1 Hz).", "",
-             "| true effect | diagnosed (best, or verdict) |", "|---|---|"]
+    lines = [
+        "# Gap diagnosis: blind benchmark",
+        "",
+        "`python analyses/gap_benchmark.py` (one-module bench batches, 4 h validation at 1 Hz).",
+        "",
+        "| true effect | diagnosed (best, or verdict) |",
+        "|---|---|",
+    ]
     for k, v in s["confusion"].items():
         lines.append(f"| {k} | " + ", ".join(f"{c} x{n}" for c, n in v.items()) + " |")
-    f = (lambda x: "–" if x is None else f"{x:.2f}")
-    lines += ["", f"- top-1 (groups {s['groups']} as one): {f(s['top1_grouped'])} "
-                  f"(strict {f(s['top1_strict'])}) over {s['n_catalogue_cases']} cases; target >= 0.85; "
-                  f"mean size of the reported best group {f(s['mean_best_group_size'])}",
-              f"- null false alarm: {f(s['null_false_alarm'])} over {s['n_null']}; target <= 0.10",
-              f"- withheld not called explained: {f(s['withheld_not_explained'])} over {s['n_withheld']}; "
-              "target >= 0.80",
-              f"- shrink of the held-out gap with the true effect: median {f(s['shrink_true_effect_all'])}, "
-              f"least {f(s['shrink_true_effect_min'])}; target >= 0.50", ""]
-    lines += ["| true effect | shrink median | shrink least | n | size / bench (median, range) |", "|---|---|---|---|---|"]
-    for k in sorted(set(s["shrink_true_effect"]) | set(s["size_over_truth"]) | set(s["conflicts_resolved_true_effect"])):
+
+    def f(x):
+        return "–" if x is None else f"{x:.2f}"
+
+    lines += [
+        "",
+        f"- top-1 (groups {s['groups']} as one): {f(s['top1_grouped'])} "
+        f"(strict {f(s['top1_strict'])}) over {s['n_catalogue_cases']} cases; target >= 0.85; "
+        f"mean size of the reported best group {f(s['mean_best_group_size'])}",
+        f"- null false alarm: {f(s['null_false_alarm'])} over {s['n_null']}; target <= 0.10",
+        f"- withheld not called explained: {f(s['withheld_not_explained'])} over {s['n_withheld']}; target >= 0.80",
+        f"- shrink of the held-out gap with the true effect: median {f(s['shrink_true_effect_all'])}, "
+        f"least {f(s['shrink_true_effect_min'])}; target >= 0.50",
+        "",
+    ]
+    lines += [
+        "| true effect | shrink median | shrink least | n | size / bench (median, range) |",
+        "|---|---|---|---|---|",
+    ]
+    for k in sorted(
+        set(s["shrink_true_effect"]) | set(s["size_over_truth"]) | set(s["conflicts_resolved_true_effect"])
+    ):
         sh = s["shrink_true_effect"].get(k)
         cr = s["conflicts_resolved_true_effect"].get(k)
         sz = s["size_over_truth"].get(k)
-        cell = (f"{sh['median']:.2f} | {sh['min']:.2f} | {sh['n']}" if sh else
-                f"(gap in the parameters: back in range {cr['fraction']:.0%}) | – | {cr['n']}" if cr else "– | – | 0")
+        cell = (
+            f"{sh['median']:.2f} | {sh['min']:.2f} | {sh['n']}"
+            if sh
+            else f"(gap in the parameters: back in range {cr['fraction']:.0%}) | – | {cr['n']}"
+            if cr
+            else "– | – | 0"
+        )
         size = f"{sz['median']:.2f} ({sz['min']:.2f}-{sz['max']:.2f})" if sz else "–"
         lines.append(f"| {k} | {cell} | {size} |")
-    lines += ["", f"- diagnosis time per batch: median {s['diagnosis_seconds']['median']:.0f} s, "
-                  f"max {s['diagnosis_seconds']['max']:.0f} s" if s["diagnosis_seconds"] else ""]
+    lines += [
+        "",
+        f"- diagnosis time per batch: median {s['diagnosis_seconds']['median']:.0f} s, "
+        f"max {s['diagnosis_seconds']['max']:.0f} s"
+        if s["diagnosis_seconds"]
+        else "",
+    ]
     return "\n".join(lines) + "\n"
 
 
 def main(argv=None):
     from tembayes.physics.effects import CATALOGUE
 
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter,
-                                 epilog="example: python analyses/gap_benchmark.py --seeds 5")
+    ap = argparse.ArgumentParser(
+        description=__doc__.split("\n")[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="example: python analyses/gap_benchmark.py --seeds 5",
+    )
     ap.add_argument("--seeds", type=int, default=5)
     ap.add_argument("--effects", nargs="*", default=list(CATALOGUE))
     ap.add_argument("--no-null", action="store_true")
     ap.add_argument("--no-withheld", action="store_true")
     ap.add_argument("--work", type=Path, default=Path("runs/gap_benchmark"))
-    ap.add_argument("--shard", default="0/1", metavar="I/N",
-                    help="run every N-th case from the I-th (two shards fill 2 cores while one calibrates)")
+    ap.add_argument(
+        "--shard",
+        default="0/1",
+        metavar="I/N",
+        help="run every N-th case from the I-th (two shards fill 2 cores while one calibrates)",
+    )
     ap.add_argument("--summarise", action="store_true", help="only summarise the cases already cached")
     ap.add_argument("--label", default="", help="results as gap_benchmark_LABEL.{json,md} (a partial rerun)")
     args = ap.parse_args(argv)

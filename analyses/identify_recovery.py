@@ -42,8 +42,13 @@ TARGETS = {"R0_ohm": 0.02, "R1_ohm_per_K": 0.20, "S0_V_per_K": 0.02, "S1_V_per_K
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, nargs="+", default=[10, 11, 12, 13])
-    ap.add_argument("--batch", type=Path, action="append", default=[],
-                    help="also an existing batch folder with truth.json (e.g. data/example)")
+    ap.add_argument(
+        "--batch",
+        type=Path,
+        action="append",
+        default=[],
+        help="also an existing batch folder with truth.json (e.g. data/example)",
+    )
     ap.add_argument("--validation", action="store_true", help="also run validation experiments")
     args = ap.parse_args(argv)
     rows = []
@@ -51,8 +56,11 @@ def main(argv=None):
         folders = list(args.batch)
         for seed in args.seeds:
             out = Path(tmp) / f"seed{seed}"
-            simulate_batch(out, BenchConfig(n_modules=3, seed=seed, n_validations=1 if args.validation else 0,
-                                            validation_rate=1.0), progress=lambda m: None)
+            simulate_batch(
+                out,
+                BenchConfig(n_modules=3, seed=seed, n_validations=1 if args.validation else 0, validation_rate=1.0),
+                progress=lambda m: None,
+            )
             folders.append(out)
         for folder in folders:
             batch = load_batch(folder)
@@ -61,14 +69,17 @@ def main(argv=None):
                 t0 = time.perf_counter()
                 r = identify_module(module, batch.datasheet, rig_config=batch.rig_config)
                 t = truth["modules"][mid]
-                row = {"batch": str(folder) if folder in args.batch else Path(folder).name, "module": mid,
-                       "seconds": time.perf_counter() - t0}
+                row = {
+                    "batch": str(folder) if folder in args.batch else Path(folder).name,
+                    "module": mid,
+                    "seconds": time.perf_counter() - t0,
+                }
                 row["fit_err"] = {k: r.fit[k] / t[k] - 1 for k in LAW_PARAMETERS}
                 row["paper_err"] = {k: r.fit_paper[k] / t[k] - 1 for k in LAW_PARAMETERS}
                 row["K_err"] = r.rig_fit.values["K_W_per_K"] / t["K_W_per_K"] - 1
                 row["sensor_dT_bias_S0"] = r.lines["S_sensor_dT"].a / r.lines["S"].a - 1
 
-                def R_true(T):
+                def R_true(T, t=t):
                     return t["R0_ohm"] + t["R1_ohm_per_K"] * (np.asarray(T) - T_REF)
 
                 ext = np.array([s["jump"].R / R_true(s["Tavg_R"]) - 1 for s in r.steps])
@@ -79,14 +90,20 @@ def main(argv=None):
                 row["within_targets"] = all(abs(row["fit_err"][k]) <= TARGETS[k] for k in LAW_PARAMETERS)
                 if args.validation:
                     row["validation_T3_rmse"] = {
-                        f: {m: e["T3_C"]["rmse"] for m, e in v.items()} for f, v in r.validation.items()}
+                        f: {m: e["T3_C"]["rmse"] for m, e in v.items()} for f, v in r.validation.items()
+                    }
                 rows.append(row)
                 e = row["fit_err"]
                 p = row["paper_err"]
-                print(f"{row['batch']:<14s}{mid:<6s} fit: " + " ".join(f"{k[:2]} {100 * e[k]:+6.2f}%" for k in e)
-                      + " | paper: " + " ".join(f"{k[:2]} {100 * p[k]:+6.2f}%" for k in p)
-                      + f" | jump {100 * row['jump_err_mean']:+.2f}% first {100 * row['first_sample_err_mean']:+.2f}%"
-                      + f" | {'OK' if row['within_targets'] else 'MISS'}", flush=True)
+                print(
+                    f"{row['batch']:<14s}{mid:<6s} fit: "
+                    + " ".join(f"{k[:2]} {100 * e[k]:+6.2f}%" for k in e)
+                    + " | paper: "
+                    + " ".join(f"{k[:2]} {100 * p[k]:+6.2f}%" for k in p)
+                    + f" | jump {100 * row['jump_err_mean']:+.2f}% first {100 * row['first_sample_err_mean']:+.2f}%"
+                    + f" | {'OK' if row['within_targets'] else 'MISS'}",
+                    flush=True,
+                )
     summary = {
         "n_modules": len(rows),
         "within_targets": sum(r["within_targets"] for r in rows),
@@ -94,14 +111,17 @@ def main(argv=None):
         "max_abs_paper_err": {k: max(abs(r["paper_err"][k]) for r in rows) for k in LAW_PARAMETERS},
         "mean_abs_jump_err": float(np.mean([abs(r["jump_err_mean"]) for r in rows])),
         "mean_abs_first_sample_err": float(np.mean([abs(r["first_sample_err_mean"]) for r in rows])),
-        "sensor_dT_bias_S0_range": [min(r["sensor_dT_bias_S0"] for r in rows),
-                                    max(r["sensor_dT_bias_S0"] for r in rows)],
+        "sensor_dT_bias_S0_range": [
+            min(r["sensor_dT_bias_S0"] for r in rows),
+            max(r["sensor_dT_bias_S0"] for r in rows),
+        ],
         "max_abs_hysteresis_z": max(abs(z) for r in rows for z in r["hysteresis_z"].values()),
     }
     print(json.dumps(summary, indent=2))
     RESULTS.mkdir(exist_ok=True)
-    write_json(RESULTS / "identify_recovery.json", {"summary": summary, "rows": rows, "targets": TARGETS,
-                                                     "seeds": args.seeds})
+    write_json(
+        RESULTS / "identify_recovery.json", {"summary": summary, "rows": rows, "targets": TARGETS, "seeds": args.seeds}
+    )
     print(f"wrote {RESULTS / 'identify_recovery.json'}")
     return 0
 

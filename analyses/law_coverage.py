@@ -35,10 +35,10 @@ ROOT = Path(__file__).resolve().parent.parent
 PARAMS = ("R0_ohm", "R1_ohm_per_K", "S0_V_per_K", "S1_V_per_K2", "K_W_per_K")
 #: The two module types: TEC1-12706 class and a 3 ohm, 3.9 A class.
 TYPES = {
-    "TEC1-12706": "[module_type]\nname = \"TEC1-12706\"\nth_C = 25.0\nimax_A = 6.4\nvmax_V = 14.4\ndtmax_K = 66.0\n"
-                  "qmax_W = 50.0\n",
-    "3ohm-3.9A": "[module_type]\nname = \"3ohm-3.9A\"\nth_C = 25.0\nimax_A = 3.9\nvmax_V = 15.4\ndtmax_K = 68.0\n"
-                 "qmax_W = 34.0\n",
+    "TEC1-12706": '[module_type]\nname = "TEC1-12706"\nth_C = 25.0\nimax_A = 6.4\nvmax_V = 14.4\ndtmax_K = 66.0\n'
+    "qmax_W = 50.0\n",
+    "3ohm-3.9A": '[module_type]\nname = "3ohm-3.9A"\nth_C = 25.0\nimax_A = 3.9\nvmax_V = 15.4\ndtmax_K = 68.0\n'
+    "qmax_W = 34.0\n",
 }
 
 
@@ -60,12 +60,46 @@ def one_batch(args, work, t, b):
         ds = work / f"{t}.toml"
         ds.write_text(TYPES[t])
         seed = 1000 * (list(TYPES).index(t) + 1) + b
-        run(["simulate", bdir, "--modules", args.modules, "--fidelity", args.fidelity, "--physics", args.physics,
-             "--datasheet", ds, "--seed", seed, "--validations", 0, "--overwrite"])
+        run(
+            [
+                "simulate",
+                bdir,
+                "--modules",
+                args.modules,
+                "--fidelity",
+                args.fidelity,
+                "--physics",
+                args.physics,
+                "--datasheet",
+                ds,
+                "--seed",
+                seed,
+                "--validations",
+                0,
+                "--overwrite",
+            ]
+        )
     rdir = work / "runs" / label(args) / name
     if not (rdir / "summary.json").exists():
-        run(["calibrate", bdir, "--out", rdir, "--seed", 0, "--model", args.model, "--discrepancy", args.discrepancy,
-             "--quiet", "--no-figures", "--workers", args.workers, "--overwrite"])
+        run(
+            [
+                "calibrate",
+                bdir,
+                "--out",
+                rdir,
+                "--seed",
+                0,
+                "--model",
+                args.model,
+                "--discrepancy",
+                args.discrepancy,
+                "--quiet",
+                "--no-figures",
+                "--workers",
+                args.workers,
+                "--overwrite",
+            ]
+        )
     return bdir, rdir
 
 
@@ -78,9 +112,13 @@ def rows(work, args):
         s = json.loads((rdir / "summary.json").read_text())
         truth = json.loads((bdir / "truth.json").read_text())
         for mid, m in s["modules"].items():
-            row = {"batch": bdir.name, "module": mid, "converged": bool(m["diagnostics"]["converged"]),
-                   "seconds": m["diagnostics"].get("seconds"),
-                   "adequacy": m["diagnostics"].get("adequacy", {}).get("verdict")}
+            row = {
+                "batch": bdir.name,
+                "module": mid,
+                "converged": bool(m["diagnostics"]["converged"]),
+                "seconds": m["diagnostics"].get("seconds"),
+                "adequacy": m["diagnostics"].get("adequacy", {}).get("verdict"),
+            }
             sides = truth.get("bench_layout", {}).get("depth_sides")
             if sides:  # the out-of-model bench's sensor offsets [mm], towards the next cell from the cooler
                 rb = truth["modules"][mid]["rig_bench"]
@@ -89,8 +127,12 @@ def rows(work, args):
             for p in PARAMS:
                 tv = truth["modules"][mid][p]
                 e = m[p]
-                row[p] = {"err_pct": 100 * (e["mean"] / tv - 1), "z": (e["mean"] - tv) / e["sd"],
-                          "width_pct": 100 * (e["q95"] - e["q05"]) / abs(tv), "inside": e["q05"] <= tv <= e["q95"]}
+                row[p] = {
+                    "err_pct": 100 * (e["mean"] / tv - 1),
+                    "z": (e["mean"] - tv) / e["sd"],
+                    "width_pct": 100 * (e["q95"] - e["q05"]) / abs(tv),
+                    "inside": e["q05"] <= tv <= e["q95"],
+                }
             out.append(row)
     return out
 
@@ -98,21 +140,31 @@ def rows(work, args):
 def summarise(r):
     n = len(r)
     lo, hi = binom.ppf(0.025, n, 0.9) / n, binom.ppf(0.975, n, 0.9) / n
-    doc = {"n_modules": n, "band90": [lo, hi], "converged": sum(x["converged"] for x in r),
-           "median_seconds": float(np.median([x["seconds"] for x in r if x["seconds"]])) if n else None,
-           # runs made before the adequacy verdict have none
-           "adequacy_fits": sum(x.get("adequacy") == "fits" for x in r) if any(x.get("adequacy") for x in r) else None}
+    doc = {
+        "n_modules": n,
+        "band90": [lo, hi],
+        "converged": sum(x["converged"] for x in r),
+        "median_seconds": float(np.median([x["seconds"] for x in r if x["seconds"]])) if n else None,
+        # runs made before the adequacy verdict have none
+        "adequacy_fits": sum(x.get("adequacy") == "fits" for x in r) if any(x.get("adequacy") for x in r) else None,
+    }
     off = [x for x in r if "depth_offset_mm" in x]
     if len(off) > 2:  # does the laws' error follow the sensors' depths?
         doc["corr_z_with_depth_offset"] = {
-            p: {c: float(np.corrcoef([x["depth_offset_mm"][c] for x in off], [x[p]["z"] for x in off])[0, 1])
-                for c in ("T2", "T3")} for p in ("R0_ohm", "S0_V_per_K", "K_W_per_K")}
+            p: {
+                c: float(np.corrcoef([x["depth_offset_mm"][c] for x in off], [x[p]["z"] for x in off])[0, 1])
+                for c in ("T2", "T3")
+            }
+            for p in ("R0_ohm", "S0_V_per_K", "K_W_per_K")
+        }
     for p in PARAMS:
-        doc[p] = {"coverage90": float(np.mean([x[p]["inside"] for x in r])),
-                  "median_abs_err_pct": float(np.median([abs(x[p]["err_pct"]) for x in r])),
-                  "median_width90_pct": float(np.median([x[p]["width_pct"] for x in r])),
-                  "median_abs_z": float(np.median([abs(x[p]["z"]) for x in r])),
-                  "max_abs_z": float(np.max([abs(x[p]["z"]) for x in r]))}
+        doc[p] = {
+            "coverage90": float(np.mean([x[p]["inside"] for x in r])),
+            "median_abs_err_pct": float(np.median([abs(x[p]["err_pct"]) for x in r])),
+            "median_width90_pct": float(np.median([x[p]["width_pct"] for x in r])),
+            "median_abs_z": float(np.median([abs(x[p]["z"]) for x in r])),
+            "max_abs_z": float(np.max([abs(x[p]["z"]) for x in r])),
+        }
     return doc
 
 
@@ -139,23 +191,38 @@ def main():
                 one_batch(args, args.work, t, b)
                 print(f"done {t} batch {b}", flush=True)
     r = rows(args.work, args)
-    doc = {"label": label(args), "settings": {k: str(v) for k, v in vars(args).items()}, "summary": summarise(r),
-           "modules": r}
+    doc = {
+        "label": label(args),
+        "settings": {k: str(v) for k, v in vars(args).items()},
+        "summary": summarise(r),
+        "modules": r,
+    }
     res = ROOT / "analyses" / "results"
     (res / f"law_coverage_{label(args)}.json").write_text(json.dumps(doc, indent=1) + "\n")
     s = doc["summary"]
-    lines = [f"# Law coverage: {label(args)}", "",
-             f"{s['n_modules']} modules ({s['converged']} converged, {s['adequacy_fits'] if s['adequacy_fits'] is not None else 'no verdict:'} whose model fits), 90 % band "
-             f"[{s['band90'][0]:.3f}, {s['band90'][1]:.3f}]; median {s['median_seconds']} s per module", "",
-             "| | coverage 90 % | median abs error % | median 90 % width % | median abs z | max abs z |",
-             "|---|---|---|---|---|---|"]
+    lines = [
+        f"# Law coverage: {label(args)}",
+        "",
+        f"{s['n_modules']} modules ({s['converged']} converged, {s['adequacy_fits'] if s['adequacy_fits'] is not None else 'no verdict:'} whose model fits), 90 % band "
+        f"[{s['band90'][0]:.3f}, {s['band90'][1]:.3f}]; median {s['median_seconds']} s per module",
+        "",
+        "| | coverage 90 % | median abs error % | median 90 % width % | median abs z | max abs z |",
+        "|---|---|---|---|---|---|",
+    ]
     for p in PARAMS:
         q = s[p]
-        lines.append(f"| {p} | {q['coverage90']:.3f} | {q['median_abs_err_pct']:.3f} | {q['median_width90_pct']:.3f} "
-                     f"| {q['median_abs_z']:.2f} | {q['max_abs_z']:.1f} |")
+        lines.append(
+            f"| {p} | {q['coverage90']:.3f} | {q['median_abs_err_pct']:.3f} | {q['median_width90_pct']:.3f} "
+            f"| {q['median_abs_z']:.2f} | {q['max_abs_z']:.1f} |"
+        )
     if "corr_z_with_depth_offset" in s:
-        lines += ["", "Correlation of the error in posterior sds (z) with the sensors' depth offsets:", "",
-                  "| | T2 | T3 |", "|---|---|---|"]
+        lines += [
+            "",
+            "Correlation of the error in posterior sds (z) with the sensors' depth offsets:",
+            "",
+            "| | T2 | T3 |",
+            "|---|---|---|",
+        ]
         lines += [f"| {p} | {c['T2']:+.2f} | {c['T3']:+.2f} |" for p, c in s["corr_z_with_depth_offset"].items()]
     (res / f"law_coverage_{label(args)}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

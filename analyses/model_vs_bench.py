@@ -51,12 +51,17 @@ def main(argv=None):
                         sim = simulate(Inputs.from_experiment(exp), params, rig=reference_rig(legs))
                         r = exp.sensors - sim.sensors[0]
                         rv = exp.voltage - sim.voltage[0]
-                        rows.append({
-                            "seed": seed, "module": mid, "experiment": exp.path.name, "leg_cells": legs,
-                            "rmse_K": dict(zip(sim.channels, np.sqrt((r ** 2).mean(axis=1)).tolist())),
-                            "max_K": dict(zip(sim.channels, np.abs(r).max(axis=1).tolist())),
-                            "rmse_V": float(np.sqrt((rv ** 2).mean())),
-                        })
+                        rows.append(
+                            {
+                                "seed": seed,
+                                "module": mid,
+                                "experiment": exp.path.name,
+                                "leg_cells": legs,
+                                "rmse_K": dict(zip(sim.channels, np.sqrt((r**2).mean(axis=1)).tolist())),
+                                "max_K": dict(zip(sim.channels, np.abs(r).max(axis=1).tolist())),
+                                "rmse_V": float(np.sqrt((rv**2).mean())),
+                            }
+                        )
     print(f"{'model':<14s}{'experiment':<20s}{'T3 RMSE [K]':>16s}{'T4 RMSE [K]':>16s}{'V RMSE [mV]':>16s}")
     summary = {}
     for legs in (0, 2):
@@ -66,13 +71,19 @@ def main(argv=None):
             t4 = [r["rmse_K"]["T4_C"] for r in sel]
             v = [1e3 * r["rmse_V"] for r in sel]
             name = "lumped" if legs == 0 else f"legs={legs}"
-            summary[f"{name}/{kind}"] = {"T3_rmse_K": [min(t3), max(t3)], "T4_rmse_K": [min(t4), max(t4)],
-                                         "V_rmse_mV": [min(v), max(v)]}
-            print(f"{name:<14s}{kind:<20s}{min(t3):7.3f}-{max(t3):.3f}{min(t4):9.3f}-{max(t4):.3f}"
-                  f"{min(v):10.2f}-{max(v):.2f}")
+            summary[f"{name}/{kind}"] = {
+                "T3_rmse_K": [min(t3), max(t3)],
+                "T4_rmse_K": [min(t4), max(t4)],
+                "V_rmse_mV": [min(v), max(v)],
+            }
+            print(
+                f"{name:<14s}{kind:<20s}{min(t3):7.3f}-{max(t3):.3f}{min(t4):9.3f}-{max(t4):.3f}"
+                f"{min(v):10.2f}-{max(v):.2f}"
+            )
     RESULTS.mkdir(exist_ok=True)
-    write_json(RESULTS / "model_vs_bench.json", {"seeds": args.seeds, "rate_Hz": args.rate,
-                                                  "summary": summary, "rows": rows})
+    write_json(
+        RESULTS / "model_vs_bench.json", {"seeds": args.seeds, "rate_Hz": args.rate, "summary": summary, "rows": rows}
+    )
     print(f"wrote {RESULTS / 'model_vs_bench.json'}")
     return 0
 

@@ -186,12 +186,13 @@ GRID_TAVG_C = np.arange(10.0, 50.0 + 1e-9, 5.0)
 GRID_I_A = np.round(np.arange(-1.6, 1.0 + 1e-9, 0.1), 2)
 BURN_IN_S = 600.0
 PN_SCALES = (0.0, 0.5, 0.75, 1.0, 1.5, 2.0)
-MEASURED = (0, 1, 4)      # T1, T2, V
-ESTIMATED = (2, 3)        # T3, T4
+MEASURED = (0, 1, 4)  # T1, T2, V
+ESTIMATED = (2, 3)  # T3, T4
 Z90 = 1.6448536269514722
 
 
 # --------------------------------------------------------------------------- pipeline
+
 
 def _cli(args, log, run):
     """``python -m tembayes ARGS`` (run only if ``run``); output appended to ``log``.  Returns the record."""
@@ -218,16 +219,32 @@ def prepare(work, hours, say):
     need = not (batch / "batch.toml").exists()
     if need:
         say("simulating the bench batch")
-    cmds["simulate"] = _cli(["simulate", batch, "--modules", 1, "--seed", BENCH_SEED, "--validations", 2,
-                             "--validation-rate", 1, "--validation-hours", f"{hours:g}", "--overwrite"], log, need)
+    cmds["simulate"] = _cli(
+        [
+            "simulate",
+            batch,
+            "--modules",
+            1,
+            "--seed",
+            BENCH_SEED,
+            "--validations",
+            2,
+            "--validation-rate",
+            1,
+            "--validation-hours",
+            f"{hours:g}",
+            "--overwrite",
+        ],
+        log,
+        need,
+    )
     secs["simulate"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     need = not (run / "summary.json").exists()
     if need:
         say("calibrating (1-2 min)")
     resume = ["--resume"] if need and run.exists() else []
-    cmds["calibrate"] = _cli(["calibrate", batch, "--out", run, "--seed", CAL_SEED, "--no-figures", *resume], log,
-                             need)
+    cmds["calibrate"] = _cli(["calibrate", batch, "--out", run, "--seed", CAL_SEED, "--no-figures", *resume], log, need)
     secs["calibrate"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     need = not export.exists()
@@ -235,8 +252,27 @@ def prepare(work, hours, say):
         say(f"exporting {len(GRID_TAVG_C) * len(GRID_I_A)} operating points, process noise from validation.csv")
     amb = _identification_ambient(batch)
     pts = [x for t in GRID_TAVG_C for i in GRID_I_A for x in ("--point", f"{t:g},{i:g}")]
-    cmds["export"] = _cli(["export", run, "--out", export, "--heldout", "validation.csv", "--module", MODULE,
-                           "--ambient", f"{amb:g}", "--seed", EXPORT_SEED, *pts], log, need)  # points last
+    # the filter's grid reaches a little past the staircase (10 C, 1.0 A): the export flags those points
+    cmds["export"] = _cli(
+        [
+            "export",
+            run,
+            "--out",
+            export,
+            "--heldout",
+            "validation.csv",
+            "--module",
+            MODULE,
+            "--ambient",
+            f"{amb:g}",
+            "--seed",
+            EXPORT_SEED,
+            "--allow-extrapolation",
+            *pts,
+        ],
+        log,
+        need,
+    )  # points last
     secs["export"] = time.perf_counter() - t0
     return batch, run, export, cmds, secs
 
@@ -250,47 +286,73 @@ def _identification_ambient(batch):
 
 # --------------------------------------------------------------------------- the exported model
 
+
 def load_export(path, module=MODULE):
     """The ``.npz`` written by ``tembayes export``, as plain arrays (keys per ``tembayes/export/formats.py``)."""
     z = np.load(path, allow_pickle=False)
     m = f"modules__{module}__"
     names = [str(s) for s in z["parameters"]]
     pts = np.asarray(z["meta__points"], float)
-    need = [m + k for k in ("process_noise__corr", "process_noise__sd_by_time_since_step",
-                            "process_noise__step_bins_s", "process_noise__channels", "input_noise__current_sd_A",
-                            "input_noise__sample_interval_s", "linear__op0__sensitivity__" + names[0] + "__x0")]
+    need = [
+        m + k
+        for k in (
+            "process_noise__corr",
+            "process_noise__sd_by_time_since_step",
+            "process_noise__step_bins_s",
+            "process_noise__channels",
+            "input_noise__current_sd_A",
+            "input_noise__sample_interval_s",
+            "linear__op0__sensitivity__" + names[0] + "__x0",
+        )
+    ]
     missing = [k for k in need if k not in z.files]
     if missing:
         raise SystemExit(f"{path}: an older export without {missing}; export again (delete it and rerun)")
     ops = []
     for i in range(len(pts)):
+
         def g(k, i=i):
             return np.asarray(z[f"{m}linear__op{i}__{k}"], float)
 
         op = {k: g(k) for k in ("x0", "u0", "y0", "A", "B", "C", "D")}
         op["tavg_C"], op["current_A"] = float(g("tavg_C")), float(g("current_A"))
-        op["sens"] = {p: {k: np.asarray(z[f"{m}linear__op{i}__sensitivity__{p}__{k}"], float)
-                          for k in ("A", "B", "C", "D", "x0", "u0", "y0")} for p in names}
+        op["sens"] = {
+            p: {
+                k: np.asarray(z[f"{m}linear__op{i}__sensitivity__{p}__{k}"], float)
+                for k in ("A", "B", "C", "D", "x0", "u0", "y0")
+            }
+            for p in names
+        }
         ops.append(op)
     outputs = [str(s) for s in z["outputs"]]
     channels = [str(s) for s in z[m + "process_noise__channels"]]
-    # channel names (T1_C.., voltage_V) against the output names (T1_K.., voltage_V): same order
+    # the process-noise channels and the outputs: the same names in the same order
     if [c.split("_")[0] for c in channels] != [o.split("_")[0] for o in outputs]:
         raise SystemExit(f"process-noise channels {channels} are not in the order of the outputs {outputs}")
-    return {"schema": str(z["schema"]), "names": names, "mean": np.asarray(z[m + "mean"], float),
-            "cov": np.asarray(z[m + "cov"], float), "n_draws": int(z[m + "draws"].shape[0]),
-            "R": np.asarray(z[m + "measurement_noise_cov"], float),
-            "pn_sd": np.asarray(z[m + "process_noise__sd"], float),
-            "pn_tau": np.asarray(z[m + "process_noise__tau_s"], float),
-            "pn_source": str(z[m + "process_noise__source"]), "pn_channels": channels,
-            "pn_corr": np.asarray(z[m + "process_noise__corr"], float),
-            "pn_profile": np.asarray(z[m + "process_noise__sd_by_time_since_step"], float),
-            "pn_bins": np.asarray(z[m + "process_noise__step_bins_s"], float),
-            "current_sd": float(z[m + "input_noise__current_sd_A"]),
-            "sample_interval": float(z[m + "input_noise__sample_interval_s"]),
-            "step_instant": str(z[m + "input_noise__step_instant"]),
-            "states": [str(s) for s in z["states"]], "inputs": [str(s) for s in z["inputs"]],
-            "outputs": outputs, "points": pts, "ops": ops, "file": str(path)}
+    return {
+        "schema": str(z["schema"]),
+        "names": names,
+        "mean": np.asarray(z[m + "mean"], float),
+        "cov": np.asarray(z[m + "cov"], float),
+        "n_draws": int(z[m + "draws"].shape[0]),
+        "R": np.asarray(z[m + "measurement_noise_cov"], float),
+        "pn_sd": np.asarray(z[m + "process_noise__sd"], float),
+        "pn_tau": np.asarray(z[m + "process_noise__tau_s"], float),
+        "pn_source": str(z[m + "process_noise__source"]),
+        "pn_channels": channels,
+        "pn_corr": np.asarray(z[m + "process_noise__corr"], float),
+        "pn_profile": np.asarray(z[m + "process_noise__sd_by_time_since_step"], float),
+        "pn_bins": np.asarray(z[m + "process_noise__step_bins_s"], float),
+        "current_sd": float(z[m + "input_noise__current_sd_A"]),
+        "sample_interval": float(z[m + "input_noise__sample_interval_s"]),
+        "step_instant": str(z[m + "input_noise__step_instant"]),
+        "states": [str(s) for s in z["states"]],
+        "inputs": [str(s) for s in z["inputs"]],
+        "outputs": outputs,
+        "points": pts,
+        "ops": ops,
+        "file": str(path),
+    }
 
 
 def exported_point_sensitivities(ex):
@@ -319,8 +381,11 @@ def relinearised_sensitivities(ex, batch_dir, run_dir, cache, say, compute=False
     """
     if cache.exists():
         c = np.load(cache)
-        if c["gf"].shape == (len(ex["ops"]), len(ex["names"]), len(ex["states"])) and \
-                np.allclose(c["points"], ex["points"]) and np.allclose(c["mean"], ex["mean"]):
+        if (
+            c["gf"].shape == (len(ex["ops"]), len(ex["names"]), len(ex["states"]))
+            and np.allclose(c["points"], ex["points"])
+            and np.allclose(c["mean"], ex["mean"])
+        ):
             return c["gf"], c["gh"]
     if not compute:
         return None
@@ -386,9 +451,9 @@ class ScheduledModel:
         self.Phi, self.Gam = np.zeros((K, n, n)), np.zeros((K, n, nu))
         self.dPhi, self.dGam = np.zeros((K, p, n, n)), np.zeros((K, p, n, nu))
         self.Psigf = np.zeros((K, n, p))
-        self.dC = np.array([[o["sens"][q]["C"] for q in ex["names"]] for o in ops])   # (K, p, 5, n)
-        self.dD = np.array([[o["sens"][q]["D"] for q in ex["names"]] for o in ops])   # (K, p, 5, 3)
-        self.gh = gh                                                                    # (K, p, 5)
+        self.dC = np.array([[o["sens"][q]["C"] for q in ex["names"]] for o in ops])  # (K, p, 5, n)
+        self.dD = np.array([[o["sens"][q]["D"] for q in ex["names"]] for o in ops])  # (K, p, 5, 3)
+        self.gh = gh  # (K, p, 5)
         for k, o in enumerate(ops):
             M = np.zeros((n + nu, n + nu))
             M[:n, :n], M[:n, n:] = o["A"] * dt, o["B"] * dt
@@ -396,7 +461,7 @@ class ScheduledModel:
             self.Phi[k], self.Gam[k] = E[:n, :n], E[:n, n:]
             W = np.zeros((2 * n, 2 * n))
             W[:n, :n], W[:n, n:] = o["A"] * dt, np.eye(n) * dt
-            Psi = expm(W)[:n, n:]                       # int_0^dt exp(A s) ds
+            Psi = expm(W)[:n, n:]  # int_0^dt exp(A s) ds
             self.Psigf[k] = Psi @ gf[k].T
             for j, q in enumerate(ex["names"]):
                 dM = np.zeros_like(M)
@@ -439,14 +504,20 @@ class ScheduledModel:
         idx, w, curv = self.blend(x, u[0])
         dx = x[None, :] - self.x0[idx]
         du = u[None, :] - self.u0[idx]
-        xn = np.einsum("k,ki->i", w, self.x0[idx] + np.einsum("kij,kj->ki", self.Phi[idx], dx)
-                       + np.einsum("kij,kj->ki", self.Gam[idx], du))
+        xn = np.einsum(
+            "k,ki->i",
+            w,
+            self.x0[idx] + np.einsum("kij,kj->ki", self.Phi[idx], dx) + np.einsum("kij,kj->ki", self.Gam[idx], du),
+        )
         gam_i = np.einsum("k,ki->i", w, self.Gam[idx, :, 0])
         for a, b, wt, c in curv:
             xn += wt * c * (self.Gam[b, :, 0] - self.Gam[a, :, 0])
         F = np.einsum("k,kij->ij", w, self.Phi[idx])
-        G = np.einsum("k,kip->ip", w, self.Psigf[idx]) \
-            + np.einsum("k,kpij,kj->ip", w, self.dPhi[idx], dx) + np.einsum("k,kpij,kj->ip", w, self.dGam[idx], du)
+        G = (
+            np.einsum("k,kip->ip", w, self.Psigf[idx])
+            + np.einsum("k,kpij,kj->ip", w, self.dPhi[idx], dx)
+            + np.einsum("k,kpij,kj->ip", w, self.dGam[idx], du)
+        )
         return xn, F, G, gam_i
 
     def output(self, x, u):
@@ -454,13 +525,19 @@ class ScheduledModel:
         idx, w, curv = self.blend(x, u[0])
         dx = x[None, :] - self.x0[idx]
         du = u[None, :] - self.u0[idx]
-        y = np.einsum("k,ki->i", w, self.y0[idx] + np.einsum("kij,kj->ki", self.C[idx], dx)
-                      + np.einsum("kij,kj->ki", self.D[idx], du))
+        y = np.einsum(
+            "k,ki->i",
+            w,
+            self.y0[idx] + np.einsum("kij,kj->ki", self.C[idx], dx) + np.einsum("kij,kj->ki", self.D[idx], du),
+        )
         for a, b, wt, c in curv:
             y += wt * c * (self.D[b, :, 0] - self.D[a, :, 0])
         H = np.einsum("k,kij->ij", w, self.C[idx])
-        Ht = np.einsum("k,kpi->ip", w, self.gh[idx]) + np.einsum("k,kpij,kj->ip", w, self.dC[idx], dx) \
+        Ht = (
+            np.einsum("k,kpi->ip", w, self.gh[idx])
+            + np.einsum("k,kpij,kj->ip", w, self.dC[idx], dx)
             + np.einsum("k,kpij,kj->ip", w, self.dD[idx], du)
+        )
         return y, H, Ht, float(np.einsum("k,k->", w, self.D[idx, 4, 0]))
 
     def steady(self, u, x=None, iters=8):
@@ -469,15 +546,20 @@ class ScheduledModel:
         for _ in range(iters):
             idx, w, _ = self.blend(x, u[0])
             A = np.einsum("k,kij->ij", w, self.A[idx])
-            rhs = np.einsum("k,ki->i", w, np.einsum("kij,kj->ki", self.A[idx], self.x0[idx])
-                            - np.einsum("kij,kj->ki", self.B[idx], u[None, :] - self.u0[idx]))
+            rhs = np.einsum(
+                "k,ki->i",
+                w,
+                np.einsum("kij,kj->ki", self.A[idx], self.x0[idx])
+                - np.einsum("kij,kj->ki", self.B[idx], u[None, :] - self.u0[idx]),
+            )
             x = np.linalg.solve(A, rhs)
         _, F, G, _ = self.step(x, u)
-        S = np.linalg.solve(np.eye(len(x)) - F, G)   # fixed point of x = F x + G dtheta
+        S = np.linalg.solve(np.eye(len(x)) - F, G)  # fixed point of x = F x + G dtheta
         return x, S
 
 
 # --------------------------------------------------------------------------- data and inputs
+
 
 def filter_inputs(exp, sd_current):
     """Causal inputs: hold-mean current since the last step, interval inputs, step flags, time since the step.
@@ -504,7 +586,7 @@ def filter_inputs(exp, sd_current):
         ih[k], cnt[k] = s / c, c
         since[k] = t[k] - t_step
     u = np.column_stack([ih, tw, ta])
-    ubar = np.empty_like(u)                       # input over (t[k-1], t[k]]
+    ubar = np.empty_like(u)  # input over (t[k-1], t[k]]
     ubar[0] = u[0]
     ubar[1:] = 0.5 * (u[1:] + u[:-1])
     ubar[1:, 0] = np.where(step[1:], 0.5 * (ih[:-1] + I[1:]), ih[1:])
@@ -522,8 +604,22 @@ def profile_bins(bins, since):
 
 # --------------------------------------------------------------------------- the filter
 
-def run_filter(model, ex, inp, Y, *, profile=None, extra=None, drive="matched", corr=True, parameters=True,
-               step_timing=True, update=True, init_sd=0.3):
+
+def run_filter(
+    model,
+    ex,
+    inp,
+    Y,
+    *,
+    profile=None,
+    extra=None,
+    drive="matched",
+    corr=True,
+    parameters=True,
+    step_timing=True,
+    update=True,
+    init_sd=0.3,
+):
     """Schmidt-Kalman filter (or, ``update=False``, the open-loop predictor with the same covariance).
 
     ``profile``: ``(5, bins)`` sd of the output disturbances by time since the
@@ -550,7 +646,7 @@ def run_filter(model, ex, inp, Y, *, profile=None, extra=None, drive="matched", 
     elif isinstance(profile, str) and profile == "stationary":
         sched = np.tile(ex["pn_sd"], (N, 1))
     else:
-        sched = np.asarray(profile, float)[:, bins].T          # (N, 5)
+        sched = np.asarray(profile, float)[:, bins].T  # (N, 5)
     Rc = ex["pn_corr"] if corr else np.eye(5)
     taus = ex["pn_tau"]
     Hd = np.eye(5)
@@ -574,7 +670,7 @@ def run_filter(model, ex, inp, Y, *, profile=None, extra=None, drive="matched", 
     x, S = model.steady(inp["u"][0])
     z = np.concatenate([x, np.zeros(nd)])
     Pzz = np.zeros((nz, nz))
-    Pzz[:n, :n] = init_sd ** 2 * (np.eye(n) + np.ones((n, n))) + S @ Ptt @ S.T   # not known to start steady
+    Pzz[:n, :n] = init_sd**2 * (np.eye(n) + np.ones((n, n))) + S @ Ptt @ S.T  # not known to start steady
     Pzz[n:, n:] = np.outer(sched[0], sched[0]) * Rc
     Pzt = np.zeros((nz, p))
     Pzt[:n] = S @ Ptt
@@ -583,18 +679,20 @@ def run_filter(model, ex, inp, Y, *, profile=None, extra=None, drive="matched", 
         if k > 0:
             dt = inp["t"][k] - inp["t"][k - 1]
             if abs(dt - model.dt) > 0.05 * model.dt:
-                raise SystemExit(f"sample interval {dt:.3f} s at t = {inp['t'][k]:.1f} s; the model is discretised "
-                                 f"for {model.dt:g} s")
+                raise SystemExit(
+                    f"sample interval {dt:.3f} s at t = {inp['t'][k]:.1f} s; the model is discretised "
+                    f"for {model.dt:g} s"
+                )
             xn, Fx, G, gam_i = model.step(z[:n], inp["ubar"][k])
             phi = np.exp(-dt / taus)
             s0, s1 = sched[k - 1], sched[k]
             if drive == "matched":
                 ratio = np.where(s0 > 0, np.minimum(1.0, s1 / np.where(s0 > 0, s0, 1.0)), 1.0)
                 a = phi * ratio
-                q = np.maximum(s1 ** 2 - (a * s0) ** 2, 0.0)
+                q = np.maximum(s1**2 - (a * s0) ** 2, 0.0)
             else:
                 a = phi
-                q = s1 ** 2 * (1 - phi ** 2)
+                q = s1**2 * (1 - phi**2)
             F = np.zeros((nz, nz))
             F[:n, :n], F[n:, n:] = Fx, np.diag(a)
             Gz = np.zeros((nz, p))
@@ -654,12 +752,13 @@ def net_profile(model, ex, inp_heldout, step_timing=False):
     for j in range(prof.shape[1]):
         if np.any(b == j):
             var_model[:, j] = ol["var_y"][b == j].mean(axis=0)
-    prof = np.where(np.isfinite(prof), prof, ex["pn_sd"][:, None])      # a bin the export left NaN: stationary sd
-    net = np.sqrt(np.maximum(prof ** 2 - np.nan_to_num(var_model), 0.0))
+    prof = np.where(np.isfinite(prof), prof, ex["pn_sd"][:, None])  # a bin the export left NaN: stationary sd
+    net = np.sqrt(np.maximum(prof**2 - np.nan_to_num(var_model), 0.0))
     return net, np.sqrt(var_model), np.bincount(b, minlength=prof.shape[1])
 
 
 # --------------------------------------------------------------------------- statistics
+
 
 def iat(x, c=5.0):
     """Integrated autocorrelation time [samples] (FFT autocorrelation, Sokal's automatic window)."""
@@ -729,19 +828,41 @@ def evaluate(res, Y, R, keep, n_eff_from=None):
     blk = int(min(10 * tau3, max(N // 10, 1)))
     out = {
         "n_samples": N,
-        "nees_T3": {"mean": float(nees3.mean()), "expected": 1.0, "tau_int_s": tau3, "n_eff": N / tau3,
-                    "tau_sokal_s": iat(nees3), "tau_batch_means_600s_s": tau_batch_means(nees3),
-                    "band95": chi2_band(1, N / tau3), "median": float(np.median(nees3)),
-                    "max_block_mean_30min": float(_block_means(nees3, 1800).max())},
-        "nees_T3T4": {"mean": float(nees34.mean()), "expected": 2.0, "tau_int_s": tau34, "n_eff": N / tau34,
-                      "band95": chi2_band(2, N / tau34)},
-        "nis_T1T2V": {"mean": float(nis.mean()), "expected": 3.0, "tau_int_s": tau_nis,
-                      "band95_white": chi2_band(3, N), "band95_autocorr": chi2_band(3, N / tau_nis),
-                      "per_channel_mean_z2": dict(zip(("T1", "T2", "V"), map(float, np.mean(zn ** 2, axis=0)))),
-                      "lag1_autocorr": dict(zip(("T1", "T2", "V"),
-                                                (float(np.corrcoef(zn[1:, c], zn[:-1, c])[0, 1]) for c in range(3))))},
-        "coverage90_T3": {"fraction": float(inside.mean()), "expected": 0.90, "block_s": blk,
-                          "bootstrap95": block_bootstrap(inside, blk)},
+        "nees_T3": {
+            "mean": float(nees3.mean()),
+            "expected": 1.0,
+            "tau_int_s": tau3,
+            "n_eff": N / tau3,
+            "tau_sokal_s": iat(nees3),
+            "tau_batch_means_600s_s": tau_batch_means(nees3),
+            "band95": chi2_band(1, N / tau3),
+            "median": float(np.median(nees3)),
+            "max_block_mean_30min": float(_block_means(nees3, 1800).max()),
+        },
+        "nees_T3T4": {
+            "mean": float(nees34.mean()),
+            "expected": 2.0,
+            "tau_int_s": tau34,
+            "n_eff": N / tau34,
+            "band95": chi2_band(2, N / tau34),
+        },
+        "nis_T1T2V": {
+            "mean": float(nis.mean()),
+            "expected": 3.0,
+            "tau_int_s": tau_nis,
+            "band95_white": chi2_band(3, N),
+            "band95_autocorr": chi2_band(3, N / tau_nis),
+            "per_channel_mean_z2": dict(zip(("T1", "T2", "V"), map(float, np.mean(zn**2, axis=0)))),
+            "lag1_autocorr": dict(
+                zip(("T1", "T2", "V"), (float(np.corrcoef(zn[1:, c], zn[:-1, c])[0, 1]) for c in range(3)))
+            ),
+        },
+        "coverage90_T3": {
+            "fraction": float(inside.mean()),
+            "expected": 0.90,
+            "block_s": blk,
+            "bootstrap95": block_bootstrap(inside, blk),
+        },
         "coverage95_T3": float(np.mean(np.abs(z3) < 1.959963984540054)),
         "z_T3": {"mean": float(z3.mean()), "sd": float(z3.std())},
         "rmse_T3_mK": 1e3 * float(np.sqrt(np.mean(e[:, 0] ** 2))),
@@ -761,7 +882,7 @@ def evaluate(res, Y, R, keep, n_eff_from=None):
 
 def _block_means(x, L):
     nb = len(x) // L
-    return x[:nb * L].reshape(nb, L).mean(axis=1) if nb else np.array([x.mean()])
+    return x[: nb * L].reshape(nb, L).mean(axis=1) if nb else np.array([x.mean()])
 
 
 def _crossing(x, y, level):
@@ -796,6 +917,7 @@ def parameter_contribution(model, ex, inp):
 
 
 # --------------------------------------------------------------------------- the nonlinear reference
+
 
 def _nonlinear_child(args):
     """Child process: the rig model at the exported posterior mean, same causal inputs (numba in isolation)."""
@@ -851,8 +973,12 @@ def step_phase(run_dir, batch_dir, ex, inp, Y, out, n_samples=5000, window_s=100
     if not out.exists():
         steps = np.flatnonzero(inp["step"][:N])
         ctx = mp.get_context("spawn")
-        p = ctx.Process(target=_phase_child, args=((str(run_dir), str(batch_dir), ex["names"], ex["mean"],
-                                                     inp["t"][:N], inp["u"][:N], steps, str(out)),))
+        p = ctx.Process(
+            target=_phase_child,
+            args=(
+                (str(run_dir), str(batch_dir), ex["names"], ex["mean"], inp["t"][:N], inp["u"][:N], steps, str(out)),
+            ),
+        )
         p.start()
         p.join()
         if p.exitcode != 0 or not out.exists():
@@ -862,12 +988,19 @@ def step_phase(run_dir, batch_dir, ex, inp, Y, out, n_samples=5000, window_s=100
     r = (Y[:N, :4] - z["f0.5"][:, :4])[sel]
     g = (z["f1"][:, :4] - z["f0"][:, :4])[sel]
     f_star = float(np.clip(0.5 + np.sum(r * g) / np.sum(g * g), 0.0, 1.0))
-    rms = {f"f{f:g}": 1e3 * float(np.sqrt(np.mean((Y[:N, 2] - z[f"f{f:g}"][:, 2])[inp["since"][:N] < 10] ** 2)))
-           for f in (0.0, 0.5, 1.0)}
+    rms = {
+        f"f{f:g}": 1e3 * float(np.sqrt(np.mean((Y[:N, 2] - z[f"f{f:g}"][:, 2])[inp["since"][:N] < 10] ** 2)))
+        for f in (0.0, 0.5, 1.0)
+    }
     d = (f_star - 0.5) * float(np.median(np.diff(inp["t"])))
-    return {"fraction_of_interval": f_star, "offset_from_mid_s": d,
-            "realised_over_prior_variance": d ** 2 / (float(np.median(np.diff(inp["t"]))) ** 2 / 12.0),
-            "rms_T3_0_10s_mK_by_instant": rms, "samples": int(N), "window_s": window_s}
+    return {
+        "fraction_of_interval": f_star,
+        "offset_from_mid_s": d,
+        "realised_over_prior_variance": d**2 / (float(np.median(np.diff(inp["t"]))) ** 2 / 12.0),
+        "rms_T3_0_10s_mK_by_instant": rms,
+        "samples": int(N),
+        "window_s": window_s,
+    }
 
 
 def nonlinear_reference(run_dir, batch_dir, ex, inp, out):
@@ -875,8 +1008,10 @@ def nonlinear_reference(run_dir, batch_dir, ex, inp, out):
     if out.exists():
         return np.load(out)
     ctx = mp.get_context("spawn")
-    p = ctx.Process(target=_nonlinear_child, args=((str(run_dir), str(batch_dir), ex["names"], ex["mean"],
-                                                     inp["t"], inp["u"], str(out)),))
+    p = ctx.Process(
+        target=_nonlinear_child,
+        args=((str(run_dir), str(batch_dir), ex["names"], ex["mean"], inp["t"], inp["u"], str(out)),),
+    )
     p.start()
     p.join()
     return np.load(out) if p.exitcode == 0 and out.exists() else None
@@ -915,15 +1050,18 @@ def scheduling_error(model, inp, Ynl, keep, since_step):
     out = {}
     for lo, hi in ((0, 1.5), (1.5, 60), (60, np.inf)):
         s = keep & (since_step >= lo) & (since_step < hi)
-        out[f"{lo:g}-{hi:g}s_after_step"] = {"n": int(s.sum()),
-                                              "rms_T3_mK": 1e3 * float(np.sqrt(np.mean(d[s, 2] ** 2))),
-                                              "rms_T4_mK": 1e3 * float(np.sqrt(np.mean(d[s, 3] ** 2))),
-                                              "rms_T2_mK": 1e3 * float(np.sqrt(np.mean(d[s, 1] ** 2))),
-                                              "rms_V_mV": 1e3 * float(np.sqrt(np.mean(d[s, 4] ** 2)))}
+        out[f"{lo:g}-{hi:g}s_after_step"] = {
+            "n": int(s.sum()),
+            "rms_T3_mK": 1e3 * float(np.sqrt(np.mean(d[s, 2] ** 2))),
+            "rms_T4_mK": 1e3 * float(np.sqrt(np.mean(d[s, 3] ** 2))),
+            "rms_T2_mK": 1e3 * float(np.sqrt(np.mean(d[s, 1] ** 2))),
+            "rms_V_mV": 1e3 * float(np.sqrt(np.mean(d[s, 4] ** 2))),
+        }
     return out
 
 
 # --------------------------------------------------------------------------- figure, report
+
 
 def figure(path, t, Y, res, ol, series, controls, band, keep, r33):
     import matplotlib
@@ -939,7 +1077,7 @@ def figure(path, t, Y, res, ol, series, controls, band, keep, r33):
     ax[0].set_ylabel("T3 [degC]")
     ax[0].legend(loc="upper right", fontsize=8)
     err = 1e3 * (Y[:, 2] - res["est"][:, 0])
-    s2 = 2e3 * np.sqrt(sd ** 2 + r33)
+    s2 = 2e3 * np.sqrt(sd**2 + r33)
     ax[1].fill_between(th, -s2, s2, color="C0", alpha=0.25, lw=0, label="+-2 sd (filter + T3 sensor noise)")
     ax[1].plot(th, err, color="C0", lw=0.4, label="measured - estimated")
     ax[1].plot(th, 1e3 * (Y[:, 2] - ol["est"][:, 0]), color="C3", lw=0.4, alpha=0.6, label="measured - open loop")
@@ -956,15 +1094,21 @@ def figure(path, t, Y, res, ol, series, controls, band, keep, r33):
 
     ax[2].axhspan(lo, hi, color="C2", alpha=0.25, label=f"95 % band of the time average ({lo:.2f}-{hi:.2f})")
     ax[2].plot(tk, running(series["nominal"]["nees3"]), color="C0", label="NEES T3, 30 min moving average")
-    ax[2].plot(tk, np.cumsum(series["nominal"]["nees3"]) / np.arange(1, keep.sum() + 1), color="k", lw=1.2,
-               label="NEES T3, cumulative average")
+    ax[2].plot(
+        tk,
+        np.cumsum(series["nominal"]["nees3"]) / np.arange(1, keep.sum() + 1),
+        color="k",
+        lw=1.2,
+        label="NEES T3, cumulative average",
+    )
     ax[2].axhline(1.0, color="k", ls=":", lw=0.8)
     ax[2].set_ylabel("NEES (1 dof)")
     ax[2].legend(loc="upper right", fontsize=8)
     ax[3].axhspan(lo, hi, color="C2", alpha=0.25, label="95 % band")
     for i, (name, s) in enumerate(series.items()):
-        ax[3].semilogy(tk, np.maximum(running(s["nees3"]), 1e-3), lw=1, color=f"C{i}",
-                       label=f"{name}: mean {controls[name]:.3g}")
+        ax[3].semilogy(
+            tk, np.maximum(running(s["nees3"]), 1e-3), lw=1, color=f"C{i}", label=f"{name}: mean {controls[name]:.3g}"
+        )
     ax[3].set_ylabel("NEES T3, 30 min avg")
     ax[3].set_xlabel("time in validation2.csv [h]")
     ax[3].legend(loc="upper right", fontsize=7, ncol=2)
@@ -979,80 +1123,140 @@ def markdown(rep):
     st = rep["settings"]
     b3, b34 = nom["nees_T3"]["band95"], nom["nees_T3T4"]["band95"]
     nb = nom["nis_T1T2V"]
-    L = ["# Cold-side Kalman filter from `tembayes export`: is the exported uncertainty honest?", "",
-         (f"Made by `{rep['command']}` ({rep['seconds_total']:.0f} s, calibration and export reused when present); "
-          "the design is in the script's docstring."), "",
-         (f"Bench batch (seed {st['bench_seed']}, 1 module, two {st['validation_hours']:g} h validation runs at 1 Hz), "
-          f"calibrated (seed {st['calibration_seed']}) and exported at {rep['export']['operating_points']} operating "
-          f"points with the process noise fitted on `validation.csv` only "
-          f"(`{rep['export']['process_noise']['source']}`).  The filter runs on **`validation2.csv`**, never seen "
-          f"by the calibration or the export, measures T1, T2, V and estimates T3, T4; the first "
-          f"{st['burn_in_s']:.0f} s are left out, N = {nom['n_samples']} samples."), "",
-         "Pipeline commands:", "", "```"]
+    L = [
+        "# Cold-side Kalman filter from `tembayes export`: is the exported uncertainty honest?",
+        "",
+        (
+            f"Made by `{rep['command']}` ({rep['seconds_total']:.0f} s, calibration and export reused when present); "
+            "the design is in the script's docstring."
+        ),
+        "",
+        (
+            f"Bench batch (seed {st['bench_seed']}, 1 module, two {st['validation_hours']:g} h validation runs at 1 Hz), "
+            f"calibrated (seed {st['calibration_seed']}) and exported at {rep['export']['operating_points']} operating "
+            f"points with the process noise fitted on `validation.csv` only "
+            f"(`{rep['export']['process_noise']['source']}`).  The filter runs on **`validation2.csv`**, never seen "
+            f"by the calibration or the export, measures T1, T2, V and estimates T3, T4; the first "
+            f"{st['burn_in_s']:.0f} s are left out, N = {nom['n_samples']} samples."
+        ),
+        "",
+        "Pipeline commands:",
+        "",
+        "```",
+    ]
     for c in rep["pipeline_commands"].values():
         cmd = c["command"]
         if " --point " in cmd:
             n_pts = cmd.count(" --point ")
-            cmd = cmd.split(" --point ")[0] + (f" --point T,I ...   # {n_pts} points: T in {st['grid_tavg_C'][0]:g}.."
-                                                 f"{st['grid_tavg_C'][-1]:g} degC x I in {st['grid_current_A'][0]:g}.."
-                                                 f"{st['grid_current_A'][-1]:g} A (full command in the JSON)")
+            cmd = cmd.split(" --point ")[0] + (
+                f" --point T,I ...   # {n_pts} points: T in {st['grid_tavg_C'][0]:g}.."
+                f"{st['grid_tavg_C'][-1]:g} degC x I in {st['grid_current_A'][0]:g}.."
+                f"{st['grid_current_A'][-1]:g} A (full command in the JSON)"
+            )
         L.append(f"{cmd}    # {'ran' if c['ran'] else 'reused'}")
-    L += ["```", "",
-          ("| filter | NEES T3 (1 dof) | NEES T3,T4 (2 dof) | NIS T1,T2,V (3 dof) | \\|z_T3\\| < 1.645 | RMSE T3 | "
-           "verdict (NEES T3) |"),
-          "|---|---|---|---|---|---|---|"]
+    L += [
+        "```",
+        "",
+        (
+            "| filter | NEES T3 (1 dof) | NEES T3,T4 (2 dof) | NIS T1,T2,V (3 dof) | \\|z_T3\\| < 1.645 | RMSE T3 | "
+            "verdict (NEES T3) |"
+        ),
+        "|---|---|---|---|---|---|---|",
+    ]
     for name, f in rep["filters"].items():
-        L.append(f"| {name} | {f['nees_T3']['mean']:.3g} | {f['nees_T3T4']['mean']:.3g} | "
-                 f"{f['nis_T1T2V']['mean']:.3g} | {100 * f['coverage90_T3']['fraction']:.1f} % | "
-                 f"{f['rmse_T3_mK']:.1f} mK | {f['nees_T3']['verdict']} |")
-    L += ["", (f"Bands, 95 %, of a time average over N_eff = N / tau of the nominal filter's series (tau: the larger "
-               f"of Sokal's and the 600 s batch-means estimate), applied to every row: NEES T3 "
-               f"{b3[0]:.2f}-{b3[1]:.2f} (tau {nom['nees_T3']['tau_int_s']:.0f} s, N_eff {nom['nees_T3']['n_eff']:.0f}); "
-               f"NEES T3,T4 {b34[0]:.2f}-{b34[1]:.2f}; NIS {nb['band95_autocorr'][0]:.2f}-{nb['band95_autocorr'][1]:.2f} "
-               f"(tau {nb['tau_int_s']:.1f} s; white {nb['band95_white'][0]:.2f}-{nb['band95_white'][1]:.2f}).  "
-               f"Coverage: 90 % expected; circular block bootstrap 95 % interval of the nominal fraction "
-               f"{100 * nom['coverage90_T3']['bootstrap95'][0]:.1f}-{100 * nom['coverage90_T3']['bootstrap95'][1]:.1f} % "
-               f"(blocks of {nom['coverage90_T3']['block_s']} s).  RMSE includes T3's 4 mK sensor noise."), ""]
-    L += ["## After steps (< 60 s) vs holds (>= 60 s)", "",
-          "Bands from the nominal filter's series within each split (same construction as above).", "",
-          "| split | filter | NEES T3 (band) | NEES T3,T4 (band) | NIS (band) | 90 % coverage (bootstrap) | RMSE T3 |",
-          "|---|---|---|---|---|---|---|"]
+        L.append(
+            f"| {name} | {f['nees_T3']['mean']:.3g} | {f['nees_T3T4']['mean']:.3g} | "
+            f"{f['nis_T1T2V']['mean']:.3g} | {100 * f['coverage90_T3']['fraction']:.1f} % | "
+            f"{f['rmse_T3_mK']:.1f} mK | {f['nees_T3']['verdict']} |"
+        )
+    L += [
+        "",
+        (
+            f"Bands, 95 %, of a time average over N_eff = N / tau of the nominal filter's series (tau: the larger "
+            f"of Sokal's and the 600 s batch-means estimate), applied to every row: NEES T3 "
+            f"{b3[0]:.2f}-{b3[1]:.2f} (tau {nom['nees_T3']['tau_int_s']:.0f} s, N_eff {nom['nees_T3']['n_eff']:.0f}); "
+            f"NEES T3,T4 {b34[0]:.2f}-{b34[1]:.2f}; NIS {nb['band95_autocorr'][0]:.2f}-{nb['band95_autocorr'][1]:.2f} "
+            f"(tau {nb['tau_int_s']:.1f} s; white {nb['band95_white'][0]:.2f}-{nb['band95_white'][1]:.2f}).  "
+            f"Coverage: 90 % expected; circular block bootstrap 95 % interval of the nominal fraction "
+            f"{100 * nom['coverage90_T3']['bootstrap95'][0]:.1f}-{100 * nom['coverage90_T3']['bootstrap95'][1]:.1f} % "
+            f"(blocks of {nom['coverage90_T3']['block_s']} s).  RMSE includes T3's 4 mK sensor noise."
+        ),
+        "",
+    ]
+    L += [
+        "## After steps (< 60 s) vs holds (>= 60 s)",
+        "",
+        "Bands from the nominal filter's series within each split (same construction as above).",
+        "",
+        "| split | filter | NEES T3 (band) | NEES T3,T4 (band) | NIS (band) | 90 % coverage (bootstrap) | RMSE T3 |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for ph, d in rep["split_after_step_vs_hold"].items():
         for name, v in d.items():
-            L.append(f"| {ph} | {name} | {v['nees_T3']:.3g} ({v['nees_T3_band95'][0]:.2f}-{v['nees_T3_band95'][1]:.2f}) "
-                     f"| {v['nees_T3T4']:.3g} ({v['nees_T3T4_band95'][0]:.2f}-{v['nees_T3T4_band95'][1]:.2f}) | "
-                     f"{v['nis']:.3g} ({v['nis_band95'][0]:.2f}-{v['nis_band95'][1]:.2f}) | "
-                     f"{100 * v['coverage90_T3']:.1f} % ({100 * v['coverage90_bootstrap95'][0]:.1f}-"
-                     f"{100 * v['coverage90_bootstrap95'][1]:.1f}) | {v['rmse_T3_mK']:.1f} mK |")
+            L.append(
+                f"| {ph} | {name} | {v['nees_T3']:.3g} ({v['nees_T3_band95'][0]:.2f}-{v['nees_T3_band95'][1]:.2f}) "
+                f"| {v['nees_T3T4']:.3g} ({v['nees_T3T4_band95'][0]:.2f}-{v['nees_T3T4_band95'][1]:.2f}) | "
+                f"{v['nis']:.3g} ({v['nis_band95'][0]:.2f}-{v['nis_band95'][1]:.2f}) | "
+                f"{100 * v['coverage90_T3']:.1f} % ({100 * v['coverage90_bootstrap95'][0]:.1f}-"
+                f"{100 * v['coverage90_bootstrap95'][1]:.1f}) | {v['rmse_T3_mK']:.1f} mK |"
+            )
     pr = rep["disturbance_profile"]
-    L += ["", "## Disturbance profile: exported, already predicted by the filter, net (used)", "",
-          ("sd in mK (V in mV) by time since the last step; 'param.' = open-loop sd from the parameter posterior over "
-           "validation.csv's inputs (the run the profile came from), 'param.+step' = the same plus the step-instant "
-           "prior dI^2/12, 'reduction' = RMS of the filter's blended linear models minus the nonlinear model on the "
-           "same inputs; used = sqrt(max(exp.^2 - param.^2, 0) + reduction^2).  The step-instant prior is not "
-           "subtracted: the held-out run's steps fell near mid-interval (step-phase diagnostic), so its profile "
-           "holds almost none of it."), "",
-          "| channel | " + " | ".join(f"{lo:g} s: exp. / param. / param.+step / reduction / used" for lo in pr["bins_s"]) + " |",
-          "|---|" + "---|" * len(pr["bins_s"])]
+    L += [
+        "",
+        "## Disturbance profile: exported, already predicted by the filter, net (used)",
+        "",
+        (
+            "sd in mK (V in mV) by time since the last step; 'param.' = open-loop sd from the parameter posterior over "
+            "validation.csv's inputs (the run the profile came from), 'param.+step' = the same plus the step-instant "
+            "prior dI^2/12, 'reduction' = RMS of the filter's blended linear models minus the nonlinear model on the "
+            "same inputs; used = sqrt(max(exp.^2 - param.^2, 0) + reduction^2).  The step-instant prior is not "
+            "subtracted: the held-out run's steps fell near mid-interval (step-phase diagnostic), so its profile "
+            "holds almost none of it."
+        ),
+        "",
+        "| channel | "
+        + " | ".join(f"{lo:g} s: exp. / param. / param.+step / reduction / used" for lo in pr["bins_s"])
+        + " |",
+        "|---|" + "---|" * len(pr["bins_s"]),
+    ]
     for c, ch in enumerate(pr["channels"]):
-        L.append(f"| {ch} | " + " | ".join(
-            f"{1e3 * pr['exported_sd'][c][j]:.2f} / {1e3 * pr['model_sd_parameters'][c][j]:.2f} / "
-            f"{1e3 * pr['model_sd_parameters_and_step_instant'][c][j]:.1f} / "
-            + (f"{1e3 * pr['model_reduction_sd'][c][j]:.2f} / " if pr["model_reduction_sd"] else "- / ")
-            + f"{1e3 * pr['net_sd_used'][c][j]:.2f}" for j in range(len(pr["bins_s"]))) + " |")
-    L += ["", "## Nominal filter and open loop in the export's bins of time since the step", "",
-          "| bin | samples | NEES T3 | RMSE T3 | predicted sd (incl. sensor) | NIS | open loop: NEES, RMSE, predicted sd |",
-          "|---|---|---|---|---|---|---|"]
+        L.append(
+            f"| {ch} | "
+            + " | ".join(
+                f"{1e3 * pr['exported_sd'][c][j]:.2f} / {1e3 * pr['model_sd_parameters'][c][j]:.2f} / "
+                f"{1e3 * pr['model_sd_parameters_and_step_instant'][c][j]:.1f} / "
+                + (f"{1e3 * pr['model_reduction_sd'][c][j]:.2f} / " if pr["model_reduction_sd"] else "- / ")
+                + f"{1e3 * pr['net_sd_used'][c][j]:.2f}"
+                for j in range(len(pr["bins_s"]))
+            )
+            + " |"
+        )
+    L += [
+        "",
+        "## Nominal filter and open loop in the export's bins of time since the step",
+        "",
+        "| bin | samples | NEES T3 | RMSE T3 | predicted sd (incl. sensor) | NIS | open loop: NEES, RMSE, predicted sd |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for k, v in rep["nominal_by_time_since_step"].items():
-        L.append(f"| {k} | {v['n']} | {v['nees_T3']:.2f} | {v['rmse_T3_mK']:.1f} mK | {v['predicted_sd_T3_mK']:.1f} mK "
-                 f"| {v['nis']:.2f} | {v['open_loop_nees_T3']:.2f}, {v['open_loop_rmse_T3_mK']:.1f} mK, "
-                 f"{v['open_loop_predicted_sd_T3_mK']:.1f} mK |")
-    L += ["", "## Disturbance profile used, scaled (a sensitivity, not a tuning)", "",
-          "| scale | NEES T3 | NEES T3,T4 | NIS | 90 % coverage T3 | RMSE T3 |", "|---|---|---|---|---|---|"]
+        L.append(
+            f"| {k} | {v['n']} | {v['nees_T3']:.2f} | {v['rmse_T3_mK']:.1f} mK | {v['predicted_sd_T3_mK']:.1f} mK "
+            f"| {v['nis']:.2f} | {v['open_loop_nees_T3']:.2f}, {v['open_loop_rmse_T3_mK']:.1f} mK, "
+            f"{v['open_loop_predicted_sd_T3_mK']:.1f} mK |"
+        )
+    L += [
+        "",
+        "## Disturbance profile used, scaled (a sensitivity, not a tuning)",
+        "",
+        "| scale | NEES T3 | NEES T3,T4 | NIS | 90 % coverage T3 | RMSE T3 |",
+        "|---|---|---|---|---|---|",
+    ]
     sw = rep["process_noise_scale_sweep"]
     for r in sw["rows"]:
-        L.append(f"| {r['scale']:g} | {r['nees_T3']:.3g} | {r['nees_T3T4']:.3g} | {r['nis']:.3g} | "
-                 f"{100 * r['coverage90_T3']:.1f} % | {r['rmse_T3_mK']:.1f} mK |")
+        L.append(
+            f"| {r['scale']:g} | {r['nees_T3']:.3g} | {r['nees_T3T4']:.3g} | {r['nis']:.3g} | "
+            f"{100 * r['coverage90_T3']:.1f} % | {r['rmse_T3_mK']:.1f} mK |"
+        )
     L += ["", "## Findings", ""] + [f"- {s}" for s in rep["findings"]] + [""]
     L += ["![](observer_kalman.png)", ""]
     return "\n".join(L)
@@ -1060,23 +1264,32 @@ def markdown(rep):
 
 # --------------------------------------------------------------------------- main
 
+
 def main(argv=None):
     ap = argparse.ArgumentParser(
-        description=__doc__.split("\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter,
+        description=__doc__.split("\n")[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="example:\n  python analyses/observer_kalman.py --work /work/runs_obs\n"
-               "  python analyses/observer_kalman.py --work runs/observer_kalman --fresh --validation-hours 2")
-    ap.add_argument("--work", type=Path, default=DEFAULT_WORK if DEFAULT_WORK.parent.exists()
-                    else Path("runs/observer_kalman"),
-                    help="scratch folder: batch, run, export (reused when present; default /work/runs_obs "
-                         "or runs/observer_kalman)")
+        "  python analyses/observer_kalman.py --work runs/observer_kalman --fresh --validation-hours 2",
+    )
+    ap.add_argument(
+        "--work",
+        type=Path,
+        default=DEFAULT_WORK if DEFAULT_WORK.parent.exists() else Path("runs/observer_kalman"),
+        help="scratch folder: batch, run, export (reused when present; default /work/runs_obs or runs/observer_kalman)",
+    )
     ap.add_argument("--validation-hours", type=float, default=4.0, help="length of the validation runs (default 4)")
     ap.add_argument("--fresh", action="store_true", help="delete WORK's batch, run and export first")
-    ap.add_argument("--no-nonlinear", action="store_true",
-                    help="skip the nonlinear reference (scheduling error diagnostic)")
+    ap.add_argument(
+        "--no-nonlinear", action="store_true", help="skip the nonlinear reference (scheduling error diagnostic)"
+    )
     ap.add_argument("--results", type=Path, default=RESULTS, help="where the json/md/png go")
-    ap.add_argument("--verify-sensitivities", action="store_true",
-                    help="re-linearise at theta +- h to cross-check the exported x0/u0/y0 sensitivities "
-                         "(otherwise only against WORK/eq_sens.npz when present)")
+    ap.add_argument(
+        "--verify-sensitivities",
+        action="store_true",
+        help="re-linearise at theta +- h to cross-check the exported x0/u0/y0 sensitivities "
+        "(otherwise only against WORK/eq_sens.npz when present)",
+    )
     args = ap.parse_args(argv)
     t_start = time.perf_counter()
 
@@ -1098,8 +1311,9 @@ def main(argv=None):
     ex = load_export(export_path)
     t0 = time.perf_counter()
     gf, gh = exported_point_sensitivities(ex)
-    mine = relinearised_sensitivities(ex, batch_dir, run_dir, work / "eq_sens.npz", say,
-                                      compute=args.verify_sensitivities)
+    mine = relinearised_sensitivities(
+        ex, batch_dir, run_dir, work / "eq_sens.npz", say, compute=args.verify_sensitivities
+    )
     sens_check = compare_sensitivities(mine, (gf, gh))
     secs["operating_point_sensitivities"] = time.perf_counter() - t0
     batch = load_batch(batch_dir)
@@ -1109,8 +1323,9 @@ def main(argv=None):
     inp = filter_inputs(exp, ex["current_sd"])
     dt = float(np.median(np.diff(inp["t"])))
     if abs(dt - ex["sample_interval"]) > 1e-6:
-        raise SystemExit(f"validation2.csv samples every {dt:g} s, the export's input noise is for "
-                         f"{ex['sample_interval']:g} s")
+        raise SystemExit(
+            f"validation2.csv samples every {dt:g} s, the export's input noise is for {ex['sample_interval']:g} s"
+        )
     t0 = time.perf_counter()
     say("discretising the exported models")
     model = ScheduledModel(ex, gf, gh, dt)
@@ -1131,7 +1346,7 @@ def main(argv=None):
         Ynl_ho = nonlinear_reference(run_dir, batch_dir, ex, inp_ho, work / "nonlinear_validation.npy")
         if Ynl_ho is not None:
             red = reduction_profile(model, ex, inp_ho, Ynl_ho)
-    used = net if red is None else np.sqrt(net ** 2 + red ** 2)     # for the "one set" ablation
+    used = net if red is None else np.sqrt(net**2 + red**2)  # for the "one set" ablation
     secs["net_profile"] = time.perf_counter() - t0
 
     nomkw = {"profile": net, "extra": red}
@@ -1159,8 +1374,10 @@ def main(argv=None):
         filt[name] = run_filter(model, ex, inp, Y, **kw)
     secs["filters"] = time.perf_counter() - t0
     results["nominal"], series["nominal"] = evaluate(filt["nominal"], Y, ex["R"], keep)
-    ref = {"tau_nees3": results["nominal"]["nees_T3"]["tau_int_s"],
-           "tau_nees34": results["nominal"]["nees_T3T4"]["tau_int_s"]}
+    ref = {
+        "tau_nees3": results["nominal"]["nees_T3"]["tau_int_s"],
+        "tau_nees34": results["nominal"]["nees_T3T4"]["tau_int_s"],
+    }
     for name in variants:
         if name != "nominal":
             results[name], series[name] = evaluate(filt[name], Y, ex["R"], keep, n_eff_from=ref)
@@ -1181,50 +1398,72 @@ def main(argv=None):
             r = results["control: no process noise"]
         else:
             say(f"filter: disturbance profile x {scale:g}")
-            r = evaluate(run_filter(model, ex, inp, Y, profile=scale * net,
-                                    extra=None if red is None else scale * red), Y, ex["R"], keep, n_eff_from=ref)[0]
-        sweep.append({"scale": scale, "nees_T3": r["nees_T3"]["mean"], "nees_T3T4": r["nees_T3T4"]["mean"],
-                      "nis": r["nis_T1T2V"]["mean"], "coverage90_T3": r["coverage90_T3"]["fraction"],
-                      "rmse_T3_mK": r["rmse_T3_mK"]})
+            r = evaluate(
+                run_filter(model, ex, inp, Y, profile=scale * net, extra=None if red is None else scale * red),
+                Y,
+                ex["R"],
+                keep,
+                n_eff_from=ref,
+            )[0]
+        sweep.append(
+            {
+                "scale": scale,
+                "nees_T3": r["nees_T3"]["mean"],
+                "nees_T3T4": r["nees_T3T4"]["mean"],
+                "nis": r["nis_T1T2V"]["mean"],
+                "coverage90_T3": r["coverage90_T3"]["fraction"],
+                "rmse_T3_mK": r["rmse_T3_mK"],
+            }
+        )
     sc = np.array([s_["scale"] for s_ in sweep])
     ne = np.array([s_["nees_T3"] for s_ in sweep])
     nis_ = np.array([s_["nis"] for s_ in sweep])
-    scale_fit = {"nees_T3_equals_1_at_scale": _crossing(sc, ne, 1.0),
-                 "nis_equals_3_at_scale": _crossing(sc, nis_, 3.0)}
+    scale_fit = {"nees_T3_equals_1_at_scale": _crossing(sc, ne, 1.0), "nis_equals_3_at_scale": _crossing(sc, nis_, 3.0)}
     param_part = parameter_contribution(model, ex, inp)
 
     # nominal filter and open loop in the export's bins of time since the step
-    e3 = (Y[:, 2] - filt["nominal"]["est"][:, 0])
+    e3 = Y[:, 2] - filt["nominal"]["est"][:, 0]
     v3 = filt["nominal"]["cov"][:, 0, 0] + ex["R"][2, 2]
-    e3o = (Y[:, 2] - filt["open loop"]["est"][:, 0])
+    e3o = Y[:, 2] - filt["open loop"]["est"][:, 0]
     v3o = filt["open loop"]["cov"][:, 0, 0] + ex["R"][2, 2]
-    nis_all = np.einsum("ki,kij,kj->k", filt["nominal"]["nu"], np.linalg.inv(filt["nominal"]["S"]),
-                        filt["nominal"]["nu"])
+    nis_all = np.einsum(
+        "ki,kij,kj->k", filt["nominal"]["nu"], np.linalg.inv(filt["nominal"]["S"]), filt["nominal"]["nu"]
+    )
     bi = profile_bins(ex["pn_bins"], since)
     edges = list(ex["pn_bins"]) + [np.inf]
     by_phase = {}
     for j in range(len(ex["pn_bins"])):
         s_ = keep & (bi == j)
         by_phase[f"{edges[j]:g}-{edges[j + 1]:g}s_after_step"] = {
-            "n": int(s_.sum()), "nees_T3": float(np.mean(e3[s_] ** 2 / v3[s_])),
+            "n": int(s_.sum()),
+            "nees_T3": float(np.mean(e3[s_] ** 2 / v3[s_])),
             "rmse_T3_mK": 1e3 * float(np.sqrt(np.mean(e3[s_] ** 2))),
             "predicted_sd_T3_mK": 1e3 * float(np.sqrt(np.mean(v3[s_]))),
             "nis": float(np.mean(nis_all[s_])),
             "open_loop_nees_T3": float(np.mean(e3o[s_] ** 2 / v3o[s_])),
             "open_loop_rmse_T3_mK": 1e3 * float(np.sqrt(np.mean(e3o[s_] ** 2))),
-            "open_loop_predicted_sd_T3_mK": 1e3 * float(np.sqrt(np.mean(v3o[s_])))}
-    profile_table = {"bins_s": ex["pn_bins"].tolist(), "channels": ex["pn_channels"],
-                     "exported_sd": ex["pn_profile"].tolist(), "model_sd_parameters": sd_model.tolist(),
-                     "net_sd": net.tolist(), "model_reduction_sd": None if red is None else red.tolist(),
-                     "net_sd_used": used.tolist(), "model_sd_parameters_and_step_instant": sd_model_both.tolist(),
-                     "net_sd_if_step_instant_also_subtracted": net_both.tolist(),
-                     "heldout_samples_per_bin": n_bin.tolist()}
+            "open_loop_predicted_sd_T3_mK": 1e3 * float(np.sqrt(np.mean(v3o[s_]))),
+        }
+    profile_table = {
+        "bins_s": ex["pn_bins"].tolist(),
+        "channels": ex["pn_channels"],
+        "exported_sd": ex["pn_profile"].tolist(),
+        "model_sd_parameters": sd_model.tolist(),
+        "net_sd": net.tolist(),
+        "model_reduction_sd": None if red is None else red.tolist(),
+        "net_sd_used": used.tolist(),
+        "model_sd_parameters_and_step_instant": sd_model_both.tolist(),
+        "net_sd_if_step_instant_also_subtracted": net_both.tolist(),
+        "heldout_samples_per_bin": n_bin.tolist(),
+    }
     sched, phase = None, {}
     if not args.no_nonlinear:
         say("step-phase diagnostic (nonlinear model, steps at start / middle / end of their interval)")
         t0 = time.perf_counter()
-        for run_name, inp_, Y_ in (("validation.csv", inp_ho, measurements(exps["validation.csv"])),
-                                   ("validation2.csv", inp, Y)):
+        for run_name, inp_, Y_ in (
+            ("validation.csv", inp_ho, measurements(exps["validation.csv"])),
+            ("validation2.csv", inp, Y),
+        ):
             phase[run_name] = step_phase(run_dir, batch_dir, ex, inp_, Y_, work / f"phase_{run_name}.npz")
         secs["step_phase"] = time.perf_counter() - t0
         say("nonlinear reference (scheduling error)")
@@ -1239,31 +1478,58 @@ def main(argv=None):
 
     nom = results["nominal"]
     band = nom["nees_T3"]["band95"]
-    pn = {"sd": ex["pn_sd"].tolist(), "tau_s": ex["pn_tau"].tolist(), "source": ex["pn_source"],
-          "channels": ex["pn_channels"], "corr": ex["pn_corr"].tolist(),
-          "sd_by_time_since_step": ex["pn_profile"].tolist(), "step_bins_s": ex["pn_bins"].tolist()}
+    pn = {
+        "sd": ex["pn_sd"].tolist(),
+        "tau_s": ex["pn_tau"].tolist(),
+        "source": ex["pn_source"],
+        "channels": ex["pn_channels"],
+        "corr": ex["pn_corr"].tolist(),
+        "sd_by_time_since_step": ex["pn_profile"].tolist(),
+        "step_bins_s": ex["pn_bins"].tolist(),
+    }
     split_summary = {ph: {name: _summary(r) for name, r in d.items()} for ph, d in split.items()}
-    findings = _findings(results, split_summary, by_phase, ex, sched, scale_fit, param_part, profile_table,
-                         sens_check, phase)
+    findings = _findings(
+        results, split_summary, by_phase, ex, sched, scale_fit, param_part, profile_table, sens_check, phase
+    )
     cmd = "python analyses/observer_kalman.py" + "".join(f" {a}" for a in (argv if argv is not None else sys.argv[1:]))
     rep = {
         "command": cmd,
         "seconds_total": time.perf_counter() - t_start,
         "seconds": secs,
         "pipeline_commands": cmds,
-        "settings": {"work": str(work), "module": MODULE, "bench_seed": BENCH_SEED, "calibration_seed": CAL_SEED,
-                     "export_seed": EXPORT_SEED, "validation_hours": args.validation_hours,
-                     "heldout_for_process_noise": "validation.csv", "test_run": "validation2.csv",
-                     "grid_tavg_C": GRID_TAVG_C.tolist(), "grid_current_A": GRID_I_A.tolist(),
-                     "burn_in_s": BURN_IN_S, "dt_s": dt, "measured": ["T1", "T2", "V"], "estimated": ["T3", "T4"],
-                     "current_noise_A": ex["current_sd"], "NUMBA_CACHE_DIR": os.environ.get("NUMBA_CACHE_DIR")},
-        "export": {"file": ex["file"], "schema": ex["schema"], "parameters": ex["names"],
-                   "posterior_rel_sd": dict(zip(ex["names"], (np.sqrt(np.diag(ex["cov"])) / np.abs(ex["mean"])).tolist())),
-                   "sensor_sd": dict(zip(ex["outputs"], np.sqrt(np.diag(ex["R"])).tolist())),
-                   "process_noise": pn, "operating_points": len(ex["ops"]),
-                   "input_noise": {"current_sd_A": ex["current_sd"], "sample_interval_s": ex["sample_interval"],
-                                   "step_instant": ex["step_instant"]},
-                   "operating_point_sensitivities_vs_relinearised": sens_check},
+        "settings": {
+            "work": str(work),
+            "module": MODULE,
+            "bench_seed": BENCH_SEED,
+            "calibration_seed": CAL_SEED,
+            "export_seed": EXPORT_SEED,
+            "validation_hours": args.validation_hours,
+            "heldout_for_process_noise": "validation.csv",
+            "test_run": "validation2.csv",
+            "grid_tavg_C": GRID_TAVG_C.tolist(),
+            "grid_current_A": GRID_I_A.tolist(),
+            "burn_in_s": BURN_IN_S,
+            "dt_s": dt,
+            "measured": ["T1", "T2", "V"],
+            "estimated": ["T3", "T4"],
+            "current_noise_A": ex["current_sd"],
+            "NUMBA_CACHE_DIR": os.environ.get("NUMBA_CACHE_DIR"),
+        },
+        "export": {
+            "file": ex["file"],
+            "schema": ex["schema"],
+            "parameters": ex["names"],
+            "posterior_rel_sd": dict(zip(ex["names"], (np.sqrt(np.diag(ex["cov"])) / np.abs(ex["mean"])).tolist())),
+            "sensor_sd": dict(zip(ex["outputs"], np.sqrt(np.diag(ex["R"])).tolist())),
+            "process_noise": pn,
+            "operating_points": len(ex["ops"]),
+            "input_noise": {
+                "current_sd_A": ex["current_sd"],
+                "sample_interval_s": ex["sample_interval"],
+                "step_instant": ex["step_instant"],
+            },
+            "operating_point_sensitivities_vs_relinearised": sens_check,
+        },
         "disturbance_profile": profile_table,
         "filters": results,
         "split_after_step_vs_hold": split_summary,
@@ -1276,96 +1542,159 @@ def main(argv=None):
     }
     args.results.mkdir(parents=True, exist_ok=True)
     say("writing results")
-    figure(args.results / "observer_kalman.png", inp["t"], Y, filt["nominal"], filt["open loop"],
-           {k: series[k] for k in ("nominal", "control: no process noise", "control: neither (measurement noise only)",
-                                   "ablation: no step-instant noise", "ablation: profile net of parameters and step instant",
-                                   "first version: stationary sd, no corr")},
-           {k: results[k]["nees_T3"]["mean"] for k in results}, band, keep, ex["R"][2, 2])
+    figure(
+        args.results / "observer_kalman.png",
+        inp["t"],
+        Y,
+        filt["nominal"],
+        filt["open loop"],
+        {
+            k: series[k]
+            for k in (
+                "nominal",
+                "control: no process noise",
+                "control: neither (measurement noise only)",
+                "ablation: no step-instant noise",
+                "ablation: profile net of parameters and step instant",
+                "first version: stationary sd, no corr",
+            )
+        },
+        {k: results[k]["nees_T3"]["mean"] for k in results},
+        band,
+        keep,
+        ex["R"][2, 2],
+    )
     rep["seconds_total"] = time.perf_counter() - t_start
     (args.results / "observer_kalman.json").write_text(json.dumps(rep, indent=1) + "\n")
     (args.results / "observer_kalman.md").write_text(markdown(rep))
 
-    print(f"\nvalidation2.csv, N = {nom['n_samples']} samples after {BURN_IN_S:.0f} s; band NEES T3 "
-          f"{band[0]:.2f}-{band[1]:.2f} (N_eff {nom['nees_T3']['n_eff']:.0f}), NIS "
-          f"{nom['nis_T1T2V']['band95_autocorr'][0]:.2f}-{nom['nis_T1T2V']['band95_autocorr'][1]:.2f}")
+    print(
+        f"\nvalidation2.csv, N = {nom['n_samples']} samples after {BURN_IN_S:.0f} s; band NEES T3 "
+        f"{band[0]:.2f}-{band[1]:.2f} (N_eff {nom['nees_T3']['n_eff']:.0f}), NIS "
+        f"{nom['nis_T1T2V']['band95_autocorr'][0]:.2f}-{nom['nis_T1T2V']['band95_autocorr'][1]:.2f}"
+    )
     for label, res_ in (("all", results), *((ph, split[ph]) for ph in split)):
         f0 = res_["nominal"]
-        print(f"\n[{label}] n {f0['n_samples']}, bands: NEES T3 {f0['nees_T3']['band95'][0]:.2f}-"
-              f"{f0['nees_T3']['band95'][1]:.2f}, NEES T3T4 {f0['nees_T3T4']['band95'][0]:.2f}-"
-              f"{f0['nees_T3T4']['band95'][1]:.2f}, NIS {f0['nis_T1T2V']['band95_autocorr'][0]:.2f}-"
-              f"{f0['nis_T1T2V']['band95_autocorr'][1]:.2f}, cov90 bootstrap "
-              f"{100 * f0['coverage90_T3']['bootstrap95'][0]:.1f}-{100 * f0['coverage90_T3']['bootstrap95'][1]:.1f}%")
+        print(
+            f"\n[{label}] n {f0['n_samples']}, bands: NEES T3 {f0['nees_T3']['band95'][0]:.2f}-"
+            f"{f0['nees_T3']['band95'][1]:.2f}, NEES T3T4 {f0['nees_T3T4']['band95'][0]:.2f}-"
+            f"{f0['nees_T3T4']['band95'][1]:.2f}, NIS {f0['nis_T1T2V']['band95_autocorr'][0]:.2f}-"
+            f"{f0['nis_T1T2V']['band95_autocorr'][1]:.2f}, cov90 bootstrap "
+            f"{100 * f0['coverage90_T3']['bootstrap95'][0]:.1f}-{100 * f0['coverage90_T3']['bootstrap95'][1]:.1f}%"
+        )
         print(f"{'filter':44s} {'NEES T3':>8s} {'NEES T3T4':>9s} {'NIS':>7s} {'cov90':>6s} {'RMSE T3':>8s}  verdict")
         for name, f in res_.items():
-            print(f"{name:44s} {f['nees_T3']['mean']:8.3g} {f['nees_T3T4']['mean']:9.3g} "
-                  f"{f['nis_T1T2V']['mean']:7.3g} {100 * f['coverage90_T3']['fraction']:5.1f}% "
-                  f"{f['rmse_T3_mK']:6.1f}mK  {f['nees_T3']['verdict']}")
+            print(
+                f"{name:44s} {f['nees_T3']['mean']:8.3g} {f['nees_T3T4']['mean']:9.3g} "
+                f"{f['nis_T1T2V']['mean']:7.3g} {100 * f['coverage90_T3']['fraction']:5.1f}% "
+                f"{f['rmse_T3_mK']:6.1f}mK  {f['nees_T3']['verdict']}"
+            )
     print(f"wrote {args.results / 'observer_kalman.json'}, .md, .png ({rep['seconds_total']:.0f} s)")
     return 0
 
 
 def _summary(r):
-    return {"n": r["n_samples"], "nees_T3": r["nees_T3"]["mean"], "nees_T3_band95": r["nees_T3"]["band95"],
-            "nees_T3_verdict": r["nees_T3"]["verdict"], "nees_T3T4": r["nees_T3T4"]["mean"],
-            "nees_T3T4_band95": r["nees_T3T4"]["band95"], "nis": r["nis_T1T2V"]["mean"],
-            "nis_band95": r["nis_T1T2V"]["band95_autocorr"], "nis_verdict": r["nis_T1T2V"]["verdict"],
-            "coverage90_T3": r["coverage90_T3"]["fraction"], "coverage90_bootstrap95": r["coverage90_T3"]["bootstrap95"],
-            "rmse_T3_mK": r["rmse_T3_mK"], "rmse_T3_minus_sensor_noise_mK": r["rmse_T3_minus_sensor_noise_mK"],
-            "mean_predicted_sd_T3_mK": r["mean_predicted_sd_T3_mK"]}
+    return {
+        "n": r["n_samples"],
+        "nees_T3": r["nees_T3"]["mean"],
+        "nees_T3_band95": r["nees_T3"]["band95"],
+        "nees_T3_verdict": r["nees_T3"]["verdict"],
+        "nees_T3T4": r["nees_T3T4"]["mean"],
+        "nees_T3T4_band95": r["nees_T3T4"]["band95"],
+        "nis": r["nis_T1T2V"]["mean"],
+        "nis_band95": r["nis_T1T2V"]["band95_autocorr"],
+        "nis_verdict": r["nis_T1T2V"]["verdict"],
+        "coverage90_T3": r["coverage90_T3"]["fraction"],
+        "coverage90_bootstrap95": r["coverage90_T3"]["bootstrap95"],
+        "rmse_T3_mK": r["rmse_T3_mK"],
+        "rmse_T3_minus_sensor_noise_mK": r["rmse_T3_minus_sensor_noise_mK"],
+        "mean_predicted_sd_T3_mK": r["mean_predicted_sd_T3_mK"],
+    }
 
 
 def _findings(results, split, by_phase, ex, sched, scale_fit, param_part, prof, sens_check, phase):
     nom = results["nominal"]
-    f = [(f"Nominal filter: mean NEES T3 {nom['nees_T3']['mean']:.2f} (band {nom['nees_T3']['band95'][0]:.2f}-"
-          f"{nom['nees_T3']['band95'][1]:.2f}): {nom['nees_T3']['verdict']}; 90 % coverage "
-          f"{100 * nom['coverage90_T3']['fraction']:.1f} % (bootstrap "
-          f"{100 * nom['coverage90_T3']['bootstrap95'][0]:.1f}-{100 * nom['coverage90_T3']['bootstrap95'][1]:.1f} %); "
-          f"NEES T3,T4 {nom['nees_T3T4']['mean']:.2f} ({nom['nees_T3T4']['verdict']}); NIS "
-          f"{nom['nis_T1T2V']['mean']:.2f} ({nom['nis_T1T2V']['verdict']}).")]
+    f = [
+        (
+            f"Nominal filter: mean NEES T3 {nom['nees_T3']['mean']:.2f} (band {nom['nees_T3']['band95'][0]:.2f}-"
+            f"{nom['nees_T3']['band95'][1]:.2f}): {nom['nees_T3']['verdict']}; 90 % coverage "
+            f"{100 * nom['coverage90_T3']['fraction']:.1f} % (bootstrap "
+            f"{100 * nom['coverage90_T3']['bootstrap95'][0]:.1f}-{100 * nom['coverage90_T3']['bootstrap95'][1]:.1f} %); "
+            f"NEES T3,T4 {nom['nees_T3T4']['mean']:.2f} ({nom['nees_T3T4']['verdict']}); NIS "
+            f"{nom['nis_T1T2V']['mean']:.2f} ({nom['nis_T1T2V']['verdict']})."
+        )
+    ]
     for ph, d in split.items():
         v = d["nominal"]
-        f.append(f"{ph}: NEES T3 {v['nees_T3']:.2f} (band {v['nees_T3_band95'][0]:.2f}-{v['nees_T3_band95'][1]:.2f}, "
-                 f"{v['nees_T3_verdict']}), coverage {100 * v['coverage90_T3']:.1f} %, NIS {v['nis']:.2f} "
-                 f"(band {v['nis_band95'][0]:.2f}-{v['nis_band95'][1]:.2f}), RMSE {v['rmse_T3_mK']:.1f} mK vs "
-                 f"predicted {v['mean_predicted_sd_T3_mK']:.1f} mK (n {v['n']}).")
+        f.append(
+            f"{ph}: NEES T3 {v['nees_T3']:.2f} (band {v['nees_T3_band95'][0]:.2f}-{v['nees_T3_band95'][1]:.2f}, "
+            f"{v['nees_T3_verdict']}), coverage {100 * v['coverage90_T3']:.1f} %, NIS {v['nis']:.2f} "
+            f"(band {v['nis_band95'][0]:.2f}-{v['nis_band95'][1]:.2f}), RMSE {v['rmse_T3_mK']:.1f} mK vs "
+            f"predicted {v['mean_predicted_sd_T3_mK']:.1f} mK (n {v['n']})."
+        )
     for name, r in results.items():
         if name.startswith(("control", "ablation", "first")):
-            f.append(f"{name}: mean NEES T3 {r['nees_T3']['mean']:.3g}, coverage "
-                     f"{100 * r['coverage90_T3']['fraction']:.1f} %, NIS {r['nis_T1T2V']['mean']:.3g}, RMSE "
-                     f"{r['rmse_T3_mK']:.1f} mK -> {r['nees_T3']['verdict']}.")
-    f.append(f"RMSE T3: filter {nom['rmse_T3_mK']:.1f} mK vs open loop {results['open loop']['rmse_T3_mK']:.1f} mK "
-             f"(sensor noise {1e3 * np.sqrt(ex['R'][2, 2]):.1f} mK included; without it "
-             f"{nom['rmse_T3_minus_sensor_noise_mK']:.1f} vs {results['open loop']['rmse_T3_minus_sensor_noise_mK']:.1f} mK);"
-             f" open-loop NEES T3 {results['open loop']['nees_T3']['mean']:.2f}.")
-    e, mo, mb, ne = (np.asarray(prof[k])[2] * 1e3 for k in ("exported_sd", "model_sd_parameters",
-                                                            "model_sd_parameters_and_step_instant", "net_sd_used"))
+            f.append(
+                f"{name}: mean NEES T3 {r['nees_T3']['mean']:.3g}, coverage "
+                f"{100 * r['coverage90_T3']['fraction']:.1f} %, NIS {r['nis_T1T2V']['mean']:.3g}, RMSE "
+                f"{r['rmse_T3_mK']:.1f} mK -> {r['nees_T3']['verdict']}."
+            )
+    f.append(
+        f"RMSE T3: filter {nom['rmse_T3_mK']:.1f} mK vs open loop {results['open loop']['rmse_T3_mK']:.1f} mK "
+        f"(sensor noise {1e3 * np.sqrt(ex['R'][2, 2]):.1f} mK included; without it "
+        f"{nom['rmse_T3_minus_sensor_noise_mK']:.1f} vs {results['open loop']['rmse_T3_minus_sensor_noise_mK']:.1f} mK);"
+        f" open-loop NEES T3 {results['open loop']['nees_T3']['mean']:.2f}."
+    )
+    e, mo, mb, ne = (
+        np.asarray(prof[k])[2] * 1e3
+        for k in ("exported_sd", "model_sd_parameters", "model_sd_parameters_and_step_instant", "net_sd_used")
+    )
     rd = np.asarray(prof["model_reduction_sd"])[2] * 1e3 if prof["model_reduction_sd"] else np.full(len(e), np.nan)
-    f.append("T3 disturbance profile by time since step (exported / parameter posterior / parameters + step-instant "
-             "prior, open loop on validation.csv's inputs / model reduction / used) [mK]: " + "; ".join(
-                 f"{lo:g} s: {a:.1f} / {b:.1f} / {b2:.0f} / {r:.1f} / {c:.1f}"
-                 for lo, a, b, b2, r, c in zip(prof["bins_s"], e, mo, mb, rd, ne)) + ".")
-    ph = "; ".join(f"{k}: NEES {v['nees_T3']:.2f} (open loop {v['open_loop_nees_T3']:.2f}), RMSE {v['rmse_T3_mK']:.1f}"
-                   f" mK vs predicted {v['predicted_sd_T3_mK']:.1f} mK (n {v['n']})" for k, v in by_phase.items())
+    f.append(
+        "T3 disturbance profile by time since step (exported / parameter posterior / parameters + step-instant "
+        "prior, open loop on validation.csv's inputs / model reduction / used) [mK]: "
+        + "; ".join(
+            f"{lo:g} s: {a:.1f} / {b:.1f} / {b2:.0f} / {r:.1f} / {c:.1f}"
+            for lo, a, b, b2, r, c in zip(prof["bins_s"], e, mo, mb, rd, ne)
+        )
+        + "."
+    )
+    ph = "; ".join(
+        f"{k}: NEES {v['nees_T3']:.2f} (open loop {v['open_loop_nees_T3']:.2f}), RMSE {v['rmse_T3_mK']:.1f}"
+        f" mK vs predicted {v['predicted_sd_T3_mK']:.1f} mK (n {v['n']})"
+        for k, v in by_phase.items()
+    )
     f.append(f"Nominal filter in the export's bins: {ph}.")
     s1, s3 = scale_fit["nees_T3_equals_1_at_scale"], scale_fit["nis_equals_3_at_scale"]
-    f.append("Profile used, scaled (sensitivity, not a tuning of the nominal filter): NEES T3 = 1 at "
-             + (f"{s1:.2f}" if s1 is not None else "no scale in the sweep") + " x, NIS = 3 at "
-             + (f"{s3:.2f}" if s3 is not None else "no scale in the sweep") + " x.")
-    pc = ", ".join(f"{r['current_A']:+g} A: {r['sd_T3_mK_complete']:.2f} ({r['sd_T3_mK_matrix_sensitivities_only']:.2f})"
-                   for r in param_part)
+    f.append(
+        "Profile used, scaled (sensitivity, not a tuning of the nominal filter): NEES T3 = 1 at "
+        + (f"{s1:.2f}" if s1 is not None else "no scale in the sweep")
+        + " x, NIS = 3 at "
+        + (f"{s3:.2f}" if s3 is not None else "no scale in the sweep")
+        + " x."
+    )
+    pc = ", ".join(
+        f"{r['current_A']:+g} A: {r['sd_T3_mK_complete']:.2f} ({r['sd_T3_mK_matrix_sensitivities_only']:.2f})"
+        for r in param_part
+    )
     f.append(f"Steady T3 sd from the parameter posterior, complete (matrix sensitivities only) [mK]: {pc}.")
     if sens_check:
-        f.append(f"Exported operating-point sensitivities vs the first version's re-linearisation: max abs difference "
-                 f"{sens_check['df_dtheta']['relative']:.1e} (df/dtheta) and {sens_check['dh_dtheta']['relative']:.1e} "
-                 f"(dh/dtheta) of the largest entry; the filter now reads them from the file.")
+        f.append(
+            f"Exported operating-point sensitivities vs the first version's re-linearisation: max abs difference "
+            f"{sens_check['df_dtheta']['relative']:.1e} (df/dtheta) and {sens_check['dh_dtheta']['relative']:.1e} "
+            f"(dh/dtheta) of the largest entry; the filter now reads them from the file."
+        )
     for run_name, v in phase.items():
         if "error" not in v:
-            f.append(f"Step phase of {run_name} (nonlinear model regressed on T1..T4 within {v['window_s']:g} s of "
-                     f"the steps): at {v['fraction_of_interval']:.2f} of the sampling interval, "
-                     f"{v['offset_from_mid_s']:+.2f} s from mid, realised step-instant variance "
-                     f"{v['realised_over_prior_variance']:.2f} x the dI^2/12 prior (one phase for all steps of a run); "
-                     f"T3 RMS 0-10 s after steps with the steps at the start / middle / end: "
-                     + " / ".join(f"{x:.0f}" for x in v["rms_T3_0_10s_mK_by_instant"].values()) + " mK.")
+            f.append(
+                f"Step phase of {run_name} (nonlinear model regressed on T1..T4 within {v['window_s']:g} s of "
+                f"the steps): at {v['fraction_of_interval']:.2f} of the sampling interval, "
+                f"{v['offset_from_mid_s']:+.2f} s from mid, realised step-instant variance "
+                f"{v['realised_over_prior_variance']:.2f} x the dI^2/12 prior (one phase for all steps of a run); "
+                f"T3 RMS 0-10 s after steps with the steps at the start / middle / end: "
+                + " / ".join(f"{x:.0f}" for x in v["rms_T3_0_10s_mK_by_instant"].values())
+                + " mK."
+            )
     ho = phase.get("validation.csv", {})
     if "error" not in ho and ho and prof["model_reduction_sd"]:
         rd3 = np.asarray(prof["model_reduction_sd"]) * 1e3
@@ -1380,12 +1709,15 @@ def _findings(results, split, by_phase, ex, sched, scale_fit, param_part, prof, 
             f"({rd3[4, 0] / (1e3 * np.asarray(prof['exported_sd'])[4, 0]):.1f} x), with a cross-channel structure "
             "unlike corr; without it the filter is overconfident (NEES 1.28); (3) corr per bin (one corr pooled "
             "over the run is dominated by the transients); (4) the profile's sampling error (one 4 h run, ~20 "
-            "steps: the 0-10 s bin has ~200 samples) or more held-out runs.")
+            "steps: the 0-10 s bin has ~200 samples) or more held-out runs."
+        )
     if sched and "error" not in sched:
         q = sched["60-infs_after_step"]
-        f.append(f"Scheduling error (blended exported models vs the nonlinear model, open loop, >60 s after steps): "
-                 f"T3 {q['rms_T3_mK']:.1f} mK, V {q['rms_V_mV']:.2f} mV RMS; nonlinear model open-loop T3 RMSE "
-                 f"{sched['nonlinear_open_loop_rmse_T3_mK']:.1f} mK.")
+        f.append(
+            f"Scheduling error (blended exported models vs the nonlinear model, open loop, >60 s after steps): "
+            f"T3 {q['rms_T3_mK']:.1f} mK, V {q['rms_V_mV']:.2f} mV RMS; nonlinear model open-loop T3 RMSE "
+            f"{sched['nonlinear_open_loop_rmse_T3_mK']:.1f} mK."
+        )
     return f
 
 

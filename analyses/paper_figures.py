@@ -113,22 +113,33 @@ def summary_markdown(batch, results, figures, out, runtime, truth=None):
         t = None if truth is None else truth["modules"].get(mid)
         lines += ["", f"### {mid}", ""] + parameter_table(res, t)
     avg = batch_average(results)
-    lines += ["", "## Batch average (the dashed line of law_R.png / law_S.png)", "",
-              "| parameter | unit | mean | spread between modules (sd) |", "|---|---|---|---|"]
+    lines += [
+        "",
+        "## Batch average (the dashed line of law_R.png / law_S.png)",
+        "",
+        "| parameter | unit | mean | spread between modules (sd) |",
+        "|---|---|---|---|",
+    ]
     for key, (label, unit, f, d) in DISPLAY.items():
         lines.append(f"| {label} | {unit} | {avg[key] * f:.{d}f} | {avg[key + '_spread'] * f:.{d}f} |")
-    lines += ["", "## Validation RMSE per sensor",
-              "", "*constant*: R, S frozen at their 35 °C values with their own rig fit (paper Fig. 8); "
-              "*linear*: the laws (Fig. 9).  Sensors in K, voltage in mV.", "",
-              "| module | run | model | T1 [K] | T2 [K] | T3 [K] | T4 [K] | V [mV] |",
-              "|---|---|---|---|---|---|---|---|"]
+    lines += [
+        "",
+        "## Validation RMSE per sensor",
+        "",
+        "*constant*: R, S frozen at their 35 °C values with their own rig fit (paper Fig. 8); "
+        "*linear*: the laws (Fig. 9).  Sensors in K, voltage in mV.",
+        "",
+        "| module | run | model | T1 [K] | T2 [K] | T3 [K] | T4 [K] | V [mV] |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for mid, res in results.items():
         for run, models in res.validation.items():
             for model in ("constant", "linear"):
                 e = models[model]
                 cells = [f"{e[ch]['rmse']:.3f}" for ch in ("T1_C", "T2_C", "T3_C", "T4_C")]
-                lines.append(f"| {mid} | {run} | {model} | " + " | ".join(cells)
-                             + f" | {1e3 * e['voltage_V']['rmse']:.2f} |")
+                lines.append(
+                    f"| {mid} | {run} | {model} | " + " | ".join(cells) + f" | {1e3 * e['voltage_V']['rmse']:.2f} |"
+                )
     lines += ["", "## Figures", ""]
     lines += [f"- [{p.name}]({p.relative_to(out).as_posix()})" for p in figures]
     return "\n".join(lines) + "\n"
@@ -137,10 +148,17 @@ def summary_markdown(batch, results, figures, out, runtime, truth=None):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--batch", type=Path, default=DEFAULT_BATCH, help="batch folder (default: data/example)")
-    ap.add_argument("--out", type=Path, default=DEFAULT_OUT,
-                    help="output folder (default: analyses/results/paper_figures)")
-    ap.add_argument("--truth", nargs="?", const=True, default=None, metavar="TRUTH_JSON",
-                    help="compare with a bench truth.json (default: BATCH/truth.json)")
+    ap.add_argument(
+        "--out", type=Path, default=DEFAULT_OUT, help="output folder (default: analyses/results/paper_figures)"
+    )
+    ap.add_argument(
+        "--truth",
+        nargs="?",
+        const=True,
+        default=None,
+        metavar="TRUTH_JSON",
+        help="compare with a bench truth.json (default: BATCH/truth.json)",
+    )
     args = ap.parse_args(argv)
 
     t0 = time.monotonic()

@@ -90,8 +90,9 @@ def draw_batch(rng, n, kind, *, n_draws=1000, corr=True):
     """
     ids = tuple(f"TEM{i + 1}" for i in range(n))
     k_out = int(rng.integers(n)) if kind != "none" else None
-    cfg = BenchConfig(n_modules=n, outlier=ids[k_out] if kind == "S0" else None, outlier_shift=S0_SHIFT,
-                      n_validations=0)
+    cfg = BenchConfig(
+        n_modules=n, outlier=ids[k_out] if kind == "S0" else None, outlier_shift=S0_SHIFT, n_validations=0
+    )
     truth = draw_truth(cfg, rng)
     typ = np.array([truth["population"][p] for p in MODULE_PARAMETERS])
     theta = np.array([[truth["modules"][i][p] for p in MODULE_PARAMETERS] for i in ids])
@@ -113,13 +114,21 @@ def draw_batch(rng, n, kind, *, n_draws=1000, corr=True):
         CL = R * np.outer(sd, sd)
         mL = to_x(theta[i]) + np.linalg.cholesky(CL) @ rng.standard_normal(5)
         P = np.linalg.inv(CL)
-        Cp = np.linalg.inv(P + np.diag(PRIOR_SD ** -2.0))
+        Cp = np.linalg.inv(P + np.diag(PRIOR_SD**-2.0))
         mp = Cp @ (P @ mL)  # interim prior mean is 0 in x
         xd = mp + rng.standard_normal((n_draws, 5)) @ np.linalg.cholesky(Cp).T
         draws[mid] = to_theta(xd)
         lik[mid] = (mL, CL)
-    return {"ids": ids, "draws": draws, "lik": lik, "outlier": k_out, "param": param, "type": typ,
-            "theta": theta, "kind": kind}
+    return {
+        "ids": ids,
+        "draws": draws,
+        "lik": lik,
+        "outlier": k_out,
+        "param": param,
+        "type": typ,
+        "theta": theta,
+        "kind": kind,
+    }
 
 
 def gaussian_loglikes(lik):
@@ -131,6 +140,7 @@ def gaussian_loglikes(lik):
         def f(theta, mL=mL, P=P):
             d = to_x(theta) - mL
             return -0.5 * np.einsum("ni,ij,nj->n", d, P, d)
+
         out[mid] = f
     return out
 
@@ -145,10 +155,10 @@ def oracle(batch):
     lr = np.zeros(n)
     for i, mid in enumerate(batch["ids"]):
         mL, CL = batch["lik"][mid]
-        V = CL + np.diag(tau ** 2)
+        V = CL + np.diag(tau**2)
         Vi = np.linalg.inv(V)
 
-        def logn(mean):
+        def logn(mean, mL=mL, Vi=Vi):
             d = mL - mean
             return -0.5 * d @ Vi @ d
 
@@ -176,15 +186,23 @@ def _one(task):
     seed, n, kind, priors = task
     rng = np.random.default_rng(seed)
     batch = draw_batch(rng, n, kind)
-    row = {"seed": seed, "n": n, "kind": kind, "outlier": batch["outlier"], "param": batch["param"],
-           "oracle": oracle(batch).tolist()}
+    row = {
+        "seed": seed,
+        "n": n,
+        "kind": kind,
+        "outlier": batch["outlier"],
+        "param": batch["param"],
+        "oracle": oracle(batch).tolist(),
+    }
     for name, sp in priors.items():
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", PopulationConvergenceWarning)
             r = fit_population(batch["draws"], DS, rng=np.random.default_rng(seed + 1), spread_prior=sp)
         row[name] = [r.outlier_prob[i] for i in batch["ids"]]
-        row[name + "_diag"] = {k: r.diagnostics[k] for k in ("converged", "rhat_max", "ess_bulk_min",
-                                                              "n_steps", "elapsed_s", "weight_ess_min")}
+        row[name + "_diag"] = {
+            k: r.diagnostics[k]
+            for k in ("converged", "rhat_max", "ess_bulk_min", "n_steps", "elapsed_s", "weight_ess_min")
+        }
         row[name + "_diag"]["check"] = r.diagnostics["check"]
     return row
 
@@ -208,16 +226,23 @@ def rates(rows, key):
             p_oth = np.array([max(p for i, p in enumerate(r[key]) if i != r["outlier"]) for r in sel])
             top = np.array([int(np.argmax(r[key])) == r["outlier"] for r in sel])
             out[f"{n}_{kind}"] = {
-                "batches": len(sel), "threshold_outlier": hi, "threshold_others": lo,
-                "outlier_above": float(np.mean(p_out > hi)), "others_below": float(np.mean(p_oth < lo)),
+                "batches": len(sel),
+                "threshold_outlier": hi,
+                "threshold_others": lo,
+                "outlier_above": float(np.mean(p_out > hi)),
+                "others_below": float(np.mean(p_oth < lo)),
                 "outlier_top": float(np.mean(top)),
                 "all_three": float(np.mean((p_out > hi) & (p_oth < lo) & top)),
-                "median_outlier_prob": float(np.median(p_out))}
+                "median_outlier_prob": float(np.median(p_out)),
+            }
         sel = [r for r in rows if r["n"] == n and r["kind"] == "none"]
         if sel:
             mx = np.array([max(r[key]) for r in sel])
-            out[f"{n}_none"] = {"batches": len(sel), "false_alarm_above_0.3": float(np.mean(mx > 0.3)),
-                                "max_prob_median": float(np.median(mx))}
+            out[f"{n}_none"] = {
+                "batches": len(sel),
+                "false_alarm_above_0.3": float(np.mean(mx > 0.3)),
+                "max_prob_median": float(np.median(mx)),
+            }
     return out
 
 
@@ -226,8 +251,12 @@ def target_summary(rows, key):
     out = {}
     for n, (hi, lo) in TARGETS.items():
         sel = [r for r in rows if r["n"] == n and r["kind"] != "none"]
-        ok = [int(np.argmax(r[key])) == r["outlier"] and r[key][r["outlier"]] > hi
-              and max(p for i, p in enumerate(r[key]) if i != r["outlier"]) < lo for r in sel]
+        ok = [
+            int(np.argmax(r[key])) == r["outlier"]
+            and r[key][r["outlier"]] > hi
+            and max(p for i, p in enumerate(r[key]) if i != r["outlier"]) < lo
+            for r in sel
+        ]
         out[f"{n} modules: outlier top, > {hi}, others < {lo}"] = float(np.mean(ok))
     sel = [r for r in rows if r["kind"] == "none"]
     out["no outlier: nobody > 0.3"] = float(np.mean([max(r[key]) <= 0.3 for r in sel]))
@@ -243,8 +272,15 @@ def calibration(rows, key):
         k = int(s.sum())
         frac = float(y[s].mean()) if k else None
         se = float(np.sqrt(frac * (1 - frac) / k)) if k else None
-        table.append({"bin": [lo, hi], "modules": k, "mean_prob": float(p[s].mean()) if k else None,
-                      "outlier_fraction": frac, "se": se})
+        table.append(
+            {
+                "bin": [lo, hi],
+                "modules": k,
+                "mean_prob": float(p[s].mean()) if k else None,
+                "outlier_fraction": frac,
+                "se": se,
+            }
+        )
     brier = float(np.mean((p - y) ** 2))
     return {"table": table, "brier": brier}
 
@@ -253,8 +289,8 @@ def calibration(rows, key):
 
 
 def _mcse_mean(a):
-    from tembayes.calibrate.population import _arviz
-    az = _arviz()
+    import arviz as az
+
     return float(np.std(a) / np.sqrt(az.ess(np.asarray(a))))
 
 
@@ -278,18 +314,36 @@ def joint_check(seed, n=3):
                 va, vb = a.std(), b.std()
                 sa = _mcse_mean((a - a.mean()) ** 2) / (2 * va)
                 sb = _mcse_mean((b - b.mean()) ** 2) / (2 * vb)
-            rows.append({"quantity": f"{stat} {k}", "two_stage": float(va), "joint": float(vb),
-                         "z": float((va - vb) / np.hypot(sa, sb))})
+            rows.append(
+                {
+                    "quantity": f"{stat} {k}",
+                    "two_stage": float(va),
+                    "joint": float(vb),
+                    "z": float((va - vb) / np.hypot(sa, sb)),
+                }
+            )
     for mid in batch["ids"]:
         a, b = two.outlier_prob[mid], joint.outlier_prob[mid]
         sa, sb = two.diagnostics["outlier_prob_mcse"][mid], joint.diagnostics["outlier_prob_mcse"][mid]
-        rows.append({"quantity": f"outlier_prob {mid}", "two_stage": a, "joint": b,
-                     "z": float((a - b) / max(np.hypot(sa, sb), 1e-6))})
+        rows.append(
+            {
+                "quantity": f"outlier_prob {mid}",
+                "two_stage": a,
+                "joint": b,
+                "z": float((a - b) / max(np.hypot(sa, sb), 1e-6)),
+            }
+        )
     z = np.array([r["z"] for r in rows])
-    return {"seed": seed, "n_modules": n, "kind": batch["kind"], "rows": rows, "max_abs_z": float(np.abs(z).max()),
-            "rms_z": float(np.sqrt(np.mean(z ** 2))), "converged": [two.diagnostics["converged"],
-                                                                    joint.diagnostics["converged"]],
-            "seconds": {"two_stage": t_two, "joint": t_joint}}
+    return {
+        "seed": seed,
+        "n_modules": n,
+        "kind": batch["kind"],
+        "rows": rows,
+        "max_abs_z": float(np.abs(z).max()),
+        "rms_z": float(np.sqrt(np.mean(z**2))),
+        "converged": [two.diagnostics["converged"], joint.diagnostics["converged"]],
+        "seconds": {"two_stage": t_two, "joint": t_joint},
+    }
 
 
 def method_check(seed, n=8):
@@ -299,9 +353,13 @@ def method_check(seed, n=8):
     for method in ("gaussian", "importance"):
         t = time.perf_counter()
         r = fit_population(batch["draws"], DS, rng=np.random.default_rng(seed), method=method)
-        out[method] = {"seconds": time.perf_counter() - t, "outlier_prob": [r.outlier_prob[i] for i in batch["ids"]],
-                       "mcse": [r.diagnostics["outlier_prob_mcse"][i] for i in batch["ids"]],
-                       "summary": r.summary(), "weight_ess_min": r.diagnostics["weight_ess_min"]}
+        out[method] = {
+            "seconds": time.perf_counter() - t,
+            "outlier_prob": [r.outlier_prob[i] for i in batch["ids"]],
+            "mcse": [r.diagnostics["outlier_prob_mcse"][i] for i in batch["ids"]],
+            "summary": r.summary(),
+            "weight_ess_min": r.diagnostics["weight_ess_min"],
+        }
     d = np.abs(np.array(out["gaussian"]["outlier_prob"]) - np.array(out["importance"]["outlier_prob"]))
     out["outlier_prob_diff_max"] = float(d.max())
     return out
@@ -313,10 +371,19 @@ def timing(n, seed=11):
     r = fit_population(batch["draws"], DS, rng=np.random.default_rng(seed))
     sec = time.perf_counter() - t
     d = r.diagnostics
-    return {"modules": n, "seconds": sec, "n_steps": d["n_steps"], "converged": d["converged"],
-            "tau_max": d["tau_max"], "rhat_max": d["rhat_max"], "ess_bulk_min": d["ess_bulk_min"],
-            "method": d["method"], "check": d["check"], "weight_ess_min": d["weight_ess_min"],
-            "sampling_s": d["sampling_s"]}
+    return {
+        "modules": n,
+        "seconds": sec,
+        "n_steps": d["n_steps"],
+        "converged": d["converged"],
+        "tau_max": d["tau_max"],
+        "rhat_max": d["rhat_max"],
+        "ess_bulk_min": d["ess_bulk_min"],
+        "method": d["method"],
+        "check": d["check"],
+        "weight_ess_min": d["weight_ess_min"],
+        "sampling_s": d["sampling_s"],
+    }
 
 
 # --------------------------------------------------------------------------- main
@@ -326,13 +393,17 @@ def _fmt_rates(name, r):
     lines = []
     for k, v in r.items():
         if k.endswith("none"):
-            lines.append(f"  {name:<8s} {k:<7s} false alarms (max > 0.3): {v['false_alarm_above_0.3']:.2f}"
-                         f"  (median max prob {v['max_prob_median']:.2f}, {v['batches']} batches)")
+            lines.append(
+                f"  {name:<8s} {k:<7s} false alarms (max > 0.3): {v['false_alarm_above_0.3']:.2f}"
+                f"  (median max prob {v['max_prob_median']:.2f}, {v['batches']} batches)"
+            )
         else:
-            lines.append(f"  {name:<8s} {k:<7s} outlier > {v['threshold_outlier']}: {v['outlier_above']:.2f}  "
-                         f"others < {v['threshold_others']}: {v['others_below']:.2f}  top: {v['outlier_top']:.2f}  "
-                         f"all three: {v['all_three']:.2f}  (median p_out {v['median_outlier_prob']:.2f}, "
-                         f"{v['batches']} batches)")
+            lines.append(
+                f"  {name:<8s} {k:<7s} outlier > {v['threshold_outlier']}: {v['outlier_above']:.2f}  "
+                f"others < {v['threshold_others']}: {v['others_below']:.2f}  top: {v['outlier_top']:.2f}  "
+                f"all three: {v['all_three']:.2f}  (median p_out {v['median_outlier_prob']:.2f}, "
+                f"{v['batches']} batches)"
+            )
     return lines
 
 
@@ -347,23 +418,34 @@ def main(argv=None):
     if args.quick:
         args.batches, args.joint = 24, 1
     t_start = time.perf_counter()
-    out = {"design": {"batches": args.batches, "sizes": [3, 8], "outlier_share": 0.5,
-                      "outlier_kinds": {"S0": f"S0 x (1 +- {S0_SHIFT})", "any": "one parameter +- 3-5 unit spreads"},
-                      "posterior_sd_rel": {p: [float(a), float(b)] for p, a, b in
-                                           zip(MODULE_PARAMETERS, POST_SD_LO, POST_SD_HI)},
-                      "unit_spread": UNIT_SPREAD, "seed": args.seed}}
+    out = {
+        "design": {
+            "batches": args.batches,
+            "sizes": [3, 8],
+            "outlier_share": 0.5,
+            "outlier_kinds": {"S0": f"S0 x (1 +- {S0_SHIFT})", "any": "one parameter +- 3-5 unit spreads"},
+            "posterior_sd_rel": {p: [float(a), float(b)] for p, a, b in zip(MODULE_PARAMETERS, POST_SD_LO, POST_SD_HI)},
+            "unit_spread": UNIT_SPREAD,
+            "seed": args.seed,
+        }
+    }
 
     print("informed spread prior from a 50-module batch ...", flush=True)
     sp, r50 = informed_prior(args.seed + 999)
-    out["informed_prior"] = {"spread_prior": sp, "true_unit_spread": UNIT_SPREAD,
-                             "diagnostics": {k: r50.diagnostics[k] for k in ("converged", "n_steps", "elapsed_s")}}
+    out["informed_prior"] = {
+        "spread_prior": sp,
+        "true_unit_spread": UNIT_SPREAD,
+        "diagnostics": {k: r50.diagnostics[k] for k in ("converged", "n_steps", "elapsed_s")},
+    }
     for k, (med, lsd) in sp.items():
         print(f"  {k:<18s} median {med:.4g}  log-sd {lsd:.2f}")
 
     kinds = ["none", "none", "S0", "any"]
     seeds = np.random.SeedSequence(args.seed).generate_state(args.batches)
-    tasks = [(int(seeds[b]), 3 if b % 2 == 0 else 8, kinds[(b // 2) % 4], {"default": None, "informed": sp})
-             for b in range(args.batches)]
+    tasks = [
+        (int(seeds[b]), 3 if b % 2 == 0 else 8, kinds[(b // 2) % 4], {"default": None, "informed": sp})
+        for b in range(args.batches)
+    ]
     print(f"study: {len(tasks)} batches x 2 priors on {args.workers} workers ...", flush=True)
     t = time.perf_counter()
     if args.workers > 1:
@@ -379,16 +461,23 @@ def main(argv=None):
     checks = [r[k + "_diag"]["check"] for r in rows for k in ("default", "informed")]
     out["study_diagnostics"] = {
         "converged_fraction": float(np.mean(conv)),
-        "seconds_median": float(np.median([r[k + "_diag"]["elapsed_s"] for r in rows for k in ("default", "informed")])),
+        "seconds_median": float(
+            np.median([r[k + "_diag"]["elapsed_s"] for r in rows for k in ("default", "informed")])
+        ),
         "gaussian_check_passed_fraction": float(np.mean([c["passed"] for c in checks])),
         "gaussian_check_outlier_diff_max": float(np.max([c["outlier_prob_diff_max"] for c in checks])),
-        "weight_ess_min": float(np.min([r[k + "_diag"]["weight_ess_min"] for r in rows for k in ("default", "informed")]))}
+        "weight_ess_min": float(
+            np.min([r[k + "_diag"]["weight_ess_min"] for r in rows for k in ("default", "informed")])
+        ),
+    }
     # a finer view: which parameter was off (informed prior, 8 modules)
     by_param = {}
     for j, p in enumerate(MODULE_PARAMETERS):
         sel = [r for r in rows if r["kind"] != "none" and r["param"] == j]
         if sel:
-            by_param[p] = {k: float(np.median([r[k][r["outlier"]] for r in sel])) for k in ("default", "informed", "oracle")}
+            by_param[p] = {
+                k: float(np.median([r[k][r["outlier"]] for r in sel])) for k in ("default", "informed", "oracle")
+            }
             by_param[p]["batches"] = len(sel)
     out["median_outlier_prob_by_parameter"] = by_param
     out["rows"] = rows
@@ -401,38 +490,57 @@ def main(argv=None):
     out["timings"] = [timing(n) for n in ((3, 50) if args.quick else (3, 50, 500))]
     out["total_seconds"] = time.perf_counter() - t_start
 
-    lines = [f"population checks: {args.batches} batches (3 and 8 modules, half with one outlier)",
-             "targets met (fraction of batches; default / informed / oracle):"]
+    lines = [
+        f"population checks: {args.batches} batches (3 and 8 modules, half with one outlier)",
+        "targets met (fraction of batches; default / informed / oracle):",
+    ]
     for t in out["targets"]["default"]:
-        lines.append(f"  {t:<44s} " + " / ".join(f"{out['targets'][k][t]:.2f}" for k in ("default", "informed", "oracle")))
+        lines.append(
+            f"  {t:<44s} " + " / ".join(f"{out['targets'][k][t]:.2f}" for k in ("default", "informed", "oracle"))
+        )
     for k in ("default", "informed", "oracle"):
         lines += _fmt_rates(k, out["rates"][k])
     lines.append("calibration (bin: modules, mean prob -> observed outlier fraction):")
     for k in ("default", "informed", "oracle"):
-        cells = [f"[{c['bin'][0]:.1f},{c['bin'][1]:.1f}) {c['modules']}: {c['mean_prob']:.2f}->{c['outlier_fraction']:.2f}"
-                 for c in out["calibration"][k]["table"] if c["modules"]]
+        cells = [
+            f"[{c['bin'][0]:.1f},{c['bin'][1]:.1f}) {c['modules']}: {c['mean_prob']:.2f}->{c['outlier_fraction']:.2f}"
+            for c in out["calibration"][k]["table"]
+            if c["modules"]
+        ]
         lines.append(f"  {k:<8s} " + "  ".join(cells) + f"  Brier {out['calibration'][k]['brier']:.4f}")
     lines.append("median outlier_prob of the outlier by shifted parameter (default / informed / oracle):")
     for p, v in by_param.items():
-        lines.append(f"  {p:<14s} {v['default']:.2f} / {v['informed']:.2f} / {v['oracle']:.2f}  ({v['batches']} batches)")
+        lines.append(
+            f"  {p:<14s} {v['default']:.2f} / {v['informed']:.2f} / {v['oracle']:.2f}  ({v['batches']} batches)"
+        )
     d = out["study_diagnostics"]
-    lines.append(f"fits converged: {d['converged_fraction']:.3f}; Gaussian-vs-importance check passed "
-                 f"{d['gaussian_check_passed_fraction']:.3f} (max outlier_prob diff {d['gaussian_check_outlier_diff_max']:.3f}); "
-                 f"median fit {d['seconds_median']:.1f} s; min importance-weight ESS {d['weight_ess_min']:.0f}")
+    lines.append(
+        f"fits converged: {d['converged_fraction']:.3f}; Gaussian-vs-importance check passed "
+        f"{d['gaussian_check_passed_fraction']:.3f} (max outlier_prob diff {d['gaussian_check_outlier_diff_max']:.3f}); "
+        f"median fit {d['seconds_median']:.1f} s; min importance-weight ESS {d['weight_ess_min']:.0f}"
+    )
     for j in out["joint"]:
-        lines.append(f"two-stage vs joint (seed {j['seed']}, {j['n_modules']} modules, {j['kind']}): max |z| "
-                     f"{j['max_abs_z']:.2f}, rms z {j['rms_z']:.2f} over {len(j['rows'])} quantities; "
-                     f"converged {j['converged']}; {j['seconds']['two_stage']:.0f} s vs {j['seconds']['joint']:.0f} s")
+        lines.append(
+            f"two-stage vs joint (seed {j['seed']}, {j['n_modules']} modules, {j['kind']}): max |z| "
+            f"{j['max_abs_z']:.2f}, rms z {j['rms_z']:.2f} over {len(j['rows'])} quantities; "
+            f"converged {j['converged']}; {j['seconds']['two_stage']:.0f} s vs {j['seconds']['joint']:.0f} s"
+        )
         for row in j["rows"]:
             if row["quantity"].startswith("outlier_prob") or row["quantity"].startswith("mean tau"):
-                lines.append(f"    {row['quantity']:<28s} {row['two_stage']:.4g} vs {row['joint']:.4g} (z {row['z']:+.2f})")
+                lines.append(
+                    f"    {row['quantity']:<28s} {row['two_stage']:.4g} vs {row['joint']:.4g} (z {row['z']:+.2f})"
+                )
     m = out["methods"]
-    lines.append(f"gaussian vs importance (8 modules): max outlier_prob diff {m['outlier_prob_diff_max']:.3f}; "
-                 f"{m['gaussian']['seconds']:.1f} s vs {m['importance']['seconds']:.1f} s")
+    lines.append(
+        f"gaussian vs importance (8 modules): max outlier_prob diff {m['outlier_prob_diff_max']:.3f}; "
+        f"{m['gaussian']['seconds']:.1f} s vs {m['importance']['seconds']:.1f} s"
+    )
     for tm in out["timings"]:
-        lines.append(f"timing: {tm['modules']:>3d} modules {tm['seconds']:6.1f} s ({tm['n_steps']} steps, "
-                     f"method {tm['method']}, converged {tm['converged']}, check passed "
-                     f"{tm['check']['passed'] if tm['check'] else None})")
+        lines.append(
+            f"timing: {tm['modules']:>3d} modules {tm['seconds']:6.1f} s ({tm['n_steps']} steps, "
+            f"method {tm['method']}, converged {tm['converged']}, check passed "
+            f"{tm['check']['passed'] if tm['check'] else None})"
+        )
     lines.append(f"total {out['total_seconds']:.0f} s")
     print("\n".join(lines))
     out["printed"] = lines

@@ -52,8 +52,9 @@ def _validation(truth_module, datasheet, seed, path):
     if not path.is_file():
         rng = np.random.default_rng(seed)
         proto = validation_cycle(rng, datasheet.imax)
-        exp = B.run_experiment(proto, truth_module, {}, rng, rate=1.0, rig=hifi.hifi_rig(),
-                               t0=float(np.round(rng.uniform(0, 1000), 3)))
+        exp = B.run_experiment(
+            proto, truth_module, {}, rng, rate=1.0, rig=hifi.hifi_rig(), t0=float(np.round(rng.uniform(0, 1000), 3))
+        )
         path.parent.mkdir(parents=True, exist_ok=True)
         write_experiment_csv(path, exp)
     return load_experiment(path, datasheet=datasheet)
@@ -90,16 +91,25 @@ def study_batch(args):
         t0 = time.perf_counter()
         exp = _validation(tmod, batch.datasheet, seed0 + k, work / "validations" / name / f"{tag}.csv")
         res = predict(run, exp, module, batch, n_draws=n_draws, seed=k, compare_constant=(module != "population"))
-        row = {"batch": name, "module": tag, "kind": "population" if module == "population" else "module",
-               "linear": res.linear.metrics(), "linear_by_Tavg": res.linear.by_tavg(),
-               "seconds": time.perf_counter() - t0, "predictive_s": res.linear.seconds}
+        row = {
+            "batch": name,
+            "module": tag,
+            "kind": "population" if module == "population" else "module",
+            "linear": res.linear.metrics(),
+            "linear_by_Tavg": res.linear.by_tavg(),
+            "seconds": time.perf_counter() - t0,
+            "predictive_s": res.linear.seconds,
+        }
         if res.constant is not None:
             row["constant"] = res.constant.metrics()
             row["constant_by_Tavg"] = res.constant.by_tavg()
         rows.append(row)
-        print(f"{name}/{tag}: T3 RMSE {row['linear']['T3_C']['rmse']:.4f} K, cov90 "
-              + " ".join(f"{row['linear'][c]['coverage90']:.2f}" for c in CHANNELS)
-              + f"  ({row['seconds']:.0f} s)", flush=True)
+        print(
+            f"{name}/{tag}: T3 RMSE {row['linear']['T3_C']['rmse']:.4f} K, cov90 "
+            + " ".join(f"{row['linear'][c]['coverage90']:.2f}" for c in CHANNELS)
+            + f"  ({row['seconds']:.0f} s)",
+            flush=True,
+        )
     return rows
 
 
@@ -115,10 +125,13 @@ def summarise(rows):
             rmse = np.array([r["linear"][ch]["rmse"] for r in R])
             s[ch] = {
                 **{f"coverage{lv}_mean": float(cov[lv].mean()) for lv in cov},
-                **{f"coverage{lv}_se": float(cov[lv].std(ddof=1) / np.sqrt(len(R))) if len(R) > 1 else None
-                   for lv in cov},
+                **{
+                    f"coverage{lv}_se": float(cov[lv].std(ddof=1) / np.sqrt(len(R))) if len(R) > 1 else None
+                    for lv in cov
+                },
                 "coverage90_runs_in_85_95": float(np.mean((cov[90] >= 0.85) & (cov[90] <= 0.95))),
-                "rmse_median": float(np.median(rmse)), "rmse_max": float(rmse.max()),
+                "rmse_median": float(np.median(rmse)),
+                "rmse_max": float(rmse.max()),
             }
         out[kind] = s
     # constant vs linear by T-bar (pooled over module runs): RMSE per 5 K bin, sample-weighted
@@ -132,10 +145,16 @@ def summarise(rows):
                     continue
                 d[model][0] += b["rmse"]["T3_C"] ** 2 * b["n"]
                 d[model][1] += b["n"]
-    out["T3_rmse_by_Tavg"] = [{"Tavg_C_low": k, "linear": float(np.sqrt(v["linear"][0] / v["linear"][1])),
-                               "constant": float(np.sqrt(v["constant"][0] / v["constant"][1])),
-                               "n": v["linear"][1]}
-                              for k, v in sorted(bins.items()) if v["linear"][1] and v["constant"][1]]
+    out["T3_rmse_by_Tavg"] = [
+        {
+            "Tavg_C_low": k,
+            "linear": float(np.sqrt(v["linear"][0] / v["linear"][1])),
+            "constant": float(np.sqrt(v["constant"][0] / v["constant"][1])),
+            "n": v["linear"][1],
+        }
+        for k, v in sorted(bins.items())
+        if v["linear"][1] and v["constant"][1]
+    ]
     return out
 
 
@@ -158,9 +177,14 @@ def main(argv=None):
     with ProcessPoolExecutor(max_workers=args.jobs, mp_context=mp.get_context("spawn")) as ex:
         rows = [r for rs in ex.map(study_batch, [(n, args.work, args.draws) for n in names]) for r in rs]
     summ = summarise(rows)
-    doc = {"command": "python analyses/predict_study.py " + " ".join(argv or sys.argv[1:]),
-           "n_draws": args.draws, "batches": names, "minutes": (time.time() - t0) / 60.0, "summary": summ,
-           "runs": rows}
+    doc = {
+        "command": "python analyses/predict_study.py " + " ".join(argv or sys.argv[1:]),
+        "n_draws": args.draws,
+        "batches": names,
+        "minutes": (time.time() - t0) / 60.0,
+        "summary": summ,
+        "runs": rows,
+    }
     RESULTS.mkdir(exist_ok=True)
     from tembayes.data import write_json
 
@@ -170,23 +194,33 @@ def main(argv=None):
         if kind not in summ:
             continue
         s = summ[kind]
-        lines += [f"## {kind} predictions ({s['n_runs']} runs)", "",
-                  "| channel | RMSE median | RMSE max | coverage 50 | coverage 90 (± se) | coverage 95 | runs with 90 % coverage in 85-95 % |",
-                  "|---|---|---|---|---|---|---|"]
+        lines += [
+            f"## {kind} predictions ({s['n_runs']} runs)",
+            "",
+            "| channel | RMSE median | RMSE max | coverage 50 | coverage 90 (± se) | coverage 95 | runs with 90 % coverage in 85-95 % |",
+            "|---|---|---|---|---|---|---|",
+        ]
         for ch in CHANNELS:
             c = s[ch]
             u = "mV" if ch == "voltage_V" else "K"
             f = 1e3 if ch == "voltage_V" else 1.0
-            lines.append(f"| {ch} | {f * c['rmse_median']:.4g} {u} | {f * c['rmse_max']:.4g} {u} | "
-                         f"{100 * c['coverage50_mean']:.1f} % | {100 * c['coverage90_mean']:.1f} ± "
-                         f"{100 * (c['coverage90_se'] or 0):.1f} % | {100 * c['coverage95_mean']:.1f} % | "
-                         f"{100 * c['coverage90_runs_in_85_95']:.0f} % |")
+            lines.append(
+                f"| {ch} | {f * c['rmse_median']:.4g} {u} | {f * c['rmse_max']:.4g} {u} | "
+                f"{100 * c['coverage50_mean']:.1f} % | {100 * c['coverage90_mean']:.1f} ± "
+                f"{100 * (c['coverage90_se'] or 0):.1f} % | {100 * c['coverage95_mean']:.1f} % | "
+                f"{100 * c['coverage90_runs_in_85_95']:.0f} % |"
+            )
         lines.append("")
-    lines += ["## T3 RMSE by T-bar, linear vs constant (35 degC) laws", "", "| T-bar bin | linear | constant |",
-              "|---|---|---|"]
+    lines += [
+        "## T3 RMSE by T-bar, linear vs constant (35 degC) laws",
+        "",
+        "| T-bar bin | linear | constant |",
+        "|---|---|---|",
+    ]
     for b in summ["T3_rmse_by_Tavg"]:
-        lines.append(f"| {b['Tavg_C_low']:.0f}-{b['Tavg_C_low'] + 5:.0f} degC | {b['linear']:.4f} K | "
-                     f"{b['constant']:.3f} K |")
+        lines.append(
+            f"| {b['Tavg_C_low']:.0f}-{b['Tavg_C_low'] + 5:.0f} degC | {b['linear']:.4f} K | {b['constant']:.3f} K |"
+        )
     (RESULTS / "predict_study.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 

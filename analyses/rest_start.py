@@ -58,20 +58,57 @@ def one_batch(args, b):
     if res.exists():
         return json.loads(res.read_text())
     if not (bdir / "truth.json").exists():
-        tembayes("simulate", bdir, "--modules", 1, "--fidelity", args.fidelity, "--physics", args.physics,
-                 "--validations", 1, "--validation-start", "rest", "--validation-rate", 1, "--seed", 700 + b,
-                 "--overwrite")
+        tembayes(
+            "simulate",
+            bdir,
+            "--modules",
+            1,
+            "--fidelity",
+            args.fidelity,
+            "--physics",
+            args.physics,
+            "--validations",
+            1,
+            "--validation-start",
+            "rest",
+            "--validation-rate",
+            1,
+            "--seed",
+            700 + b,
+            "--overwrite",
+        )
     if not (rdir / "summary.json").exists():
-        tembayes("calibrate", bdir, "--out", rdir, "--seed", 0, "--model", args.model, "--discrepancy",
-                 args.discrepancy, "--quiet", "--no-figures", "--workers", 1, "--overwrite")
+        tembayes(
+            "calibrate",
+            bdir,
+            "--out",
+            rdir,
+            "--seed",
+            0,
+            "--model",
+            args.model,
+            "--discrepancy",
+            args.discrepancy,
+            "--quiet",
+            "--no-figures",
+            "--workers",
+            1,
+            "--overwrite",
+        )
     batch = load_batch(bdir)
     exp = batch.modules["TEM1"].validations[0]
     pred = predict(load_run(rdir), exp, "TEM1", batch, n_draws=args.draws, seed=0, compare_constant=False).linear
     r = pred.residual[:4]
     t = pred.time - pred.time[0]
-    doc = {"batch": b, "rmse_all_K": rmse(r, slice(None)), "rmse_after_1h_K": rmse(r, t >= 3600.0),
-           "rmse_first_15min_K": rmse(r, t < 900.0), "coverage90": [float(c) for c in pred.coverage(90)[:4]],
-           "first_level_A": float(pred.current[0]), "start_current_A": pred.start_current}
+    doc = {
+        "batch": b,
+        "rmse_all_K": rmse(r, slice(None)),
+        "rmse_after_1h_K": rmse(r, t >= 3600.0),
+        "rmse_first_15min_K": rmse(r, t < 900.0),
+        "coverage90": [float(c) for c in pred.coverage(90)[:4]],
+        "first_level_A": float(pred.current[0]),
+        "start_current_A": pred.start_current,
+    }
     if args.gap:
         gdir = work / f"b{b}.gap"
         tembayes("gap", rdir, bdir, "--out", gdir, "--no-figures", "--jobs", 1, "--overwrite")
@@ -83,18 +120,30 @@ def one_batch(args, b):
 
 def summarise(docs):
     ratio = np.array([np.array(d["rmse_all_K"]) / np.array(d["rmse_after_1h_K"]) for d in docs])
-    out = {"n_batches": len(docs),
-           "ratio_all_over_after_1h": {s: {"median": float(np.median(ratio[:, i])), "max": float(np.max(ratio[:, i])),
-                                           "within_1.2": int(np.sum(ratio[:, i] <= 1.2))}
-                                       for i, s in enumerate(SENSORS)},
-           "rmse_first_15min_mK_median": {s: 1e3 * float(np.median([d["rmse_first_15min_K"][i] for d in docs]))
-                                          for i, s in enumerate(SENSORS)},
-           "rmse_after_1h_mK_median": {s: 1e3 * float(np.median([d["rmse_after_1h_K"][i] for d in docs]))
-                                       for i, s in enumerate(SENSORS)}}
+    out = {
+        "n_batches": len(docs),
+        "ratio_all_over_after_1h": {
+            s: {
+                "median": float(np.median(ratio[:, i])),
+                "max": float(np.max(ratio[:, i])),
+                "within_1.2": int(np.sum(ratio[:, i] <= 1.2)),
+            }
+            for i, s in enumerate(SENSORS)
+        },
+        "rmse_first_15min_mK_median": {
+            s: 1e3 * float(np.median([d["rmse_first_15min_K"][i] for d in docs])) for i, s in enumerate(SENSORS)
+        },
+        "rmse_after_1h_mK_median": {
+            s: 1e3 * float(np.median([d["rmse_after_1h_K"][i] for d in docs])) for i, s in enumerate(SENSORS)
+        },
+    }
     verdicts = [d["gap_verdict"] for d in docs if "gap_verdict" in d]
     if verdicts:
-        out["gap"] = {"n": len(verdicts), "no_gap": verdicts.count("no_gap"),
-                      "verdicts": {v: verdicts.count(v) for v in sorted(set(verdicts))}}
+        out["gap"] = {
+            "n": len(verdicts),
+            "no_gap": verdicts.count("no_gap"),
+            "verdicts": {v: verdicts.count(v) for v in sorted(set(verdicts))},
+        }
     return out
 
 
@@ -122,18 +171,29 @@ def main():
         elif b % n == k:
             docs.append(one_batch(args, b))
             print(f"done batch {b}", flush=True)
-    doc = {"label": label(args), "settings": {k: str(v) for k, v in vars(args).items()},
-           "summary": summarise(docs), "batches": docs}
+    doc = {
+        "label": label(args),
+        "settings": {k: str(v) for k, v in vars(args).items()},
+        "summary": summarise(docs),
+        "batches": docs,
+    }
     res = ROOT / "analyses" / "results"
     (res / f"rest_start_{label(args)}.json").write_text(json.dumps(doc, indent=1) + "\n")
     s = doc["summary"]
-    lines = [f"# Runs that start from rest: {label(args)}", "", f"{s['n_batches']} batches, one module each", "",
-             "| | RMSE all / after 1 h, median | max | batches within 1.2 | first 15 min RMSE [mK] | "
-             "after 1 h RMSE [mK] |", "|---|---|---|---|---|---|"]
+    lines = [
+        f"# Runs that start from rest: {label(args)}",
+        "",
+        f"{s['n_batches']} batches, one module each",
+        "",
+        "| | RMSE all / after 1 h, median | max | batches within 1.2 | first 15 min RMSE [mK] | after 1 h RMSE [mK] |",
+        "|---|---|---|---|---|---|",
+    ]
     for sname in SENSORS:
         q = s["ratio_all_over_after_1h"][sname]
-        lines.append(f"| {sname} | {q['median']:.3f} | {q['max']:.3f} | {q['within_1.2']}/{s['n_batches']} | "
-                     f"{s['rmse_first_15min_mK_median'][sname]:.1f} | {s['rmse_after_1h_mK_median'][sname]:.1f} |")
+        lines.append(
+            f"| {sname} | {q['median']:.3f} | {q['max']:.3f} | {q['within_1.2']}/{s['n_batches']} | "
+            f"{s['rmse_first_15min_mK_median'][sname]:.1f} | {s['rmse_after_1h_mK_median'][sname]:.1f} |"
+        )
     if "gap" in s:
         lines += ["", f"gap: no_gap in {s['gap']['no_gap']} of {s['gap']['n']} ({s['gap']['verdicts']})"]
     (res / f"rest_start_{label(args)}.md").write_text("\n".join(lines) + "\n")

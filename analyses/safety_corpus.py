@@ -28,7 +28,6 @@ import argparse
 import hashlib
 import json
 import os
-import shutil
 import subprocess
 import sys
 import tempfile
@@ -47,8 +46,11 @@ def tree(folder):
         return None
     if folder.is_file():
         return {"": hashlib.sha256(folder.read_bytes()).hexdigest()}
-    return {p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(folder.rglob("*")) if p.is_file()}
+    return {
+        p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
+    }
 
 
 def fake_run(folder):
@@ -65,6 +67,7 @@ def _data_case(name):
     def make(tmp):
         b = build(tmp, "b")
         return {"argv": ["inspect", b], "keep": [b], "needles": [words, where]}
+
     return make
 
 
@@ -73,8 +76,11 @@ def _overwrite_user_folder(tmp):
     mine = tmp / "mine"
     mine.mkdir()
     (mine / "notes.txt").write_text("mine")
-    return {"argv": ["calibrate", b, "--out", mine, "--overwrite"], "keep": [b, mine],
-            "needles": ["not a tembayes output"]}
+    return {
+        "argv": ["calibrate", b, "--out", mine, "--overwrite"],
+        "keep": [b, mine],
+        "needles": ["not a tembayes output"],
+    }
 
 
 def _overwrite_is_batch(tmp):
@@ -84,8 +90,11 @@ def _overwrite_is_batch(tmp):
 
 def _overwrite_parent_of_batch(tmp):
     b = good_batch(tmp / "data", "b", validation=False)
-    return {"argv": ["calibrate", b, "--out", tmp / "data", "--overwrite"], "keep": [b],
-            "needles": ["holds the batch folder"]}
+    return {
+        "argv": ["calibrate", b, "--out", tmp / "data", "--overwrite"],
+        "keep": [b],
+        "needles": ["holds the batch folder"],
+    }
 
 
 def _out_inside_batch(tmp):
@@ -96,8 +105,12 @@ def _out_inside_batch(tmp):
 def _overwrite_earlier_run_killed(tmp):
     b = good_batch(tmp, "b", validation=False)
     run = fake_run(tmp / "run")
-    return {"argv": ["calibrate", b, "--out", run, "--overwrite"], "keep": [b, run], "expect": "accept",
-            "budget": 15.0}  # stopped mid-run: the earlier run must survive
+    return {
+        "argv": ["calibrate", b, "--out", run, "--overwrite"],
+        "keep": [b, run],
+        "expect": "accept",
+        "budget": 15.0,
+    }  # stopped mid-run: the earlier run must survive
 
 
 def _out_is_a_file(command):
@@ -107,6 +120,7 @@ def _out_is_a_file(command):
         f.write_text("x")
         argv = [command, f] if command == "simulate" else [command, b, "--out", f]
         return {"argv": argv, "keep": [b, f], "needles": ["is a file"]}
+
     return make
 
 
@@ -131,19 +145,21 @@ def _clean_example(tmp):
 
 
 CASES = {f"data: {k}": _data_case(k) for k in sorted(DATA_CASES)}
-CASES.update({
-    "data: colliding module ids": _colliding,
-    "data: a 5 s gap inside a hold (fine)": _short_gap_warning,
-    "data: the shipped example (fine)": _clean_example,
-    "out: --overwrite on a folder of the user's": _overwrite_user_folder,
-    "out: --out = the batch, --overwrite": _overwrite_is_batch,
-    "out: --out = the batch's parent, --overwrite": _overwrite_parent_of_batch,
-    "out: --out inside the batch": _out_inside_batch,
-    "out: --overwrite, run killed: earlier run kept": _overwrite_earlier_run_killed,
-    "out: calibrate --out is a file": _out_is_a_file("calibrate"),
-    "out: identify --out is a file": _out_is_a_file("identify"),
-    "out: simulate OUT is a file": _out_is_a_file("simulate"),
-})
+CASES.update(
+    {
+        "data: colliding module ids": _colliding,
+        "data: a 5 s gap inside a hold (fine)": _short_gap_warning,
+        "data: the shipped example (fine)": _clean_example,
+        "out: --overwrite on a folder of the user's": _overwrite_user_folder,
+        "out: --out = the batch, --overwrite": _overwrite_is_batch,
+        "out: --out = the batch's parent, --overwrite": _overwrite_parent_of_batch,
+        "out: --out inside the batch": _out_inside_batch,
+        "out: --overwrite, run killed: earlier run kept": _overwrite_earlier_run_killed,
+        "out: calibrate --out is a file": _out_is_a_file("calibrate"),
+        "out: identify --out is a file": _out_is_a_file("identify"),
+        "out: simulate OUT is a file": _out_is_a_file("simulate"),
+    }
+)
 
 
 def run_case(make, pythonpath, budget):
@@ -154,8 +170,9 @@ def run_case(make, pythonpath, budget):
         env = dict(os.environ, PYTHONPATH=str(pythonpath))
         argv = [sys.executable, "-m", "tembayes", *map(str, case["argv"])]
         t0 = time.perf_counter()
-        p = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp,
-                             start_new_session=True)
+        p = subprocess.Popen(
+            argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp, start_new_session=True
+        )
         try:
             out, err = p.communicate(timeout=case.get("budget", budget))
             rc = p.returncode
@@ -188,25 +205,37 @@ def main():
     ap.add_argument("--budget", type=float, default=30.0, help="seconds before a command is stopped")
     args = ap.parse_args()
     work = Path(tempfile.mkdtemp(prefix="tembayes-baseline-"))
-    subprocess.run(["git", "worktree", "add", "--detach", str(work), args.baseline], cwd=ROOT, check=True,
-                   capture_output=True)
+    subprocess.run(
+        ["git", "worktree", "add", "--detach", str(work), args.baseline], cwd=ROOT, check=True, capture_output=True
+    )
     try:
         rows = {}
         for name, make in CASES.items():
             rows[name] = {"before": run_case(make, work, args.budget), "after": run_case(make, ROOT, args.budget)}
-            print(f"{name:55s} {rows[name]['before']['outcome']:22s} -> {rows[name]['after']['outcome']}",
-                  flush=True)
+            print(f"{name:55s} {rows[name]['before']['outcome']:22s} -> {rows[name]['after']['outcome']}", flush=True)
     finally:
         subprocess.run(["git", "worktree", "remove", "--force", str(work)], cwd=ROOT, check=False)
-    kinds = ["refused clearly", "accepted correctly", "refused, wrong reason", "accepted silently", "traceback",
-             "data loss"]
+    kinds = [
+        "refused clearly",
+        "accepted correctly",
+        "refused, wrong reason",
+        "accepted silently",
+        "traceback",
+        "data loss",
+    ]
     count = {w: {k: sum(r[w]["outcome"] == k for r in rows.values()) for k in kinds} for w in ("before", "after")}
     res = ROOT / "analyses" / "results"
-    (res / "safety_corpus.json").write_text(json.dumps({"baseline": args.baseline, "cases": rows, "counts": count},
-                                                       indent=2) + "\n")
-    lines = [f"# The bad-input corpus: {args.baseline} against this checkout", "",
-             "`python analyses/safety_corpus.py --baseline " + args.baseline + "`", "",
-             "| outcome | before | after |", "|---|---|---|"]
+    (res / "safety_corpus.json").write_text(
+        json.dumps({"baseline": args.baseline, "cases": rows, "counts": count}, indent=2) + "\n"
+    )
+    lines = [
+        f"# The bad-input corpus: {args.baseline} against this checkout",
+        "",
+        "`python analyses/safety_corpus.py --baseline " + args.baseline + "`",
+        "",
+        "| outcome | before | after |",
+        "|---|---|---|",
+    ]
     lines += [f"| {k} | {count['before'][k]} | {count['after'][k]} |" for k in kinds]
     lines += ["", "| case | before | after | message after |", "|---|---|---|---|"]
     for name, r in rows.items():

@@ -98,8 +98,9 @@ def simulate(path, n, seed):
     if path.exists():
         shutil.rmtree(path)
     t = time.perf_counter()
-    simulate_batch(path, BenchConfig(n_modules=n, seed=seed, hold=60.0, rate=1.0, n_validations=0),
-                   progress=lambda m: None)
+    simulate_batch(
+        path, BenchConfig(n_modules=n, seed=seed, hold=60.0, rate=1.0, n_validations=0), progress=lambda m: None
+    )
     return time.perf_counter() - t
 
 
@@ -108,6 +109,7 @@ def run_arm(batch_dir, out, workers, seed, log):
     from tembayes.calibrate.module import CalibrationOptions
     from tembayes.calibrate.scaleout import dask_client
     from tembayes.data import load_batch
+    from tembayes.plots.calibrate import save_calibration_figures
 
     if out.exists():
         shutil.rmtree(out)
@@ -128,23 +130,38 @@ def run_arm(batch_dir, out, workers, seed, log):
                     done[0] += 1
                     rss_trace.append((done[0], mem.sample()))
                     if done[0] % 20 == 0 or done[0] == n:
-                        log(f"  {workers} worker(s): {done[0]}/{n} modules, {now - t_up:.0f} s, "
-                            f"client RSS {rss_trace[-1][1] / 2**20:.0f} MiB")
+                        log(
+                            f"  {workers} worker(s): {done[0]}/{n} modules, {now - t_up:.0f} s, "
+                            f"client RSS {rss_trace[-1][1] / 2**20:.0f} MiB"
+                        )
                 if msg.startswith(("population", "posterior.nc")):  # the batch stage has read the modules
                     marks.setdefault("read", now)
 
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)  # "not converged": the cheap budget
-                calibrate_batch(batch, out, seed=seed, options=CalibrationOptions(**CHEAP), client=client,
-                                figures=True, keep_unconverged=True, progress=progress)
+                calibrate_batch(
+                    batch,
+                    out,
+                    seed=seed,
+                    options=CalibrationOptions(**CHEAP),
+                    client=client,
+                    keep_unconverged=True,
+                    progress=progress,
+                )
+                save_calibration_figures(out)
             t_end = time.perf_counter()
     t_modules = marks["last_module"] - t_up
     trace = np.array(rss_trace, dtype=float)
-    q = {f"{int(100 * f)}%": float(trace[min(len(trace) - 1, int(f * len(trace)) - 1), 1] / 2**20)
-         for f in (0.25, 0.5, 0.75, 1.0)}
-    slope = float(np.polyfit(trace[len(trace) // 4:, 0], trace[len(trace) // 4:, 1], 1)[0]) if len(trace) > 8 else None
+    q = {
+        f"{int(100 * f)}%": float(trace[min(len(trace) - 1, int(f * len(trace)) - 1), 1] / 2**20)
+        for f in (0.25, 0.5, 0.75, 1.0)
+    }
+    slope = (
+        float(np.polyfit(trace[len(trace) // 4 :, 0], trace[len(trace) // 4 :, 1], 1)[0]) if len(trace) > 8 else None
+    )
     return {
-        "workers": workers, "modules": n,
+        "workers": workers,
+        "modules": n,
         "cluster_start_s": t_up - t0,
         "module_stage_s": t_modules,
         "batch_stage_s": t_end - marks["last_module"],
@@ -157,8 +174,14 @@ def run_arm(batch_dir, out, workers, seed, log):
         "client_rss_MiB_at_done": q,
         "client_rss_slope_kiB_per_module": None if slope is None else slope / 1024,
         "posterior_nc_MiB": (out / "posterior.nc").stat().st_size / 2**20,
-        "module_seconds_mean": float(np.mean([m["diagnostics"]["seconds"] for m in
-                                              json.loads((out / "summary.json").read_text())["modules"].values()])),
+        "module_seconds_mean": float(
+            np.mean(
+                [
+                    m["diagnostics"]["seconds"]
+                    for m in json.loads((out / "summary.json").read_text())["modules"].values()
+                ]
+            )
+        ),
     }
 
 
@@ -167,8 +190,7 @@ def compare(a, b):
     import arviz as az
 
     sa, sb = (json.loads((Path(r) / "summary.json").read_text()) for r in (a, b))
-    worst = {"summary_max_abs_diff": 0.0, "summary_numbers": 0, "posterior_arrays": 0,
-             "posterior_max_abs_diff": 0.0}
+    worst = {"summary_max_abs_diff": 0.0, "summary_numbers": 0, "posterior_arrays": 0, "posterior_max_abs_diff": 0.0}
     skip = {"seconds", "sampling_s", "elapsed_s", "command", "executor", "path"}
 
     def walk(x, y):
@@ -218,10 +240,18 @@ def probe_production(batch_dir, n, log):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             r = calibrate_module(b.modules[mid], b.datasheet, rig_config=b.rig_config, seed=0)
-        out.append({"module": mid, "seconds": time.perf_counter() - t, "steps": r.diagnostics["steps"],
-                    "converged": bool(r.diagnostics["converged"])})
-        log(f"  production budget, 1 thread: {mid} {out[-1]['seconds']:.0f} s, {out[-1]['steps']} steps, "
-            f"converged {out[-1]['converged']}")
+        out.append(
+            {
+                "module": mid,
+                "seconds": time.perf_counter() - t,
+                "steps": r.diagnostics["steps"],
+                "converged": bool(r.diagnostics["converged"]),
+            }
+        )
+        log(
+            f"  production budget, 1 thread: {mid} {out[-1]['seconds']:.0f} s, {out[-1]['steps']} steps, "
+            f"converged {out[-1]['converged']}"
+        )
     return out
 
 
@@ -260,28 +290,46 @@ def population_scaling(sizes, seed, log):
         tracemalloc.stop()
         d = pop.diagnostics
         steps = int(d.get("n_steps") or 0)
-        out.append({"modules": n, "seconds": dt, "steps": steps, "converged": bool(d.get("converged")),
-                    "method": d.get("method"), "us_per_step_and_module": 1e6 * d.get("sampling_s", dt) / max(1, steps) / n,
-                    "peak_traced_MiB": peak / 2**20})
-        log(f"  population of {n} synthetic modules: {dt:.0f} s, {steps} steps, converged {out[-1]['converged']}, "
-            f"{out[-1]['us_per_step_and_module']:.2f} us per step and module, peak {peak / 2**20:.0f} MiB")
+        out.append(
+            {
+                "modules": n,
+                "seconds": dt,
+                "steps": steps,
+                "converged": bool(d.get("converged")),
+                "method": d.get("method"),
+                "us_per_step_and_module": 1e6 * d.get("sampling_s", dt) / max(1, steps) / n,
+                "peak_traced_MiB": peak / 2**20,
+            }
+        )
+        log(
+            f"  population of {n} synthetic modules: {dt:.0f} s, {steps} steps, converged {out[-1]['converged']}, "
+            f"{out[-1]['us_per_step_and_module']:.2f} us per step and module, peak {peak / 2**20:.0f} MiB"
+        )
         del draws
     return out
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog="example: python analyses/"
-                                 "scaleout_benchmark.py --modules 200 --work /tmp/scaleout",
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0],
+        epilog="example: python analyses/scaleout_benchmark.py --modules 200 --work /tmp/scaleout",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     ap.add_argument("--modules", type=int, default=200)
     ap.add_argument("--work", type=Path, default=Path("/tmp/tembayes_scaleout"))
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--probe", type=int, default=2, help="modules timed at the production budget (0: skip)")
-    ap.add_argument("--population-scaling", type=int, nargs="*", metavar="N",
-                    help="only time the population stage on synthetic batches of N modules (e.g. 200 1000 2000) "
-                         "and add it to the recorded results")
+    ap.add_argument(
+        "--population-scaling",
+        type=int,
+        nargs="*",
+        metavar="N",
+        help="only time the population stage on synthetic batches of N modules (e.g. 200 1000 2000) "
+        "and add it to the recorded results",
+    )
     args = ap.parse_args(argv)
     if args.population_scaling:
+
         def say(msg):
             print(msg, flush=True)
 
@@ -291,11 +339,18 @@ def main(argv=None):
         doc["population_scaling"] = rows
         f.write_text(json.dumps(doc, indent=1) + "\n")
         md = RESULTS / "scaleout_benchmark.md"
-        lines = ["", "Population stage alone (`--population-scaling`), synthetic module posteriors:", "",
-                 "| modules | seconds | emcee steps | converged | us per step and module | peak traced MiB |",
-                 "|---|---|---|---|---|---|"]
-        lines += [f"| {r['modules']} | {r['seconds']:.0f} | {r['steps']} | {r['converged']} | "
-                  f"{r['us_per_step_and_module']:.2f} | {r['peak_traced_MiB']:.0f} |" for r in rows]
+        lines = [
+            "",
+            "Population stage alone (`--population-scaling`), synthetic module posteriors:",
+            "",
+            "| modules | seconds | emcee steps | converged | us per step and module | peak traced MiB |",
+            "|---|---|---|---|---|---|",
+        ]
+        lines += [
+            f"| {r['modules']} | {r['seconds']:.0f} | {r['steps']} | {r['converged']} | "
+            f"{r['us_per_step_and_module']:.2f} | {r['peak_traced_MiB']:.0f} |"
+            for r in rows
+        ]
         with open(md, "a") as fh:
             fh.write("\n".join(lines) + "\n")
         return 0
@@ -319,18 +374,26 @@ def main(argv=None):
     probe = probe_production(batch_dir, args.probe, log) if args.probe else []
     out = {
         "command": "python analyses/scaleout_benchmark.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-        "cores": os.cpu_count(), "modules": args.modules, "simulate_s": t_sim, "options": CHEAP,
+        "cores": os.cpu_count(),
+        "modules": args.modules,
+        "simulate_s": t_sim,
+        "options": CHEAP,
         "arms": {str(k): v for k, v in arms.items()},
-        "parallel_efficiency": eff, "speedup": arms[1]["module_stage_s"] / arms[2]["module_stage_s"],
-        "agreement_2_vs_1_worker": agree, "production_probe": probe,
+        "parallel_efficiency": eff,
+        "speedup": arms[1]["module_stage_s"] / arms[2]["module_stage_s"],
+        "agreement_2_vs_1_worker": agree,
+        "production_probe": probe,
     }
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / "scaleout_benchmark.json").write_text(json.dumps(out, indent=1) + "\n")
     a1, a2 = arms[1], arms[2]
     md = [
-        f"# Scale-out benchmark ({args.modules} modules, {os.cpu_count()} cores)", "",
-        f"`{out['command']}`", "",
-        "| | 1 worker | 2 workers |", "|---|---|---|",
+        f"# Scale-out benchmark ({args.modules} modules, {os.cpu_count()} cores)",
+        "",
+        f"`{out['command']}`",
+        "",
+        "| | 1 worker | 2 workers |",
+        "|---|---|---|",
         f"| module stage [s] | {a1['module_stage_s']:.0f} | {a2['module_stage_s']:.0f} |",
         f"| modules per hour | {a1['modules_per_hour']:.0f} | {a2['modules_per_hour']:.0f} |",
         f"| mean module calibration [s] | {a1['module_seconds_mean']:.1f} | {a2['module_seconds_mean']:.1f} |",
@@ -340,21 +403,30 @@ def main(argv=None):
         f" / {a1['peak_rss_total_MiB']:.0f} | {a2['peak_rss_client_MiB']:.0f} / {a2['peak_rss_worker_MiB']:.0f} / "
         f"{a2['peak_rss_total_MiB']:.0f} |",
         "| client RSS at 25/50/75/100 % of modules [MiB] | "
-        + " / ".join(f"{v:.0f}" for v in a1["client_rss_MiB_at_done"].values()) + " | "
-        + " / ".join(f"{v:.0f}" for v in a2["client_rss_MiB_at_done"].values()) + " |",
+        + " / ".join(f"{v:.0f}" for v in a1["client_rss_MiB_at_done"].values())
+        + " | "
+        + " / ".join(f"{v:.0f}" for v in a2["client_rss_MiB_at_done"].values())
+        + " |",
         "| client RSS growth after the first quarter [kiB per module] | "
-        + " | ".join("-" if a["client_rss_slope_kiB_per_module"] is None else f"{a['client_rss_slope_kiB_per_module']:.0f}"
-                     for a in (a1, a2)) + " |",
-        f"| posterior.nc [MiB] | {a1['posterior_nc_MiB']:.0f} | {a2['posterior_nc_MiB']:.0f} |", "",
-        f"**Parallel efficiency** T1 / (2 T2) = **{eff:.2f}** (speed-up {out['speedup']:.2f}x; target >= 0.80).", "",
+        + " | ".join(
+            "-" if a["client_rss_slope_kiB_per_module"] is None else f"{a['client_rss_slope_kiB_per_module']:.0f}"
+            for a in (a1, a2)
+        )
+        + " |",
+        f"| posterior.nc [MiB] | {a1['posterior_nc_MiB']:.0f} | {a2['posterior_nc_MiB']:.0f} |",
+        "",
+        f"**Parallel efficiency** T1 / (2 T2) = **{eff:.2f}** (speed-up {out['speedup']:.2f}x; target >= 0.80).",
+        "",
         f"**Agreement, 2 workers vs 1 (serial):** {agree['summary_numbers']} numbers of summary.json, largest "
         f"difference {agree['summary_max_abs_diff']:.3g}; {agree['posterior_arrays']} arrays of posterior.nc, largest "
-        f"difference {agree['posterior_max_abs_diff']:.3g}; identical: {agree['identical']}.", "",
+        f"difference {agree['posterior_max_abs_diff']:.3g}; identical: {agree['identical']}.",
+        "",
     ]
     if probe:
-        md.append("Production budget (default options, 4 x 6 rig model, to convergence), one thread, this batch's "
-                  "modules: " + ", ".join(f"{p['module']} {p['seconds']:.0f} s ({p['steps']} steps)" for p in probe)
-                  + ".")
+        md.append(
+            "Production budget (default options, 4 x 6 rig model, to convergence), one thread, this batch's "
+            "modules: " + ", ".join(f"{p['module']} {p['seconds']:.0f} s ({p['steps']} steps)" for p in probe) + "."
+        )
     (RESULTS / "scaleout_benchmark.md").write_text("\n".join(md) + "\n")
     log("\n".join(md))
     return 0

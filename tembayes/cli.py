@@ -68,11 +68,17 @@ docs/outputs.md, 'summary.json (calibrate)' and 'posterior.nc (calibrate)'.
 _EPILOG_EXPORT = """\
 examples:
   tembayes export runs/example --format mat --out runs/example-observer.mat
-  tembayes export runs/example --out runs/ex.json --point 30,2.5 --point 45,5 --module TEM1
+  tembayes export runs/example --out runs/ex.json --point 30,-0.8 --point 15,0.6 --module TEM1
+  tembayes export runs/example --out runs/hot.json --point 60,-2 --allow-extrapolation   # beyond the data
   tembayes export runs/two --out runs/two.npz --heldout validation.csv   # validation2.csv stays unseen
 
 reads the run and its batch (recorded in RUN/summary.json, or --batch) and
-writes one file, SI units (temperatures in K).  In Python:
+writes one file, SI units (temperatures in K).  The operating points must lie
+in the calibrated range: the junction temperatures (T_AVG_C) and currents the
+identification runs covered, recorded in the file's meta.calibrated_range;
+outside it the export is refused unless --allow-extrapolation, which records a
+warning in meta.warnings.  Every field with its shape and unit is in the
+file's "fields" table.  In Python:
   scipy.io.loadmat("x.mat", simplify_cells=True)["modules"]["TEM1"]["linear"]["op0"]["A"]
   numpy.load("x.npz")["modules__TEM1__linear__op0__A"]
 in MATLAB: x = load('x.mat'); x.modules.TEM1.linear.op0.A
@@ -123,6 +129,7 @@ examples:
   tembayes predict runs/example data/example/TEM2/validation.csv --module TEM2 --out runs/example-pred
   tembayes predict runs/example data/example/TEM2/validation.csv --module population --out runs/pop-pred
   tembayes predict RUN new.csv --module SN0042 --batch path/to/batch --draws 1000 --seed 1 --no-constant
+  tembayes predict runs/example data/example/TEM1/validation.csv --module TEM1 --out runs/ppc --draws 200 --netcdf
 
 writes DIR/metrics.json (docs/outputs.md, 'metrics.json (predict)'): per
 channel T1_C..T4_C and voltage_V the RMSE and max |error| of the predictive
@@ -134,6 +141,9 @@ residuals.png (and *_constant.png, error_vs_tavg.png).  The run's batch
 folder (recorded in summary.json, or --batch) is needed: its identification
 runs anchor the rig.
 --module population predicts a new unit known only through its batch.
+--netcdf also writes DIR/predictive.nc, an ArviZ InferenceData (groups
+posterior_predictive, observed_data, constant_data; a units attribute on
+every variable): az.plot_ppc(az.from_netcdf("runs/ppc/predictive.nc")).
 """
 
 _EPILOG_INSPECT = """\
@@ -162,8 +172,12 @@ def _cmd_simulate(args):
     datasheet = TEC1_12706
     if args.datasheet:
         datasheet, _ = load_batch_toml(args.datasheet)
-    check_output(args.out, kind="simulate", overwrite=args.overwrite,
-                 inputs=[(args.datasheet, "datasheet file")] if args.datasheet else ())
+    check_output(
+        args.out,
+        kind="simulate",
+        overwrite=args.overwrite,
+        inputs=[(args.datasheet, "datasheet file")] if args.datasheet else (),
+    )
     config = BenchConfig(
         n_modules=args.modules,
         effects=parse_effects(args.effect),
@@ -181,8 +195,10 @@ def _cmd_simulate(args):
         physics=args.physics,
     )
     truth = simulate_batch(args.out, config, overwrite=args.overwrite)
-    print(f"wrote {args.out}: {len(truth['modules'])} modules ({datasheet.name}), "
-          f"effects: {', '.join(config.effects) or 'none'}, outlier: {config.outlier or 'none'}, seed {args.seed}")
+    print(
+        f"wrote {args.out}: {len(truth['modules'])} modules ({datasheet.name}), "
+        f"effects: {', '.join(config.effects) or 'none'}, outlier: {config.outlier or 'none'}, seed {args.seed}"
+    )
     return 0
 
 
@@ -248,9 +264,11 @@ def _cmd_identify(args):
     _write_result(args, "identify.json", to_json(results, batch), figures)
     for mid, r in results.items():
         f = r.fit
-        print(f"{mid}: R0 {f['R0_ohm']:.4f} ohm  R1 {1e3 * f['R1_ohm_per_K']:.2f} mohm/K  "
-              f"S0 {1e3 * f['S0_V_per_K']:.3f} mV/K  S1 {1e6 * f['S1_V_per_K2']:.1f} uV/K2  "
-              f"K {r.rig_fit.values['K_W_per_K']:.3f} W/K")
+        print(
+            f"{mid}: R0 {f['R0_ohm']:.4f} ohm  R1 {1e3 * f['R1_ohm_per_K']:.2f} mohm/K  "
+            f"S0 {1e3 * f['S0_V_per_K']:.3f} mV/K  S1 {1e6 * f['S1_V_per_K2']:.1f} uV/K2  "
+            f"K {r.rig_fit.values['K_W_per_K']:.3f} W/K"
+        )
     print(f"wrote {args.out / 'identify.json'}" + ("" if args.no_figures else " and the figures"))
     return 0
 
@@ -270,30 +288,60 @@ def _cmd_calibrate(args):
         try:  # a wrong address is refused before anything is written
             from distributed import Client
 
-            Client(args.scheduler if not os.path.isfile(args.scheduler) else None,
-                   scheduler_file=args.scheduler if os.path.isfile(args.scheduler) else None, timeout="10s").close()
+            Client(
+                args.scheduler if not os.path.isfile(args.scheduler) else None,
+                scheduler_file=args.scheduler if os.path.isfile(args.scheduler) else None,
+                timeout="10s",
+            ).close()
         except (OSError, TimeoutError, ValueError) as exc:
-            print(f"tembayes calibrate: cannot reach the Dask scheduler {args.scheduler!r} ({exc}); start one "
-                  "with `dask scheduler` and workers with `dask worker ADDRESS --nworkers N --nthreads 1`",
-                  file=sys.stderr)
+            print(
+                f"tembayes calibrate: cannot reach the Dask scheduler {args.scheduler!r} ({exc}); start one "
+                "with `dask scheduler` and workers with `dask worker ADDRESS --nworkers N --nthreads 1`",
+                file=sys.stderr,
+            )
             return 2
     from tembayes.physics.effects import parse_effects
 
     sampled = tuple(spec.strip() for spec in args.effect or () if "=" not in spec)
     fixed = parse_effects([spec for spec in args.effect or () if "=" in spec])
     parse_effects(sampled)  # names checked, none twice
-    opt = CalibrationOptions(max_steps=args.max_steps, nwalkers=args.walkers, model=args.model, effects=sampled,
-                             effect_values={k: v for values in fixed.values() for k, v in values.items()},
-                             discrepancy=args.discrepancy)
-    check_output(args.out, kind="calibrate", inputs=[(args.batch, "batch folder")],
-                 overwrite=args.overwrite or args.resume, need_bytes=bytes_needed(1, workers))
+    opt = CalibrationOptions(
+        max_steps=args.max_steps,
+        nwalkers=args.walkers,
+        model=args.model,
+        effects=sampled,
+        effect_values={k: v for values in fixed.values() for k, v in values.items()},
+        discrepancy=args.discrepancy,
+    )
+    check_output(
+        args.out,
+        kind="calibrate",
+        inputs=[(args.batch, "batch folder")],
+        overwrite=args.overwrite or args.resume,
+        need_bytes=bytes_needed(1, workers),
+    )
     # every file validated, then only paths kept: memory independent of the batch size
     batch = load_batch(args.batch, lazy=True)  # refused input: nothing is written
     _say_findings(batch.findings)
-    summ = calibrate_batch(batch, args.out, seed=args.seed, options=opt, resume=args.resume,
-                           overwrite=args.overwrite, progress=_progress, progress_bar=not args.quiet, argv=args.argv,
-                           figures=not args.no_figures, workers=workers, scheduler=args.scheduler,
-                           keep_unconverged=args.keep_unconverged)
+    summ = calibrate_batch(
+        batch,
+        args.out,
+        seed=args.seed,
+        options=opt,
+        resume=args.resume,
+        overwrite=args.overwrite,
+        progress=_progress,
+        progress_bar=not args.quiet,
+        argv=args.argv,
+        workers=workers,
+        scheduler=args.scheduler,
+        keep_unconverged=args.keep_unconverged,
+    )
+    if not args.no_figures:
+        from tembayes.plots.calibrate import save_calibration_figures
+
+        _progress("figures")
+        save_calibration_figures(args.out)
     mods = summ["modules"]
     shown = list(mods)
     if len(mods) > 20:  # a factory batch: the likeliest outliers and the failures, then the counts
@@ -301,19 +349,23 @@ def _cmd_calibrate(args):
     for mid in shown:
         m = mods[mid]
         op = m["outlier_prob"]
-        print(f"{mid}: R0 {m['R0_ohm']['mean']:.4f}+-{m['R0_ohm']['sd']:.4f} ohm  "
-              f"S0 {1e3 * m['S0_V_per_K']['mean']:.3f}+-{1e3 * m['S0_V_per_K']['sd']:.3f} mV/K  "
-              f"K {m['K_W_per_K']['mean']:.4f}+-{m['K_W_per_K']['sd']:.4f} W/K  "
-              f"outlier_prob {'-' if op is None else f'{op:.2f}'}  "
-              f"{'converged' if m['diagnostics']['converged'] else 'NOT CONVERGED'}")
+        print(
+            f"{mid}: R0 {m['R0_ohm']['mean']:.4f}+-{m['R0_ohm']['sd']:.4f} ohm  "
+            f"S0 {1e3 * m['S0_V_per_K']['mean']:.3f}+-{1e3 * m['S0_V_per_K']['sd']:.3f} mV/K  "
+            f"K {m['K_W_per_K']['mean']:.4f}+-{m['K_W_per_K']['sd']:.4f} W/K  "
+            f"outlier_prob {'-' if op is None else f'{op:.2f}'}  "
+            f"{'converged' if m['diagnostics']['converged'] else 'NOT CONVERGED'}"
+        )
         adequacy = m["diagnostics"].get("adequacy", {})
         if adequacy.get("verdict") == "does_not_fit":
-            print(f"  {mid}: the model does not fit its identification run: " + "; ".join(adequacy["reasons"])
-                  + f". The laws rest on it: run `tembayes gap {args.out} {args.batch}` to find what is missing")
+            print(
+                f"  {mid}: the model does not fit its identification run: "
+                + "; ".join(adequacy["reasons"])
+                + f". The laws rest on it: run `tembayes gap {args.out} {args.batch}` to find what is missing"
+            )
     if len(shown) < len(mods):
         n_conv = sum(bool(m["diagnostics"]["converged"]) for m in mods.values())
-        print(f"... the {len(shown)} likeliest outliers of {len(mods)} calibrated modules shown; "
-              f"{n_conv} converged")
+        print(f"... the {len(shown)} likeliest outliers of {len(mods)} calibrated modules shown; {n_conv} converged")
     for mid, why in (summ.get("population_excluded") or {}).items():
         print(f"{mid}: left out of the population: {why}")
     print(f"wrote {args.out / 'summary.json'} and {args.out / 'posterior.nc'}")
@@ -358,42 +410,63 @@ def _check_out(args, kind, *inputs):
     """``check_output`` for a command reading a run (and more): the run and the other inputs are never touched."""
     from tembayes.data.outputs import check_output
 
-    check_output(args.out, kind=kind, overwrite=args.overwrite,
-                 inputs=[(args.run, "run folder"), *((p, r) for p, r in inputs if p is not None)])
+    check_output(
+        args.out,
+        kind=kind,
+        overwrite=args.overwrite,
+        inputs=[(args.run, "run folder"), *((p, r) for p, r in inputs if p is not None)],
+    )
 
 
 def _cmd_export(args):
     from tembayes.calibrate.run import load_run
     from tembayes.export.formats import write_export
-    from tembayes.export.observer import DEFAULT_POINTS, observer_inputs
+    from tembayes.export.observer import observer_inputs
 
     fmt = args.format or (args.out.suffix.lstrip(".").lower() or None)
     if fmt not in ("json", "npz", "mat"):
-        print(f"tembayes export: give --format json, npz or mat (FILE {args.out} has no such suffix)",
-              file=sys.stderr)
+        print(f"tembayes export: give --format json, npz or mat (FILE {args.out} has no such suffix)", file=sys.stderr)
         return 2
     points = []
-    for text in args.point or [f"{t:g},{i:g}" for t, i in DEFAULT_POINTS]:
+    for text in args.point or ():
         try:
             tavg, current = (float(x) for x in text.split(","))
         except ValueError:
-            print(f"tembayes export: --point {text!r}: expected T_AVG_C,CURRENT_A, e.g. --point 30,2.5",
-                  file=sys.stderr)
+            print(
+                f"tembayes export: --point {text!r}: expected T_AVG_C,CURRENT_A, e.g. --point 30,0.5", file=sys.stderr
+            )
             return 2
         points.append((tavg, current))
     _check_out(args, "export", (args.batch, "batch folder"))
     run = load_run(args.run)  # refused inputs: nothing is written
     batch = _run_batch(args, run)
     _check_out(args, "export", (batch.path, "batch folder"))
-    exp = observer_inputs(run, batch, points=points, t_amb_C=args.ambient, n_draws=args.draws, seed=args.seed,
-                          modules=args.module, heldout=args.heldout or True, progress=_progress)
+    exp = observer_inputs(
+        run,
+        batch,
+        points=points or None,
+        t_amb_C=args.ambient,
+        allow_extrapolation=args.allow_extrapolation,
+        n_draws=args.draws,
+        seed=args.seed,
+        modules=args.module,
+        heldout=args.heldout or True,
+        progress=_progress,
+    )
     write_export(exp, args.out, fmt)
     for mid, m in exp.modules.items():
-        pn = m["process_noise"]
-        print(f"{mid}: {len(exp.parameters)} parameters, {len(m['linear'])} operating points; process noise "
-              + ", ".join(f"{c} {1e3 * s:.2g} m/{t:.0f} s" for c, s, t in zip(pn["channels"], pn["sd"],
-                                                                                pn["tau_s"])))
-    print(f"wrote {args.out} ({fmt})")
+        pn = m.process_noise
+        print(
+            f"{mid}: {len(exp.parameters)} parameters, {len(m.linear)} operating points; process noise "
+            + ", ".join(f"{c} {1e3 * s:.2g} m/{t:.0f} s" for c, s, t in zip(pn["channels"], pn["sd"], pn["tau_s"]))
+        )
+    for w in exp.warnings:
+        print(f"warning: {w} (recorded in the file's meta.warnings)", file=sys.stderr)
+    print(
+        f"wrote {args.out} ({fmt}; operating points "
+        + ", ".join(f"{t:.4g} C/{i:.4g} A" for t, i in exp.meta["points"])
+        + ")"
+    )
     return 0
 
 
@@ -412,15 +485,30 @@ def _cmd_report(args):
     if not 0.5 <= args.confidence < 1.0:
         print(f"tembayes report: --confidence must be in [0.5, 1), got {args.confidence}", file=sys.stderr)
         return 2
-    _check_out(args, "report", (args.batch, "batch folder"), *((d, "gap folder") for d in args.gap or ()),
-               *((d, "predict folder") for d in args.predict or ()))
+    _check_out(
+        args,
+        "report",
+        (args.batch, "batch folder"),
+        *((d, "gap folder") for d in args.gap or ()),
+        *((d, "predict folder") for d in args.predict or ()),
+    )
     run = load_run(args.run)  # refused inputs: nothing is written
     batch = _run_batch(args, run)
     _check_out(args, "report", (batch.path, "batch folder"))
-    rep = build_report(run, batch, tolerances=tolerances, confidence=args.confidence,
-                       validate=not args.no_validation, predict_dirs=args.predict or (), gap_dirs=args.gap or (),
-                       n_draws=args.draws, seed=args.seed, max_figure_modules=args.max_figure_modules,
-                       command="tembayes " + " ".join(args.argv), progress=_progress)
+    rep = build_report(
+        run,
+        batch,
+        tolerances=tolerances,
+        confidence=args.confidence,
+        validate=not args.no_validation,
+        predict_dirs=args.predict or (),
+        gap_dirs=args.gap or (),
+        n_draws=args.draws,
+        seed=args.seed,
+        max_figure_modules=args.max_figure_modules,
+        command="tembayes " + " ".join(args.argv),
+        progress=_progress,
+    )
     path = write_report(rep, args.out, overwrite=args.overwrite)
     for m in rep.modules:
         failed = [c["check"] for c in m["acceptance"]["checks"] if not c["passed"]]
@@ -441,26 +529,58 @@ def _cmd_predict(args):
     _check_out(args, "predict", (args.batch, "batch folder"), (args.experiment, "experiment file"))
     run = load_run(args.run)  # refused inputs: nothing is written
     if args.module != "population" and args.module not in run.module_ids:
-        raise DataError(args.run / "posterior.nc", f"has no module '{args.module}'",
-                        f"Choose one of {list(run.module_ids)} or 'population'.")
+        raise DataError(
+            args.run / "posterior.nc",
+            f"has no module '{args.module}'",
+            f"Choose one of {list(run.module_ids)} or 'population'.",
+        )
     batch = _run_batch(args, run)
     _check_out(args, "predict", (batch.path, "batch folder"), (args.experiment, "experiment file"))
     exp = load_experiment(args.experiment, datasheet=batch.datasheet)
     findings = check_experiment(exp, datasheet=batch.datasheet)
     raise_first_error(findings)
     _say_findings(findings)
-    result = predict(run, exp, args.module, batch, n_draws=args.draws, seed=args.seed,
-                     compare_constant=not args.no_constant, progress=_progress)
-    from tembayes.plots.predict import save_predict_figures
-
-    _write_result(args, "metrics.json", result.to_json(), lambda tmp: save_predict_figures(result, tmp))
+    result = predict(
+        run,
+        exp,
+        args.module,
+        batch,
+        n_draws=args.draws,
+        seed=args.seed,
+        compare_constant=not args.no_constant,
+        keep_predictive=args.netcdf,
+        progress=_progress,
+    )
+    _write_predict(args, result)
     for ch, m in result.linear.metrics().items():
         unit = "V" if ch == "voltage_V" else "K"
-        print(f"{ch}: RMSE {m['rmse']:.4g} {unit}  max {m['max_abs']:.4g} {unit}  "
-              f"coverage 50/90/95 % {100 * m['coverage50']:.0f}/{100 * m['coverage90']:.0f}/"
-              f"{100 * m['coverage95']:.0f} %")
-    print(f"wrote {args.out / 'metrics.json'}")
+        print(
+            f"{ch}: RMSE {m['rmse']:.4g} {unit}  max {m['max_abs']:.4g} {unit}  "
+            f"coverage 50/90/95 % {100 * m['coverage50']:.0f}/{100 * m['coverage90']:.0f}/"
+            f"{100 * m['coverage95']:.0f} %"
+        )
+    print(f"wrote {args.out / 'metrics.json'}" + (" and predictive.nc" if args.netcdf else ""))
     return 0
+
+
+def _write_predict(args, result):
+    """``metrics.json``, the figures and, with ``--netcdf``, ``predictive.nc``, as one atomic folder."""
+    from tembayes.data import write_json
+    from tembayes.data.write import atomic_directory
+    from tembayes.plots.predict import save_predict_figures
+    from tembayes.predict.inference import PREDICTIVE_FILE, write_predictive
+
+    doc = result.to_json()
+    if args.netcdf:
+        doc["predictive_netcdf"] = PREDICTIVE_FILE
+    with atomic_directory(args.out, overwrite=args.overwrite, kind=args.command) as tmp:
+        doc["command"] = "tembayes " + " ".join(args.argv)
+        doc["tembayes_version"] = tembayes.__version__
+        write_json(tmp / "metrics.json", doc)
+        if args.netcdf:
+            write_predictive(result, tmp / PREDICTIVE_FILE)
+        if not args.no_figures:
+            save_predict_figures(result, tmp)
 
 
 def _cmd_gap(args):
@@ -470,8 +590,16 @@ def _cmd_gap(args):
     _check_out(args, "gap", (args.batch, "batch folder"))
     run = load_run(args.run)  # refused inputs: nothing is written
     batch = _run_batch(args, run)
-    diag = diagnose(run, batch, exclude=args.exclude or (), candidates=args.candidates, n_draws=args.draws,
-                    seed=args.seed, jobs=args.jobs, progress=_progress)
+    diag = diagnose(
+        run,
+        batch,
+        exclude=args.exclude or (),
+        candidates=args.candidates,
+        n_draws=args.draws,
+        seed=args.seed,
+        jobs=args.jobs,
+        progress=_progress,
+    )
     from tembayes.data import write_json
     from tembayes.data.write import atomic_directory
     from tembayes.gap.recalibrated import write_recalibrated_run
@@ -496,15 +624,19 @@ def _cmd_gap(args):
         print(f"  gap in: {', '.join(diag.gap_in)}")
     for r in diag.screen[:3]:
         if r.get("log_bayes_factor") is not None:
-            print(f"  screen: {r['effect']:20s} log Bayes factor {r['log_bayes_factor']:+.4g} on the identification "
-                  f"run (chi2 per sample {r['chi2']:.3f}; the base model's {diag.base['refits'][r['module']]['chi2']:.3f})")
+            print(
+                f"  screen: {r['effect']:20s} log Bayes factor {r['log_bayes_factor']:+.4g} on the identification "
+                f"run (chi2 per sample {r['chi2']:.3f}; the base model's {diag.base['refits'][r['module']]['chi2']:.3f})"
+            )
     scale, unit = (1e3, "mK") if diag.primary == "validation" else (1.0, "noise sd (identification windows)")
     for r in diag.ranking:
         if r.get("evidence") is None:
             print(f"  {r['effect']:20s} failed: {r.get('failed')}")
         elif r.get("evidence_kind") == "heldout_elpd":
-            print(f"  {r['effect']:20s} evidence {r['evidence']:+.4g} +- {r['evidence_se']:.3g} nats  "
-                  f"gap {scale * r['gap_before']:.3g} -> {scale * r['gap_after']:.3g} {unit} (shrink {r['shrink']:.0%})")
+            print(
+                f"  {r['effect']:20s} evidence {r['evidence']:+.4g} +- {r['evidence_se']:.3g} nats  "
+                f"gap {scale * r['gap_before']:.3g} -> {scale * r['gap_after']:.3g} {unit} (shrink {r['shrink']:.0%})"
+            )
         elif r.get("dropped"):
             print(f"  {r['effect']:20s} dropped: {r['dropped']}")
     if diag.best and diag.recalibration:
@@ -515,8 +647,12 @@ def _cmd_gap(args):
 
 def _add_batch_option(p):
     """``--batch``: the run's batch, when not the one recorded in ``RUN/summary.json`` (see :func:`_run_batch`)."""
-    p.add_argument("--batch", type=Path, metavar="BATCH",
-                   help="the calibrated batch folder (default: the one recorded in RUN/summary.json)")
+    p.add_argument(
+        "--batch",
+        type=Path,
+        metavar="BATCH",
+        help="the calibrated batch folder (default: the one recorded in RUN/summary.json)",
+    )
 
 
 def build_parser():
@@ -528,7 +664,19 @@ def build_parser():
     )
     parser.add_argument("--version", action="version", version=f"tembayes {tembayes.__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    _add_simulate(sub)
+    _add_identify(sub)
+    _add_calibrate(sub)
+    _add_predict(sub)
+    _add_gap(sub)
+    _add_report(sub)
+    _add_export(sub)
+    _add_inspect(sub)
+    return parser
 
+
+def _add_simulate(sub):
+    """The ``tembayes simulate`` subcommand."""
     p = sub.add_parser(
         "simulate",
         help="make a synthetic batch on the virtual bench",
@@ -540,36 +688,68 @@ def build_parser():
     )
     p.add_argument("out", type=Path, help="batch folder to create (refused if it exists, see --overwrite)")
     p.add_argument("--modules", type=int, default=3, metavar="N", help="modules in the batch (default 3)")
-    p.add_argument("--effect", action="append", default=[], metavar="NAME[=VALUE]",
-                   help="switch on a catalogue effect (repeatable)")
+    p.add_argument(
+        "--effect",
+        action="append",
+        default=[],
+        metavar="NAME[=VALUE]",
+        help="switch on a catalogue effect (repeatable)",
+    )
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--outlier", metavar="ID", help="module id whose S0 sits apart, e.g. TEM1")
-    p.add_argument("--outlier-shift", type=float, default=0.04, metavar="F",
-                   help="relative S0 shift of the outlier (default 0.04)")
-    p.add_argument("--datasheet", type=Path, metavar="TOML",
-                   help="a batch.toml-style file whose [module_type] sets the module type (default TEC1-12706)")
-    p.add_argument("--rate", type=float, default=5.0, metavar="HZ",
-                   help="sampling rate of the identification runs (default 5 Hz, the reference rig's)")
-    p.add_argument("--validation-rate", type=float, metavar="HZ",
-                   help="sampling rate of the validation runs (default: --rate)")
+    p.add_argument(
+        "--outlier-shift", type=float, default=0.04, metavar="F", help="relative S0 shift of the outlier (default 0.04)"
+    )
+    p.add_argument(
+        "--datasheet",
+        type=Path,
+        metavar="TOML",
+        help="a batch.toml-style file whose [module_type] sets the module type (default TEC1-12706)",
+    )
+    p.add_argument(
+        "--rate",
+        type=float,
+        default=5.0,
+        metavar="HZ",
+        help="sampling rate of the identification runs (default 5 Hz, the reference rig's)",
+    )
+    p.add_argument(
+        "--validation-rate", type=float, metavar="HZ", help="sampling rate of the validation runs (default: --rate)"
+    )
     p.add_argument("--hold", type=float, default=600.0, metavar="S", help="identification hold (default 600 s)")
     p.add_argument("--validations", type=int, default=1, metavar="K", help="validation runs per module (default 1)")
-    p.add_argument("--validation-hours", type=float, default=4.0, metavar="H",
-                   help="length of a validation run (default 4 h)")
-    p.add_argument("--fidelity", choices=("standard", "high"), default="standard",
-                   help="standard: the calibration model's structure, finer steps (proves the code); high: a rig "
-                        "and module the model does not contain -- finer steel, the module's layers, sensor bodies "
-                        "at uncertain depths, Thomson heat, K(T), re-mounting spread, slow sensor noise (measures "
-                        "the method)")
-    p.add_argument("--physics", choices=("paper", "full"), default="full",
-                   help="the standard bench's physics: that of a calibration model form (default full, the "
-                        "default model's; paper: Evers et al.'s form)")
-    p.add_argument("--validation-start", choices=("steady", "rest"), default="steady",
-                   help="steady: a validation run starts with 300 s at 0 A; rest: the rig at rest and the current "
-                        "switched straight to the first level")
+    p.add_argument(
+        "--validation-hours", type=float, default=4.0, metavar="H", help="length of a validation run (default 4 h)"
+    )
+    p.add_argument(
+        "--fidelity",
+        choices=("standard", "high"),
+        default="standard",
+        help="standard: the calibration model's structure, finer steps (proves the code); high: a rig "
+        "and module the model does not contain -- finer steel, the module's layers, sensor bodies "
+        "at uncertain depths, Thomson heat, K(T), re-mounting spread, slow sensor noise (measures "
+        "the method)",
+    )
+    p.add_argument(
+        "--physics",
+        choices=("paper", "full"),
+        default="full",
+        help="the standard bench's physics: that of a calibration model form (default full, the "
+        "default model's; paper: Evers et al.'s form)",
+    )
+    p.add_argument(
+        "--validation-start",
+        choices=("steady", "rest"),
+        default="steady",
+        help="steady: a validation run starts with 300 s at 0 A; rest: the rig at rest and the current "
+        "switched straight to the first level",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
     p.set_defaults(func=_cmd_simulate)
 
+
+def _add_identify(sub):
+    """The ``tembayes identify`` subcommand."""
     p = sub.add_parser(
         "identify",
         help="the paper's deterministic step method (per-step R and S, linear fits, rig fit)",
@@ -584,13 +764,21 @@ def build_parser():
     )
     p.add_argument("batch", type=Path, help="batch folder")
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder to create")
-    p.add_argument("--leg-cells", type=int, default=0, metavar="N",
-                   help="resolve the module's legs into N cells in the rig fit and validation (default 0: "
-                        "the paper's lumped module)")
+    p.add_argument(
+        "--leg-cells",
+        type=int,
+        default=0,
+        metavar="N",
+        help="resolve the module's legs into N cells in the rig fit and validation (default 0: "
+        "the paper's lumped module)",
+    )
     p.add_argument("--no-figures", action="store_true", help="write identify.json only")
     p.add_argument("--overwrite", action="store_true", help="replace DIR if it is an earlier identify output")
     p.set_defaults(func=_cmd_identify)
 
+
+def _add_calibrate(sub):
+    """The ``tembayes calibrate`` subcommand."""
     p = sub.add_parser(
         "calibrate",
         help="Bayesian calibration: per-module posteriors and the batch population",
@@ -607,34 +795,60 @@ def build_parser():
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--resume", action="store_true", help="continue an interrupted run in RUN")
     p.add_argument("--overwrite", action="store_true", help="replace RUN if it exists")
-    p.add_argument("--max-steps", type=int, default=60000, metavar="N",
-                   help="sampler budget per module (default 60000 steps)")
-    p.add_argument("--walkers", type=int, metavar="N",
-                   help="emcee walkers (default 2 x parameters + 2)")
-    p.add_argument("--model", choices=("paper", "full"), default="full",
-                   help="the model's physics: full (default: Thomson heat, the plates' two layers, the sensors' "
-                        "response time and depth, a temperature slope of K) or paper (Evers et al.'s form)")
-    p.add_argument("--discrepancy", choices=("none", "window-sandwich", "robust"), default="robust",
-                   help="for a model that is not the rig: window-sandwich widens the laws' posterior to the scatter "
-                        "of the step windows' scores; robust (default) also carries over the uncertainty of the rig "
-                        "parameters held fixed; none trusts the model")
-    p.add_argument("--effect", action="append", metavar="NAME[=VALUE]",
-                   help="add a catalogue effect to the model (repeatable): its size sampled under its prior, or "
-                        "fixed at VALUE (the first parameter's, SI; see tembayes simulate --help)")
+    p.add_argument(
+        "--max-steps", type=int, default=60000, metavar="N", help="sampler budget per module (default 60000 steps)"
+    )
+    p.add_argument("--walkers", type=int, metavar="N", help="emcee walkers (default 2 x parameters + 2)")
+    p.add_argument(
+        "--model",
+        choices=("paper", "full"),
+        default="full",
+        help="the model's physics: full (default: Thomson heat, the plates' two layers, the sensors' "
+        "response time and depth, a temperature slope of K) or paper (Evers et al.'s form)",
+    )
+    p.add_argument(
+        "--discrepancy",
+        choices=("none", "window-sandwich", "robust"),
+        default="robust",
+        help="for a model that is not the rig: window-sandwich widens the laws' posterior to the scatter "
+        "of the step windows' scores; robust (default) also carries over the uncertainty of the rig "
+        "parameters held fixed; none trusts the model",
+    )
+    p.add_argument(
+        "--effect",
+        action="append",
+        metavar="NAME[=VALUE]",
+        help="add a catalogue effect to the model (repeatable): its size sampled under its prior, or "
+        "fixed at VALUE (the first parameter's, SI; see tembayes simulate --help)",
+    )
     p.add_argument("--no-figures", action="store_true", help="skip the corner plots")
     p.add_argument("--quiet", action="store_true", help="no progress bars (stage messages only)")
-    p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), metavar="N",
-                   help="modules calibrated at once, on a local Dask cluster of N single-threaded processes "
-                        "(default: %(default)s; 1: in this process, with stage messages); the results do not "
-                        "depend on it")
-    p.add_argument("--scheduler", metavar="ADDRESS",
-                   help="calibrate the modules on a running dask.distributed cluster (tcp://host:8786, or a "
-                        "scheduler file) instead; its workers need tembayes installed")
-    p.add_argument("--keep-unconverged", action="store_true",
-                   help="let modules that did not converge into the population (default: left out, with the "
-                        "reason in summary.json)")
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=min(2, os.cpu_count() or 1),
+        metavar="N",
+        help="modules calibrated at once, on a local Dask cluster of N single-threaded processes "
+        "(default: %(default)s; 1: in this process, with stage messages); the results do not "
+        "depend on it",
+    )
+    p.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help="calibrate the modules on a running dask.distributed cluster (tcp://host:8786, or a "
+        "scheduler file) instead; its workers need tembayes installed",
+    )
+    p.add_argument(
+        "--keep-unconverged",
+        action="store_true",
+        help="let modules that did not converge into the population (default: left out, with the "
+        "reason in summary.json)",
+    )
     p.set_defaults(func=_cmd_calibrate)
 
+
+def _add_predict(sub):
+    """The ``tembayes predict`` subcommand."""
     p = sub.add_parser(
         "predict",
         help="posterior-predictive bands of an experiment for a calibrated module or a new unit",
@@ -653,10 +867,19 @@ def build_parser():
     p.add_argument("--draws", type=int, default=500, metavar="N", help="predictive draws (default 500)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--no-constant", action="store_true", help="skip the constant-law comparison")
-    p.add_argument("--no-figures", action="store_true", help="write metrics.json only")
+    p.add_argument(
+        "--netcdf",
+        action="store_true",
+        help="also write DIR/predictive.nc: ArviZ InferenceData with every predictive draw "
+        "(posterior_predictive) and the measurements (observed_data); draws x samples x 20 bytes",
+    )
+    p.add_argument("--no-figures", action="store_true", help="write metrics.json (and predictive.nc) only")
     p.add_argument("--overwrite", action="store_true", help="replace DIR if it exists")
     p.set_defaults(func=_cmd_predict)
 
+
+def _add_gap(sub):
+    """The ``tembayes gap`` subcommand."""
     p = sub.add_parser(
         "gap",
         help="diagnose the sim-to-real gap of a calibrated batch on its held-out runs",
@@ -671,18 +894,37 @@ def build_parser():
     p.add_argument("run", type=Path, help="calibration run folder (tembayes calibrate --out)")
     p.add_argument("batch", type=Path, help="the calibrated batch folder (its validation*.csv are held out)")
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder to create")
-    p.add_argument("--exclude", action="append", metavar="EFFECT",
-                   help="withhold a catalogue effect from the diagnosis (repeatable)")
-    p.add_argument("--candidates", type=int, default=2, metavar="K",
-                   help="candidates recalibrated (default 2, plus one a range conflict points at)")
-    p.add_argument("--draws", type=int, default=200, metavar="N", help="predictive draws per held-out run (default 200)")
-    p.add_argument("--jobs", type=int, default=None, metavar="N",
-                   help="refits and recalibrations at once, in worker processes (default: the cores + 1)")
+    p.add_argument(
+        "--exclude",
+        action="append",
+        metavar="EFFECT",
+        help="withhold a catalogue effect from the diagnosis (repeatable)",
+    )
+    p.add_argument(
+        "--candidates",
+        type=int,
+        default=2,
+        metavar="K",
+        help="candidates recalibrated (default 2, plus one a range conflict points at)",
+    )
+    p.add_argument(
+        "--draws", type=int, default=200, metavar="N", help="predictive draws per held-out run (default 200)"
+    )
+    p.add_argument(
+        "--jobs",
+        type=int,
+        default=None,
+        metavar="N",
+        help="refits and recalibrations at once, in worker processes (default: the cores + 1)",
+    )
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--no-figures", action="store_true", help="write gap.json only")
     p.add_argument("--overwrite", action="store_true", help="replace DIR if it exists")
     p.set_defaults(func=_cmd_gap)
 
+
+def _add_report(sub):
+    """The ``tembayes report`` subcommand."""
     p = sub.add_parser(
         "report",
         help="batch-calibration report: one self-contained HTML file with pass/fail per module",
@@ -696,24 +938,52 @@ def build_parser():
     p.add_argument("run", type=Path, help="calibration run folder (tembayes calibrate --out)")
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="folder to create (report.html)")
     _add_batch_option(p)
-    p.add_argument("--tolerance", action="append", metavar="SPEC",
-                   help="acceptance check (repeatable; replaces the defaults, see below)")
-    p.add_argument("--confidence", type=float, default=0.95,
-                   help="posterior probability of the tolerance range that passes (default 0.95)")
-    p.add_argument("--gap", action="append", metavar="DIR", type=Path,
-                   help="a `tembayes gap` output folder to summarise (repeatable)")
-    p.add_argument("--predict", action="append", metavar="DIR", type=Path,
-                   help="a `tembayes predict` output folder to include instead of computing that module's bands")
-    p.add_argument("--no-validation", action="store_true",
-                   help="do not compute posterior-predictive bands on the validation runs")
-    p.add_argument("--draws", type=int, default=200, metavar="N",
-                   help="posterior draws per validation prediction (default 200)")
-    p.add_argument("--max-figure-modules", type=int, default=12, metavar="N",
-                   help="modules given their own figures, likeliest outliers first (default 12)")
+    p.add_argument(
+        "--tolerance",
+        action="append",
+        metavar="SPEC",
+        help="acceptance check (repeatable; replaces the defaults, see below)",
+    )
+    p.add_argument(
+        "--confidence",
+        type=float,
+        default=0.95,
+        help="posterior probability of the tolerance range that passes (default 0.95)",
+    )
+    p.add_argument(
+        "--gap",
+        action="append",
+        metavar="DIR",
+        type=Path,
+        help="a `tembayes gap` output folder to summarise (repeatable)",
+    )
+    p.add_argument(
+        "--predict",
+        action="append",
+        metavar="DIR",
+        type=Path,
+        help="a `tembayes predict` output folder to include instead of computing that module's bands",
+    )
+    p.add_argument(
+        "--no-validation", action="store_true", help="do not compute posterior-predictive bands on the validation runs"
+    )
+    p.add_argument(
+        "--draws", type=int, default=200, metavar="N", help="posterior draws per validation prediction (default 200)"
+    )
+    p.add_argument(
+        "--max-figure-modules",
+        type=int,
+        default=12,
+        metavar="N",
+        help="modules given their own figures, likeliest outliers first (default 12)",
+    )
     p.add_argument("--seed", type=int, default=0, help="random seed of the validation draws (default 0)")
     p.add_argument("--overwrite", action="store_true", help="replace DIR if it exists")
     p.set_defaults(func=_cmd_report)
 
+
+def _add_export(sub):
+    """The ``tembayes export`` subcommand."""
     p = sub.add_parser(
         "export",
         help="uncertainty inputs for observer design: posterior moments, noise, linearised rig model",
@@ -729,19 +999,41 @@ def build_parser():
     p.add_argument("--out", type=Path, required=True, metavar="FILE", help="file to write")
     p.add_argument("--format", choices=("json", "npz", "mat"), help="default: FILE's suffix")
     _add_batch_option(p)
-    p.add_argument("--point", action="append", metavar="T_AVG_C,CURRENT_A",
-                   help="operating point to linearise at (repeatable; default 25,0 25,2 40,4)")
-    p.add_argument("--ambient", type=float, default=25.0, metavar="C",
-                   help="ambient temperature of the operating points [C] (default 25)")
+    p.add_argument(
+        "--point",
+        action="append",
+        metavar="T_AVG_C,CURRENT_A",
+        help="operating point to linearise at (repeatable; default: the identification runs' steady "
+        "states at their lowest, nearest-zero and highest current); refused outside the calibrated range",
+    )
+    p.add_argument(
+        "--allow-extrapolation",
+        action="store_true",
+        help="export --point values outside the calibrated range too, with a warning recorded in the file",
+    )
+    p.add_argument(
+        "--ambient",
+        type=float,
+        default=None,
+        metavar="C",
+        help="ambient temperature of the operating points [C] (default: the identification runs' median)",
+    )
     p.add_argument("--module", action="append", metavar="ID", help="only these modules (repeatable)")
     p.add_argument("--draws", type=int, default=200, metavar="N", help="posterior draws kept per module")
-    p.add_argument("--heldout", action="append", metavar="NAME",
-                   help="fit the process noise on this validation run only (file name, repeatable; default: "
-                   "every validation run) -- keeps another run unseen for checking an observer")
+    p.add_argument(
+        "--heldout",
+        action="append",
+        metavar="NAME",
+        help="fit the process noise on this validation run only (file name, repeatable; default: "
+        "every validation run) -- keeps another run unseen for checking an observer",
+    )
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--overwrite", action="store_true", help="replace FILE if it exists")
     p.set_defaults(func=_cmd_export)
 
+
+def _add_inspect(sub):
+    """The ``tembayes inspect`` subcommand."""
     p = sub.add_parser(
         "inspect",
         help="load and validate a batch folder, print a data-quality summary",
@@ -753,7 +1045,6 @@ def build_parser():
     p.add_argument("batch", type=Path, help="batch folder")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.set_defaults(func=_cmd_inspect)
-    return parser
 
 
 def main(argv=None):
@@ -776,9 +1067,12 @@ def _os_error(err):
     import errno
 
     what = f"{err.filename}: {err.strerror or err}" if err.filename else str(err)
-    hint = {errno.ENOSPC: "Free some space and run again (calibrate: --resume continues where it stopped)",
-            errno.EACCES: "Choose an --out you can write to", errno.EROFS: "Choose an --out you can write to",
-            errno.EDQUOT: "Free some space (disk quota) and run again"}.get(err.errno, "Check the path and run again")
+    hint = {
+        errno.ENOSPC: "Free some space and run again (calibrate: --resume continues where it stopped)",
+        errno.EACCES: "Choose an --out you can write to",
+        errno.EROFS: "Choose an --out you can write to",
+        errno.EDQUOT: "Free some space (disk quota) and run again",
+    }.get(err.errno, "Check the path and run again")
     return f"{what}. {hint}"
 
 

@@ -55,16 +55,15 @@ class DataFactory:
             22.0 + 0.05 * k / n,  # T2
             28.0 - 0.50 * k / n,  # T3, cold side warming the other way
             29.0 - 0.40 * k / n,  # T4
-            np.full(n, 20.0),     # water
-            np.full(n, 23.0),     # ambient
+            np.full(n, 20.0),  # water
+            np.full(n, 23.0),  # ambient
         ]
         temps = [t + rng.normal(0, 0.004, n) for t in temps]
         cols = [time, current, voltage, *temps]
         fmts = ["{:.3f}", "{:.5f}", "{:.5f}"] + ["{:.4f}"] * 6
         return [[f.format(c[i]) for f, c in zip(fmts, cols)] for i in range(n)]
 
-    def write_csv(self, name="experiment.csv", header=None, rows=None, *, text=None,
-                  sep=",", newline="\n") -> Path:
+    def write_csv(self, name="experiment.csv", header=None, rows=None, *, text=None, sep=",", newline="\n") -> Path:
         path = self.root / name
         path.parent.mkdir(parents=True, exist_ok=True)
         if text is None:
@@ -85,8 +84,7 @@ class DataFactory:
                 lines.append(f'{k} = "{v}"' if isinstance(v, str) else f"{k} = {v!r}")
         return "\n".join(lines) + "\n"
 
-    def batch(self, name="batch", modules=("TEM1", "TEM2"), validations=("validation.csv",),
-              toml=None) -> Path:
+    def batch(self, name="batch", modules=("TEM1", "TEM2"), validations=("validation.csv",), toml=None) -> Path:
         """A valid batch folder; ``toml`` replaces the batch.toml text."""
         folder = self.root / name
         folder.mkdir(parents=True)
@@ -111,9 +109,11 @@ def batch3(tmp_path_factory):
     from tembayes.bench import BenchConfig, simulate_batch
 
     path = tmp_path_factory.mktemp("b3") / "batch"
-    simulate_batch(path, BenchConfig(n_modules=3, seed=21, outlier="TEM2", hold=300.0, n_validations=0,
-                                     physics="paper"),
-                   progress=lambda msg: None)
+    simulate_batch(
+        path,
+        BenchConfig(n_modules=3, seed=21, outlier="TEM2", hold=300.0, n_validations=0, physics="paper"),
+        progress=lambda msg: None,
+    )
     return path
 
 
@@ -123,8 +123,9 @@ def batch4(tmp_path_factory):
     from tembayes.bench import BenchConfig, simulate_batch
 
     path = tmp_path_factory.mktemp("b4") / "batch"
-    simulate_batch(path, BenchConfig(n_modules=4, seed=7, hold=60.0, rate=1.0, n_validations=0),
-                   progress=lambda msg: None)
+    simulate_batch(
+        path, BenchConfig(n_modules=4, seed=7, hold=60.0, rate=1.0, n_validations=0), progress=lambda msg: None
+    )
     return path
 
 
@@ -133,10 +134,13 @@ def run3(batch3, tmp_path_factory):
     """``batch3`` calibrated: ``(run folder, summary, truth)``."""
     from tembayes.calibrate import CalibrationOptions, calibrate_batch
     from tembayes.data import load_batch
+    from tembayes.plots.calibrate import save_calibration_figures
 
     out = tmp_path_factory.mktemp("r3") / "run"
     # two worker processes: test_same_seed_same_module_result then also checks
     # that a module calibrated in a worker equals one calibrated in-process
-    summ = calibrate_batch(load_batch(batch3), out, seed=0, figures=True, jobs=2,
-                           options=CalibrationOptions(model="paper", discrepancy="none"))
+    summ = calibrate_batch(
+        load_batch(batch3), out, seed=0, workers=2, options=CalibrationOptions(model="paper", discrepancy="none")
+    )
+    save_calibration_figures(out)
     return out, summ, json.loads((batch3 / "truth.json").read_text())

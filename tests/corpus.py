@@ -59,13 +59,13 @@ def _gap(c, a):
 
 
 def _stuck_t3(c, a):
-    a[len(a) // 2:, c["T3_C"]] = a[len(a) // 2, c["T3_C"]]
+    a[len(a) // 2 :, c["T3_C"]] = a[len(a) // 2, c["T3_C"]]
     return a
 
 
 def _t4_minus_55(c, a):
     n = len(a)
-    a[n // 2:, c["T4_C"]] = -55.0 + np.random.default_rng(0).normal(0, 0.004, n - n // 2)
+    a[n // 2 :, c["T4_C"]] = -55.0 + np.random.default_rng(0).normal(0, 0.004, n - n // 2)
     return a
 
 
@@ -74,6 +74,7 @@ def _negate(*cols):
         for col in cols:
             a[:, c[col]] *= -1
         return a
+
     return change
 
 
@@ -88,6 +89,7 @@ def _degf(cols, rows=None):
         for col in cols:
             a[:, c[col]] = a[:, c[col]] * 1.8 + 32.0
         return a
+
     return change
 
 
@@ -99,6 +101,7 @@ COOL_ROWS = 40000
 def _toml(text):
     def build(root, name):
         return good_batch(root, name, toml=text)
+
     return build
 
 
@@ -107,29 +110,47 @@ DATA_CASES = {
     "time_gap_10_min": (lambda r, n: _mutated(r, n, _gap), "600.2 s gap", "line 35002"),
     "stuck_T3": (lambda r, n: _mutated(r, n, _stuck_t3), "stuck", "column 'T3_C'"),
     "T4_minus_55_half_run": (lambda r, n: _mutated(r, n, _t4_minus_55), "jumps", "column 'T4_C'"),
-    "polarity_current_and_voltage": (lambda r, n: _mutated(r, n, _negate("current_A", "voltage_V")),
-                                     "Negate current_A and voltage_V", "column 'current_A'"),
-    "polarity_current_only": (lambda r, n: _mutated(r, n, _negate("current_A")), "Negate current_A",
-                              "column 'current_A'"),
-    "polarity_voltage_only": (lambda r, n: _mutated(r, n, _negate("voltage_V")), "Negate voltage_V",
-                              "column 'voltage_V'"),
+    "polarity_current_and_voltage": (
+        lambda r, n: _mutated(r, n, _negate("current_A", "voltage_V")),
+        "Negate current_A and voltage_V",
+        "column 'current_A'",
+    ),
+    "polarity_current_only": (
+        lambda r, n: _mutated(r, n, _negate("current_A")),
+        "Negate current_A",
+        "column 'current_A'",
+    ),
+    "polarity_voltage_only": (
+        lambda r, n: _mutated(r, n, _negate("voltage_V")),
+        "Negate voltage_V",
+        "column 'voltage_V'",
+    ),
     "time_in_ms": (lambda r, n: _mutated(r, n, _time_ms), "looks like milliseconds", "column 'time_s'"),
     "degF_whole_file": (lambda r, n: _mutated(r, n, _degf(ALL_T)), "look like degF", "identification.csv"),
-    "degF_whole_file_cool_run": (lambda r, n: _mutated(r, n, _degf(ALL_T, COOL_ROWS)), "look like degF",
-                                 "identification.csv"),
-    "degF_one_column_cool_run": (lambda r, n: _mutated(r, n, _degf(["T4_C"], COOL_ROWS)), "degF?",
-                                 "column 'T4_C'"),
-    "stuck_T3_in_validation": (lambda r, n: _mutated(r, n, _stuck_t3, file="validation.csv"), "stuck",
-                               "validation.csv"),
-    "th_C_in_kelvin": (_toml(GOOD_TOML.replace("th_C = 25.0", "th_C = 298.15")), "looks like kelvin",
-                       "column 'th_C'"),
-    "imax_in_mA": (_toml(GOOD_TOML.replace("imax_A = 6.4", "imax_A = 6400")), "imax_A (mA?)",
-                   "column 'imax_A'"),
-    "misspelt_population_table": (_toml(GOOD_TOML + "\n[populaton]\nspread_S0_rel = 0.01\n"),
-                                  "did you mean 'population'", "column 'populaton'"),
+    "degF_whole_file_cool_run": (
+        lambda r, n: _mutated(r, n, _degf(ALL_T, COOL_ROWS)),
+        "look like degF",
+        "identification.csv",
+    ),
+    "degF_one_column_cool_run": (lambda r, n: _mutated(r, n, _degf(["T4_C"], COOL_ROWS)), "degF?", "column 'T4_C'"),
+    "stuck_T3_in_validation": (
+        lambda r, n: _mutated(r, n, _stuck_t3, file="validation.csv"),
+        "stuck",
+        "validation.csv",
+    ),
+    "th_C_in_kelvin": (_toml(GOOD_TOML.replace("th_C = 25.0", "th_C = 298.15")), "looks like kelvin", "column 'th_C'"),
+    "imax_in_mA": (_toml(GOOD_TOML.replace("imax_A = 6.4", "imax_A = 6400")), "imax_A (mA?)", "column 'imax_A'"),
+    "misspelt_population_table": (
+        _toml(GOOD_TOML + "\n[populaton]\nspread_S0_rel = 0.01\n"),
+        "did you mean 'population'",
+        "column 'populaton'",
+    ),
     "misspelt_rig_table": (_toml(GOOD_TOML.replace("[rig]", "[rigg]")), "did you mean 'rig'", "column 'rigg'"),
-    "misspelt_datasheet_key": (_toml(GOOD_TOML.replace("qmax_W", "qmax_w")), "did you mean 'qmax_W'",
-                               "column 'qmax_w'"),
+    "misspelt_datasheet_key": (
+        _toml(GOOD_TOML.replace("qmax_W", "qmax_w")),
+        "did you mean 'qmax_W'",
+        "column 'qmax_w'",
+    ),
     "misspelt_rig_parameter": (_toml(GOOD_TOML + "g_coolr = 11.0\n"), "did you mean 'g_cooler'", "column 'rig'"),
 }
 

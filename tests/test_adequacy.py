@@ -7,8 +7,13 @@ from tembayes.calibrate.adequacy import LIMITS, assess
 
 def _numbers(**over):
     n = {
-        "window_score_variance_ratios": {"R0_ohm": 1.1, "R1_ohm_per_K": 0.9, "S0_V_per_K": 1.3,
-                                         "S1_V_per_K2": 1.0, "K_W_per_K": 0.8},
+        "window_score_variance_ratios": {
+            "R0_ohm": 1.1,
+            "R1_ohm_per_K": 0.9,
+            "S0_V_per_K": 1.3,
+            "S1_V_per_K2": 1.0,
+            "K_W_per_K": 0.8,
+        },
         "noise_scale_median": {"voltage_V": 1.0, "dT_K": 1.02, "Tmean_K": 0.97},
         "offset_sd_over_noise_median": {"voltage_V": 0.03, "dT_K": 0.05, "Tmean_K": 0.04},
         "residual_lag1_autocorrelation": {"voltage_V": -0.02, "dT_K": 0.04, "Tmean_K": 0.01},

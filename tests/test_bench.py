@@ -31,8 +31,7 @@ def _make(tmp, config, name="batch"):
 
 
 def _files(folder):
-    return {p.relative_to(folder).as_posix(): p.read_bytes()
-            for p in sorted(folder.rglob("*")) if p.is_file()}
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
 # ---------------------------------------------------------------- 12. reproducibility
@@ -51,8 +50,15 @@ def short_batches(tmp_path_factory):
 def test_same_seed_same_bytes(short_batches):
     fa = _files(short_batches["a"][0])
     fb = _files(short_batches["b"][0])
-    assert set(fa) == {"batch.toml", "truth.json", "TEM1/identification.csv", "TEM1/validation.csv",
-                       "TEM2/identification.csv", "TEM2/validation.csv", ".tembayes-output.json"}
+    assert set(fa) == {
+        "batch.toml",
+        "truth.json",
+        "TEM1/identification.csv",
+        "TEM1/validation.csv",
+        "TEM2/identification.csv",
+        "TEM2/validation.csv",
+        ".tembayes-output.json",
+    }
     assert fa == fb
 
 
@@ -63,7 +69,9 @@ def test_other_seed_other_data(short_batches):
     for name in fa:
         if name.endswith(".csv") or name == "truth.json":
             assert fa[name] != fc[name], name
-    assert short_batches["a"][1]["modules"]["TEM1"]["S0_V_per_K"] != short_batches["c"][1]["modules"]["TEM1"]["S0_V_per_K"]
+    assert (
+        short_batches["a"][1]["modules"]["TEM1"]["S0_V_per_K"] != short_batches["c"][1]["modules"]["TEM1"]["S0_V_per_K"]
+    )
 
 
 def test_adding_a_module_keeps_the_first_ones(short_batches):
@@ -108,8 +116,7 @@ def test_written_batch_loads(short_batches):
 
 def test_truth_file_contents(tmp_path):
     effects = parse_effects(["sensor_lag", "thomson"])
-    folder, _ = _make(tmp_path, replace(SHORT, n_modules=3, outlier="TEM2", effects=effects, n_validations=0,
-                                        seed=1))
+    folder, _ = _make(tmp_path, replace(SHORT, n_modules=3, outlier="TEM2", effects=effects, n_validations=0, seed=1))
     truth = json.loads((folder / "truth.json").read_text())
     assert truth["effects"] == effects
     assert set(truth["effects"]) == {"sensor_lag", "thomson"}
@@ -150,8 +157,7 @@ def test_outlier_seebeck_shift():
 
 @pytest.fixture(scope="module")
 def default_identification(tmp_path_factory):
-    folder, truth = _make(tmp_path_factory.mktemp("real"),
-                          BenchConfig(n_modules=1, rate=1, n_validations=0))
+    folder, truth = _make(tmp_path_factory.mktemp("real"), BenchConfig(n_modules=1, rate=1, n_validations=0))
     return load_batch(folder).modules["TEM1"].identification
 
 
@@ -396,15 +402,18 @@ def test_every_catalogue_effect_is_exercised(effect_runs):
 # ---------------------------------------------------------------- 16. validation
 
 
-@pytest.mark.parametrize("kw, match", [
-    ({"outlier": "TEM3"}, "TEM3"),
-    ({"outlier": "tem1"}, "tem1"),
-    ({"rate": 0.01}, "rate"),
-    ({"rate": 101.0}, "rate"),
-    ({"n_modules": 0}, "n_modules"),
-    ({"hold": 10.0}, "hold"),
-    ({"n_validations": -1}, "n_validations"),
-])
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        ({"outlier": "TEM3"}, "TEM3"),
+        ({"outlier": "tem1"}, "tem1"),
+        ({"rate": 0.01}, "rate"),
+        ({"rate": 101.0}, "rate"),
+        ({"n_modules": 0}, "n_modules"),
+        ({"hold": 10.0}, "hold"),
+        ({"n_validations": -1}, "n_validations"),
+    ],
+)
 def test_bench_config_errors(kw, match):
     with pytest.raises(ModelError, match=match):
         BenchConfig(**{"n_modules": 2, **kw})
@@ -423,12 +432,15 @@ def test_parse_effects_unknown_name_lists_catalogue():
         assert name in str(err.value)
 
 
-@pytest.mark.parametrize("spec, match", [
-    ("sensor_lag=abc", "number"),
-    ("sensor_lag=", None),  # an empty VALUE means the defaults (not an error)
-    ("sensor_lag=nan", "finite"),
-    ("sensor_lag=inf", "finite"),
-])
+@pytest.mark.parametrize(
+    "spec, match",
+    [
+        ("sensor_lag=abc", "number"),
+        ("sensor_lag=", None),  # an empty VALUE means the defaults (not an error)
+        ("sensor_lag=nan", "finite"),
+        ("sensor_lag=inf", "finite"),
+    ],
+)
 def test_parse_effects_values(spec, match):
     if match is None:
         assert parse_effects([spec]) == {"sensor_lag": CATALOGUE["sensor_lag"].defaults()}
@@ -448,16 +460,19 @@ def test_parse_effects_scales_defaults():
     # NAME=VALUE sets the first parameter and scales the others by the same factor
     q = CATALOGUE["quadratic_laws"].defaults()
     assert out["quadratic_laws"]["R2_rel_per_K2"] == pytest.approx(8e-5, rel=1e-12)
-    assert out["quadratic_laws"]["S2_rel_per_K2"] == pytest.approx(q["S2_rel_per_K2"] * 8e-5 / q["R2_rel_per_K2"],
-                                                                    rel=1e-12)
+    assert out["quadratic_laws"]["S2_rel_per_K2"] == pytest.approx(
+        q["S2_rel_per_K2"] * 8e-5 / q["R2_rel_per_K2"], rel=1e-12
+    )
     c = CATALOGUE["current_offset"].defaults()
     assert out["current_offset"]["current_gain_error"] == pytest.approx(0.03, rel=1e-12)
     assert out["current_offset"]["current_offset_A"] == pytest.approx(
-        c["current_offset_A"] * 0.03 / c["current_gain_error"], rel=1e-12)
+        c["current_offset_A"] * 0.03 / c["current_gain_error"], rel=1e-12
+    )
     # a second parameter whose default is 0 stays 0 (contact_resistance's hot side)
     hot = CATALOGUE["contact_resistance"].defaults()["contact_R_hot_K_per_W"]
     assert parse_effects(["contact_resistance=0.2"])["contact_resistance"]["contact_R_hot_K_per_W"] == pytest.approx(
-        hot * 0.2 / CATALOGUE["contact_resistance"].defaults()["contact_R_cold_K_per_W"])
+        hot * 0.2 / CATALOGUE["contact_resistance"].defaults()["contact_R_cold_K_per_W"]
+    )
     with pytest.raises(ModelError, match="twice"):
         parse_effects(["thomson", "thomson=0.5"])
 
@@ -470,17 +485,20 @@ def test_catalogue_defaults_are_visible_on_the_bench(effect_runs):
     base = effect_runs["base"]
     for name, effect in CATALOGUE.items():
         run = _bench_run(module, effect.defaults())
-        visible = (np.abs(run.sensors - base.sensors).max() > 0.004
-                   or np.abs(run.voltage - base.voltage).max() > 1e-3
-                   or np.abs(run.current - base.current).max() > 1e-3)
+        visible = (
+            np.abs(run.sensors - base.sensors).max() > 0.004
+            or np.abs(run.voltage - base.voltage).max() > 1e-3
+            or np.abs(run.current - base.current).max() > 1e-3
+        )
         assert visible, name
 
 
 def test_effects_reach_the_bench_data(tmp_path):
     # an effect given to the batch changes its files; the truth records it
     base, _ = _make(tmp_path, replace(SHORT, n_modules=1, n_validations=0), "base")
-    lag, truth = _make(tmp_path, replace(SHORT, n_modules=1, n_validations=0,
-                                         effects=parse_effects(["joule_split"])), "joule")
+    lag, truth = _make(
+        tmp_path, replace(SHORT, n_modules=1, n_validations=0, effects=parse_effects(["joule_split"])), "joule"
+    )
     assert truth["effects"] == parse_effects(["joule_split"])
     fa, fb = _files(base), _files(lag)
     assert fa["TEM1/identification.csv"] != fb["TEM1/identification.csv"]
@@ -490,8 +508,36 @@ def test_effects_reach_the_bench_data(tmp_path):
 
 def test_identification_staircase_shape():
     p = identification_staircase(hold=600.0)
-    assert np.allclose(p.levels, [0, 0.2, 0.4, 0.6, 0.8, 0.6, 0.4, 0.2, 0, -0.2, -0.4, -0.6, -0.8, -1.0, -1.2,
-                                  -1.4, -1.6, -1.4, -1.2, -1.0, -0.8, -0.6, -0.4, -0.2, 0])
+    assert np.allclose(
+        p.levels,
+        [
+            0,
+            0.2,
+            0.4,
+            0.6,
+            0.8,
+            0.6,
+            0.4,
+            0.2,
+            0,
+            -0.2,
+            -0.4,
+            -0.6,
+            -0.8,
+            -1.0,
+            -1.2,
+            -1.4,
+            -1.6,
+            -1.4,
+            -1.2,
+            -1.0,
+            -0.8,
+            -0.6,
+            -0.4,
+            -0.2,
+            0,
+        ],
+    )
     assert np.all(p.durations == 600.0) and p.duration == 25 * 600.0
     # every level between -1.6 and 0.8 except the turning points is visited
     # from below and from above (the hysteresis check)
@@ -510,6 +556,7 @@ def test_sampling_clock_is_independent_of_the_protocol():
     # (the DAQ and the programme timer have their own phases); a phase-locked
     # bench would hide the step-time error of the jump method
     import numpy as np
+
     from tembayes.bench.protocols import sample_times
 
     phases = [sample_times(np.random.default_rng(s), 600.0, rate=5.0)[0] for s in range(50)]
@@ -523,8 +570,9 @@ def test_sampling_clock_is_independent_of_the_protocol():
 @pytest.fixture(scope="module")
 def high_and_standard(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("fidelity")
-    cfg = BenchConfig(n_modules=1, hold=120, rate=1, n_validations=1, validation_duration=1800, seed=3,
-                      validation_start="rest")
+    cfg = BenchConfig(
+        n_modules=1, hold=120, rate=1, n_validations=1, validation_duration=1800, seed=3, validation_start="rest"
+    )
     return {f: _make(tmp, replace(cfg, fidelity=f), f) for f in ("high", "standard")}
 
 

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from tembayes.bench.bench import TEC1_12706
 from tembayes.calibrate import sampler as smp
 from tembayes.calibrate.likelihood import LevelErrors, _ExpansionSums, _window_terms, window_loglike
 from tembayes.calibrate.parameters import ParameterSpace
 from tembayes.calibrate.priors import ParameterPrior, law_priors, rig_prior
-from tembayes.bench.bench import TEC1_12706
 from tembayes.physics.rig import REFERENCE
 
 
@@ -48,8 +48,12 @@ class _Quadratic:
 
     def predict(self, X):
         D = X - self.x0
-        return (self.f0[None] + np.tensordot(D, self.J, axes=(1, 0)) + 0.5 * np.tensordot(D * D, self.C, axes=(1, 0))
-                + np.tensordot(D[:, [0, 1]] * D[:, [2, 3]], self.H, axes=(1, 0)))
+        return (
+            self.f0[None]
+            + np.tensordot(D, self.J, axes=(1, 0))
+            + 0.5 * np.tensordot(D * D, self.C, axes=(1, 0))
+            + np.tensordot(D[:, [0, 1]] * D[:, [2, 3]], self.H, axes=(1, 0))
+        )
 
 
 def _banded_level_response(rng, nc, starts, n):
@@ -79,8 +83,10 @@ def test_expansion_sums_equal_the_direct_residual_sums():
     assert np.allclose(GR, lev.projections(R), rtol=1e-10, atol=1e-10)
     sigma = np.full((6, nc), 0.8)
     beta = np.full((6, nc), 0.2)
-    assert np.allclose(_window_terms(S1, S2, np.diff(np.append(starts, n)).astype(float), sigma, beta),
-                       window_loglike(R, starts, sigma, beta))
+    assert np.allclose(
+        _window_terms(S1, S2, np.diff(np.append(starts, n)).astype(float), sigma, beta),
+        window_loglike(R, starts, sigma, beta),
+    )
 
 
 def test_level_errors_give_the_dense_multivariate_normal():
@@ -97,8 +103,9 @@ def test_level_errors_give_the_dense_multivariate_normal():
     beta = np.array([[0.5, 0.2]])
     R = rng.normal(size=(1, nc, n))
     nwin = np.diff(np.append(starts, n)).astype(float)
-    got = window_loglike(R, starts, sigma, beta) + lev.terms(lev.projections(R), np.add.reduceat(R, starts, axis=2),
-                                                               nwin, sigma, beta)
+    got = window_loglike(R, starts, sigma, beta) + lev.terms(
+        lev.projections(R), np.add.reduceat(R, starts, axis=2), nwin, sigma, beta
+    )
     cov = np.zeros((nc * n, nc * n))
     bounds = list(starts) + [n]
     for c in range(nc):
@@ -106,7 +113,7 @@ def test_level_errors_give_the_dense_multivariate_normal():
             i = slice(c * n + a, c * n + b)
             cov[i, i] = sigma[0, c] ** 2 * np.eye(b - a) + beta[0, c] ** 2
     Gf = G.reshape(len(level_sd), nc * n).T
-    cov += Gf @ np.diag(level_sd ** 2) @ Gf.T
+    cov += Gf @ np.diag(level_sd**2) @ Gf.T
     want = stats.multivariate_normal(np.zeros(nc * n), cov).logpdf(R.ravel())
     assert got.sum() == pytest.approx(want, rel=1e-10)
     assert lev.neglected == 0.0
@@ -123,8 +130,9 @@ def test_priors_are_normalised_densities_with_the_jacobian():
     want = stats.lognorm(s=0.3, scale=TEC1_12706.resistance()).logpdf(x)
     assert np.allclose(pri[0].logpdf(x), want)
     # in log coordinates: a normal density
-    assert np.allclose(pri[0].logpdf_unconstrained(np.log(x)),
-                       stats.norm(np.log(TEC1_12706.resistance()), 0.3).logpdf(np.log(x)))
+    assert np.allclose(
+        pri[0].logpdf_unconstrained(np.log(x)), stats.norm(np.log(TEC1_12706.resistance()), 0.3).logpdf(np.log(x))
+    )
     u = ParameterPrior("s", "uniform", 0.0, 0.1)
     assert u.logpdf_unconstrained(np.array([0.05]))[0] == pytest.approx(-np.log(0.2))
     assert u.logpdf_unconstrained(np.array([0.11]))[0] == -np.inf
@@ -134,15 +142,22 @@ def test_rig_prior_spans_the_documented_range():
     p = next(q for q in REFERENCE.parameters if q.name == "g_paste_hot")
     pr = rig_prior(p)
     # +-2 sd in log space is the documented range
-    assert np.exp(np.log(pr.center) - 2 * pr.scale) == pytest.approx(p.low * p.nominal / np.sqrt(p.low * p.high),
-                                                                      rel=1e-9)
+    assert np.exp(np.log(pr.center) - 2 * pr.scale) == pytest.approx(
+        p.low * p.nominal / np.sqrt(p.low * p.high), rel=1e-9
+    )
     assert 2 * 2 * pr.scale == pytest.approx(np.log(p.high / p.low))
 
 
 def test_parameter_space_round_trip_and_clip():
     sp = ParameterSpace(tuple(law_priors(TEC1_12706)) + (ParameterPrior("shift", "uniform", 0.0, 0.1),))
-    vals = {"R0_ohm": 1.7, "R1_ohm_per_K": 0.01, "S0_V_per_K": 0.048, "S1_V_per_K2": 9e-5, "K_W_per_K": 0.53,
-            "shift": 0.02}
+    vals = {
+        "R0_ohm": 1.7,
+        "R1_ohm_per_K": 0.01,
+        "S0_V_per_K": 0.048,
+        "S1_V_per_K2": 9e-5,
+        "K_W_per_K": 0.53,
+        "shift": 0.02,
+    }
     x = sp.to_x(vals)
     back = sp.values(x[None])
     for k, v in vals.items():
@@ -171,8 +186,9 @@ def test_sampler_recovers_a_correlated_gaussian_and_converges():
     cov = A @ A.T + 0.1 * np.eye(p)
     mean = rng.normal(size=p)
     p0 = mean + 0.1 * rng.normal(size=(16, p))
-    run = smp.sample(_gauss_target(mean, cov), p0, seed=5, monitor=range(p), thin_by=5, check_every=100,
-                     max_steps=40000)
+    run = smp.sample(
+        _gauss_target(mean, cov), p0, seed=5, monitor=range(p), thin_by=5, check_every=100, max_steps=40000
+    )
     assert run.converged
     flat = run.chain.reshape(-1, p)
     ess = np.min(run.ess_bulk)
@@ -201,8 +217,9 @@ def test_sampler_returns_the_variance_of_a_known_gaussian():
     A = np.diag(rng.uniform(0.7, 1.3, p))
     wrong = (C @ (0.3 * rng.normal(size=p)), C @ A @ A @ C.T)
     for proposal in (None, wrong):
-        run = smp.sample(_gauss_target(np.zeros(p), cov), p0, seed=1, monitor=range(p), max_steps=60000,
-                         proposal=proposal)
+        run = smp.sample(
+            _gauss_target(np.zeros(p), cov), p0, seed=1, monitor=range(p), max_steps=60000, proposal=proposal
+        )
         assert run.converged
         white = run.chain.reshape(-1, p) @ L_inv.T  # ~N(0, I) if the sampler is right
         var = white.var(axis=0)
@@ -217,8 +234,9 @@ def test_sampler_reports_a_budget_that_runs_out():
     p = 3
     p0 = np.random.default_rng(0).normal(size=(8, p))
     with pytest.warns(RuntimeWarning, match="not converged"):
-        run = smp.sample(_gauss_target(np.zeros(p), np.eye(p)), p0, seed=1, monitor=range(p), thin_by=1,
-                         check_every=50, max_steps=50)
+        run = smp.sample(
+            _gauss_target(np.zeros(p), np.eye(p)), p0, seed=1, monitor=range(p), thin_by=1, check_every=50, max_steps=50
+        )
     assert not run.converged
     assert run.steps == 50
 
@@ -281,8 +299,9 @@ def test_sampler_stop_ends_the_run_at_the_same_check_straight_or_resumed(tmp_pat
     with pytest.warns(RuntimeWarning):
         smp.sample(log_prob, p0, checkpoint=tmp_path / "c", **{**kw, "max_steps": 160})
     with pytest.warns(RuntimeWarning):
-        c = smp.sample(log_prob, p0, checkpoint=tmp_path / "c", resume=True, stop=lambda post, steps: steps >= 240,
-                       **kw)
+        c = smp.sample(
+            log_prob, p0, checkpoint=tmp_path / "c", resume=True, stop=lambda post, steps: steps >= 240, **kw
+        )
     assert c.resumed and c.steps == 240 and np.array_equal(a.chain, c.chain)
 
 
@@ -369,7 +388,7 @@ def test_expansion_pulls_a_probe_the_model_cannot_simulate_back_and_stays_exact(
     lin = LinearisedModel(Quadratic(), sp, x0, np.array([0.4, 0.2]))  # a + 0.4 = 0.9 fails, 0.7 does not
     X = np.array([[0.3, 0.0], [0.65, 0.25], [0.9, -0.1]])
     want = Quadratic().predict(sp.params(X), strict=False)
-    want[2] = (1.0 + 2.0 * 0.9 + 3.0 * 0.81 * t - 0.1 - 0.005)  # the model fails there; the parabola does not
+    want[2] = 1.0 + 2.0 * 0.9 + 3.0 * 0.81 * t - 0.1 - 0.005  # the model fails there; the parabola does not
     assert lin.predict(X) == pytest.approx(want, rel=1e-9, abs=1e-9)
     with pytest.raises(ModelError, match="expansion point"):
         LinearisedModel(Quadratic(), sp, np.array([0.8, 0.0]), np.array([0.1, 0.1]))
@@ -401,16 +420,28 @@ def test_step_data_assumes_no_less_noise_than_the_data_and_the_model_resolve(mon
     module = bench.draw_truth(bench.BenchConfig(n_modules=1), np.random.default_rng(0))["modules"]["TEM1"]
 
     def run():
-        return bench.run_experiment(identification_staircase(hold=300.0), module, {}, np.random.default_rng(1),
-                                    rate=1.0, rig=hifi_rig(layers=True))
+        return bench.run_experiment(
+            identification_staircase(hold=300.0),
+            module,
+            {},
+            np.random.default_rng(1),
+            rate=1.0,
+            rig=hifi_rig(layers=True),
+        )
 
     noisy = step_data(run())  # the floors leave a run with the bench's noise alone
     assert noisy.noise[1] == pytest.approx(np.sqrt(2) * bench.NOISE["temperature_K"], rel=0.15)
     monkeypatch.setattr(bench, "NOISE", {k: 0.0 for k in bench.NOISE})
     exp = run()
     clean = step_data(exp)
-    assert np.all(clean.noise >= [NOISE_FLOOR["voltage_V"], np.sqrt(2) * NOISE_FLOOR["temperature_K"],
-                                  NOISE_FLOOR["temperature_K"] / np.sqrt(2)]) and np.all(clean.level_sd > 0)
+    assert np.all(
+        clean.noise
+        >= [
+            NOISE_FLOOR["voltage_V"],
+            np.sqrt(2) * NOISE_FLOOR["temperature_K"],
+            NOISE_FLOOR["temperature_K"] / np.sqrt(2),
+        ]
+    ) and np.all(clean.level_sd > 0)
     # a logger at 10 mK, 1 mV and 1 mA: its quiet holds repeat values, the second differences' noise
     # estimate is ~0, and the rounding error (q / sqrt(12)) is what the likelihood must assume
     q = {"sensors": 0.01, "voltage": 1e-3, "current": 1e-3}

@@ -35,8 +35,11 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def _bench(path, n, seed, outlier=None):
-    simulate_batch(path, BenchConfig(n_modules=n, seed=seed, outlier=outlier, hold=300.0, n_validations=0),
-                   progress=lambda msg: None)
+    simulate_batch(
+        path,
+        BenchConfig(n_modules=n, seed=seed, outlier=outlier, hold=300.0, n_validations=0),
+        progress=lambda msg: None,
+    )
     return path
 
 
@@ -65,8 +68,11 @@ def test_recovers_the_bench_truth_and_converges(run3):
         assert m["R0_ohm"]["sd"] / m["R0_ohm"]["mean"] < 0.01
 
 
-@pytest.mark.xfail(strict=False, reason="not reachable from three modules without knowing the type's spreads: a "
-                                       "4 % S0 outlier gets ~0.1 (0.2-0.4 with the spreads known; docs/benchmarks.md)")
+@pytest.mark.xfail(
+    strict=False,
+    reason="not reachable from three modules without knowing the type's spreads: a "
+    "4 % S0 outlier gets ~0.1 (0.2-0.4 with the spreads known; docs/benchmarks.md)",
+)
 def test_flags_the_outlier_of_three(run3):
     out, summ, truth = run3
     probs = {mid: m["outlier_prob"] for mid, m in summ["modules"].items()}
@@ -87,16 +93,23 @@ def test_population_table_reaches_the_population_stage(run3, batch3, tmp_path):
         f.write("\n[population]\nspread_S0_rel = 0.01\nspread_R0_rel = 0.02\nspread_K_rel = 0.03\n")
     run = tmp_path / "run"
     shutil.copytree(out / "modules", run / "modules")
-    again = calibrate_batch(load_batch(stated), run, seed=0, resume=True, figures=False)
+    again = calibrate_batch(load_batch(stated), run, seed=0, resume=True)
     assert again["population_prior"]["spread_S0_rel"] == {"median": 0.01, "log_sd": 0.3}
     for mid in summ["modules"]:  # the modules were reused as they were
         assert again["modules"][mid]["R0_ohm"] == summ["modules"][mid]["R0_ohm"]
     # the stated 1 % holds the population's S0 spread near it (the default
     # hyperprior is centred on 2 % with log-sd 1), and the next batch can
     # state what this one learned
-    assert again["population_spreads"]["spread_S0_rel"]["median"] < summ["population_spreads"]["spread_S0_rel"]["median"]
-    assert set(again["population_spreads"]) == {"spread_R0_rel", "spread_R1_ohm_per_K", "spread_S0_rel",
-                                                "spread_S1_V_per_K2", "spread_K_rel"}
+    assert (
+        again["population_spreads"]["spread_S0_rel"]["median"] < summ["population_spreads"]["spread_S0_rel"]["median"]
+    )
+    assert set(again["population_spreads"]) == {
+        "spread_R0_rel",
+        "spread_R1_ohm_per_K",
+        "spread_S0_rel",
+        "spread_S1_V_per_K2",
+        "spread_K_rel",
+    }
 
 
 def test_contract_outputs(run3):
@@ -124,7 +137,8 @@ def test_contract_outputs(run3):
     assert np.isfinite(idata.log_likelihood["step_response"].values).all()
     # summary and posterior.nc agree
     assert float(idata.posterior["K_W_per_K"].sel(module="TEM3").mean()) == pytest.approx(
-        disk["modules"]["TEM3"]["K_W_per_K"]["mean"], rel=1e-12)
+        disk["modules"]["TEM3"]["K_W_per_K"]["mean"], rel=1e-12
+    )
     figs = sorted(p.name for p in (out / "figures").iterdir())
     assert "corner_TEM1.png" in figs and "corner_population.png" in figs
 
@@ -141,8 +155,9 @@ def test_same_seed_same_module_result(run3, batch3, tmp_path):
     for k in MODULE_PARAMETERS:
         assert np.array_equal(again.draws[k], first.draws[k])
     with pytest.warns(RuntimeWarning, match="not converged"):
-        other = calibrate_module(b.modules["TEM3"], b.datasheet, rig_config=b.rig_config, seed=1,
-                                 options=replace(paper, max_steps=3000))
+        other = calibrate_module(
+            b.modules["TEM3"], b.datasheet, rig_config=b.rig_config, seed=1, options=replace(paper, max_steps=3000)
+        )
     assert not np.array_equal(other.draws["R0_ohm"][:, :10], first.draws["R0_ohm"][:, :10])
 
 
@@ -164,8 +179,14 @@ def test_negative_control_prior_only_returns_the_prior(batch1):
 
 def _cli(*args, **kw):
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    return subprocess.Popen([sys.executable, "-m", "tembayes", *args], env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, **kw)
+    return subprocess.Popen(
+        [sys.executable, "-m", "tembayes", *args],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        **kw,
+    )
 
 
 @pytest.mark.slow  # two full calibrations through the CLI (the sampler's resume is test_calibrate_parts', the batch's test_scaleout's)
@@ -190,14 +211,14 @@ def test_resume_after_kill_9_continues_the_stored_chain(batch1, tmp_path):
     assert len(stored) >= 2
     from tembayes.calibrate.sampler import ChunkCheckpoint
 
-    assert ChunkCheckpoint(ck / "TEM1.stage1").load(a.diagnostics["nwalkers"], len(a.names)).iteration == 100 * len(stored)
+    assert ChunkCheckpoint(ck / "TEM1.stage1").load(a.diagnostics.nwalkers, len(a.names)).iteration == 100 * len(stored)
     p = _cli("calibrate", str(batch1), "--out", str(killed), "--seed", "4", "--quiet", "--no-figures", "--resume")
     out, err = p.communicate(timeout=600)
     assert p.returncode == 0, err
     b = res.read_module(killed / "modules" / "TEM1.nc")
     # the resumed run continued from the stored iterations (the sampler's own
     # test checks that nothing is redone or rewritten) ...
-    assert b.diagnostics["resumed"] and b.diagnostics["converged"]
+    assert b.diagnostics.resumed and b.diagnostics.converged
     # ... and once the module is written its checkpoints are gone (20 MB a module)
     assert not list(ck.glob("TEM1.*"))
     # and it ends exactly where the uninterrupted run does
@@ -249,13 +270,14 @@ def test_another_module_type_needs_no_code_change(tmp_path):
 
     ds = Datasheet(name="TEC1-07103", th=298.15, imax=3.0, vmax=8.6, dtmax=66.0, qmax=16.0)
     path = tmp_path / "other"
-    simulate_batch(path, BenchConfig(n_modules=1, seed=5, hold=600.0, n_validations=0, datasheet=ds),
-                   progress=lambda msg: None)
+    simulate_batch(
+        path, BenchConfig(n_modules=1, seed=5, hold=600.0, n_validations=0, datasheet=ds), progress=lambda msg: None
+    )
     b = load_batch(path)
     assert b.datasheet.name == "TEC1-07103"
     truth = json.loads((path / "truth.json").read_text())["modules"]["TEM1"]
     r = calibrate_module(b.modules["TEM1"], b.datasheet, rig_config=b.rig_config, seed=0)
-    assert r.diagnostics["converged"]
+    assert r.diagnostics.converged
     for k in MODULE_PARAMETERS:
         v = r.draws[k].ravel()
         assert abs(v.mean() - truth[k]) < 3.5 * v.std(), k
@@ -270,8 +292,9 @@ def test_an_expansion_off_early_is_rebuilt_at_once_and_a_passing_probe_changes_n
 
     b = load_batch(batch4)
     m = b.modules["TEM1"]
-    opt = CalibrationOptions(max_steps=3000, pilot=500, max_relinearise=2, psis_draws=100, leg_cells=2,
-                             block_cells=2, psis_probe=1000)
+    opt = CalibrationOptions(
+        max_steps=3000, pilot=500, max_relinearise=2, psis_draws=100, leg_cells=2, block_cells=2, psis_probe=1000
+    )
 
     def cal(**kw):
         with warnings.catch_warnings():
@@ -283,10 +306,10 @@ def test_an_expansion_off_early_is_rebuilt_at_once_and_a_passing_probe_changes_n
     passing = cal()
     for k in MODULE_PARAMETERS:
         assert np.array_equal(off.draws[k], passing.draws[k])
-    assert [e["stage"] for e in passing.diagnostics["psis"]] == [1, 2]
+    assert [e.stage for e in passing.diagnostics.psis] == [1, 2]
     monkeypatch.setattr(mod, "EARLY_REBUILD_K", -np.inf)  # a probe that always fails
     cut = cal()
-    early, final = cut.diagnostics["psis"]
-    assert early["stage"] == 1 and early["early_steps"] == 1000 and "early_steps" not in final
-    assert final["stage"] == 2  # the last stage is never cut: its full budget
-    assert cut.diagnostics["steps"] == 3000
+    early, final = cut.diagnostics.psis
+    assert early.stage == 1 and early.early_steps == 1000 and final.early_steps is None
+    assert final.stage == 2  # the last stage is never cut: its full budget
+    assert cut.diagnostics.steps == 3000

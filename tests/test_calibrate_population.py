@@ -16,13 +16,13 @@ from __future__ import annotations
 
 import itertools
 
+import arviz as az
 import numpy as np
 import pytest
 from scipy.special import logsumexp
 from scipy.stats import multivariate_normal
 
 from tembayes.bench.bench import TEC1_12706, UNIT_SPREAD
-from tembayes.calibrate import population as P
 from tembayes.calibrate.population import (
     HYPER_NAMES,
     PopulationConvergenceWarning,
@@ -30,7 +30,11 @@ from tembayes.calibrate.population import (
     fit_population,
     joint_fit,
 )
-from tembayes.calibrate.priors import LEVEL_LOG_SD, SLOPE_REL_SD
+from tembayes.calibrate.population.hyper import HyperPosterior
+from tembayes.calibrate.population.model import TAU_NAMES, Population
+from tembayes.calibrate.population.terms import GaussianTerms, ImportanceTerms, module_summaries
+from tembayes.calibrate.priors import LEVEL_LOG_SD, SLOPE_REL_SD, law_log_prior
+from tembayes.calibrate.sampler import Targets
 from tembayes.constants import MODULE_PARAMETERS
 from tembayes.errors import ModelError
 
@@ -43,10 +47,10 @@ SPREAD = np.array([UNIT_SPREAD[p] for p in MODULE_PARAMETERS])
 #: Posterior sd relative to the value: the middle of realistic ranges.
 POST_SD = np.array([0.001, 0.02, 0.002, 0.06, 0.006])
 #: The population's spreads in PopulationResult.hyper units (levels relative, slopes SI).
-TRUE_TAU = {name: (SPREAD[j] if LEVEL[j] else SPREAD[j] * TYPE[j]) for j, name in enumerate(P._TAU_NAMES)}
+TRUE_TAU = {name: (SPREAD[j] if LEVEL[j] else SPREAD[j] * TYPE[j]) for j, name in enumerate(TAU_NAMES)}
 #: Spreads "known from earlier batches" to +-30 %.
 KNOWN_SPREADS = {k: (v, 0.3) for k, v in TRUE_TAU.items()}
-FAST = {"tau_factor": 20, "rhat_max": 1.05, "ess_min": 300}
+FAST = Targets(tau_multiple=20, rhat_max=1.05, ess_min=300)
 
 
 def to_x(theta):
@@ -57,8 +61,7 @@ def to_theta(x):
     return np.where(LEVEL, REF * np.exp(x), REF * x)
 
 
-def make_batch(seed, n, *, outlier=None, param=2, shift=0.04, at_centre=False, clip=None, corr=0.3,
-               n_draws=600):
+def make_batch(seed, n, *, outlier=None, param=2, shift=0.04, at_centre=False, clip=None, corr=0.3, n_draws=600):
     """Draws, Gaussian likelihoods (in x) and truths of one synthetic batch.
 
     ``outlier``: index of a module whose parameter ``param`` is multiplied by
@@ -80,7 +83,7 @@ def make_batch(seed, n, *, outlier=None, param=2, shift=0.04, at_centre=False, c
         CL = R * np.outer(sd, sd)
         mL = to_x(theta[i]) + np.linalg.cholesky(CL) @ rng.standard_normal(5)
         prec = np.linalg.inv(CL)
-        Cp = np.linalg.inv(prec + np.diag(PRIOR_SD ** -2.0))
+        Cp = np.linalg.inv(prec + np.diag(PRIOR_SD**-2.0))
         xd = Cp @ prec @ mL + rng.standard_normal((n_draws, 5)) @ np.linalg.cholesky(Cp).T
         mid = f"U{i + 1}"
         draws[mid] = to_theta(xd)
@@ -91,9 +94,11 @@ def make_batch(seed, n, *, outlier=None, param=2, shift=0.04, at_centre=False, c
 def loglikes(lik):
     out = {}
     for mid, (mL, prec) in lik.items():
+
         def f(theta, mL=mL, prec=prec):
             d = to_x(theta) - mL
             return -0.5 * np.einsum("ni,ij,nj->n", d, prec, d)
+
         out[mid] = f
     return out
 
@@ -118,7 +123,7 @@ def brute_force(pop, m, C, mu, tau, logeps, log1m):
         S = np.array(S)
         mean = np.where(S == 2, pop.gross_mean, mu)
         sd = np.choose(S, [tau, pop.lam * tau, pop.gross_sd])
-        vals.append(lw[S].sum() + multivariate_normal.logpdf(m, mean, C + np.diag(sd ** 2)))
+        vals.append(lw[S].sum() + multivariate_normal.logpdf(m, mean, C + np.diag(sd**2)))
     total = logsumexp(vals)
     return total, vals[0] - total
 
@@ -128,7 +133,7 @@ def brute_force(pop, m, C, mu, tau, logeps, log1m):
 def test_gaussian_terms_match_brute_force(corr, offset):
     """One module, S0 0 / 5 / 50 spreads off, or S0 and S1 both 6 spreads off:
     the compiled pattern sum == all 243 patterns by scipy."""
-    pop = P._Population(DS)
+    pop = Population(DS)
     rng = np.random.default_rng(3)
     mu = np.array([0.0, 0.005, 0.0, 0.002, 0.0])
     tau = np.array([0.02, 2.5e-4, 0.01, 1.1e-4, 0.03])
@@ -141,12 +146,12 @@ def test_gaussian_terms_match_brute_force(corr, offset):
         m[2] += offset * tau[2]
     le, l1 = np.log(0.03), np.log(0.97)
     want = brute_force(pop, m, C, mu, tau, le, l1)
-    ll, lmem = P._GaussianTerms(m[None], C[None])(pop, mu[None], tau[None], np.array([le]), np.array([l1]))
+    ll, lmem = GaussianTerms(m[None], C[None])(pop, mu[None], tau[None], np.array([le]), np.array([l1]))
     assert ll[0, 0] == pytest.approx(want[0], abs=1e-3)
     assert np.exp(lmem[0, 0]) == pytest.approx(np.exp(want[1]), abs=1e-4)
     # the importance sums converge to the same numbers
     xd = m + rng.standard_normal((100000, 5)) @ np.linalg.cholesky(C).T
-    imp = P._ImportanceTerms([xd], [np.full(len(xd), -np.log(len(xd)))])
+    imp = ImportanceTerms([xd], [np.full(len(xd), -np.log(len(xd)))])
     ll_i, lmem_i = imp(pop, mu[None], tau[None], np.array([le]), np.array([l1]))
     assert ll_i[0, 0] == pytest.approx(want[0], abs=0.02)
     assert np.exp(lmem_i[0, 0]) == pytest.approx(np.exp(want[1]), abs=0.01)
@@ -155,12 +160,11 @@ def test_gaussian_terms_match_brute_force(corr, offset):
 def test_compiled_prior_matches_reference():
     """The sampler's compiled prior + Jacobian equals the numpy reference."""
     draws, _, _ = make_batch(1, 4)
-    pop = P._Population(DS)
-    from tembayes.calibrate.priors import law_log_prior
-    _, _, m, C, _ = P._module_summaries(tuple(draws), list(draws.values()), pop, law_log_prior(DS))
-    post = P._HyperPosterior(pop, P._GaussianTerms(m, C), m, C)
+    pop = Population(DS)
+    summ = module_summaries(tuple(draws), list(draws.values()), pop, law_log_prior(DS))
+    post = HyperPosterior(pop, GaussianTerms(summ.mean, summ.cov), summ.mean, summ.cov)
     u = np.random.default_rng(0).normal(0, 1, (20, 11)) + np.r_[np.zeros(5), pop.logtau_mean, -2.0]
-    want = post.log_natural(post.natural(u)) + np.log(post._scale(u[:, 5:10])).sum(axis=1)
+    want = post.log_natural(post.natural(u)) + np.log(post.scale(u[:, 5:10])).sum(axis=1)
     np.testing.assert_allclose(post(u), want, rtol=1e-10)
     u[0, 6] = 50.0  # outside the box
     assert post(u)[0] == -np.inf
@@ -267,7 +271,6 @@ def test_two_stage_agrees_with_joint_fit():
     for mid in two.module_ids:
         se = np.hypot(two.diagnostics["outlier_prob_mcse"][mid], joint.diagnostics["outlier_prob_mcse"][mid])
         assert abs(two.outlier_prob[mid] - joint.outlier_prob[mid]) < 4 * se + 0.01, mid
-    az = P._arviz()
     for k in HYPER_NAMES:
         a, b = two.hyper[k], joint.hyper[k]
         se = np.hypot(a.std() / np.sqrt(az.ess(a)), b.std() / np.sqrt(az.ess(b)))
@@ -291,7 +294,7 @@ def test_non_gaussian_posterior_falls_back_to_importance_sums():
     draws, _, _ = make_batch(13, 3)
     a = draws["U1"].copy()
     a[: len(a) // 2, 2] *= 0.97
-    a[len(a) // 2:, 2] *= 1.03
+    a[len(a) // 2 :, 2] *= 1.03
     draws["U1"] = a
     with pytest.warns(UserWarning, match="re-running with importance sums"):
         r = fit(draws, max_draws_per_module=80)
@@ -314,14 +317,14 @@ def test_result_contents(big_batch):
     # importance-weight ESS (of 256 draws) at the posterior-median hyperparameters
     assert 1 <= d["weight_ess_min"] <= 256 and set(d["weight_ess"]) == set(r.module_ids)
     sp = r.spread_prior()
-    assert set(sp) == set(P._TAU_NAMES) and all(v[0] > 0 and v[1] > 0 for v in sp.values())
+    assert set(sp) == set(TAU_NAMES) and all(v[0] > 0 and v[1] > 0 for v in sp.values())
 
 
 def test_budget_exhausted_warns_and_says_so():
     draws, _, _ = make_batch(12, 3)
     with pytest.warns(PopulationConvergenceWarning, match="not converged"):
-        r = fit_population(draws, DS, rng=np.random.default_rng(0), max_steps=300)
-    assert r.diagnostics["converged"] is False and r.diagnostics["n_steps"] == 300
+        r = fit_population(draws, DS, rng=np.random.default_rng(0), max_steps=1000)
+    assert r.diagnostics["converged"] is False and r.diagnostics["n_steps"] == 1000
 
 
 # --------------------------------------------------------------------------- refusals
@@ -331,17 +334,20 @@ def _good():
     return make_batch(0, 3, n_draws=50)[0]
 
 
-@pytest.mark.parametrize("mutate,match", [
-    (lambda d: {"U1": d["U1"]}, "at least 2 modules"),
-    (lambda d: {**d, "U2": d["U2"][:, :4]}, "module 'U2'.*shape"),
-    (lambda d: {**d, "U2": d["U2"][None]}, "module 'U2'.*shape"),
-    (lambda d: {**d, "U3": np.where(np.arange(5) == 2, np.nan, d["U3"])}, "module 'U3'.*NaN.*S0_V_per_K"),
-    (lambda d: {**d, "U1": d["U1"] * np.array([-1, 1, 1, 1, 1])}, "module 'U1'.*R0_ohm.*positive"),
-    (lambda d: {**d, "U1": d["U1"][:5]}, "module 'U1'.*at least 20"),
-    (lambda d: {**d, "U1": np.tile(d["U1"][:1], (50, 1))}, "module 'U1'.*do not vary"),
-    (lambda d: {**d, "U1": "abc"}, "module 'U1'"),
-    (lambda d: list(d.values()), "dict"),
-])
+@pytest.mark.parametrize(
+    "mutate,match",
+    [
+        (lambda d: {"U1": d["U1"]}, "at least 2 modules"),
+        (lambda d: {**d, "U2": d["U2"][:, :4]}, "module 'U2'.*shape"),
+        (lambda d: {**d, "U2": d["U2"][None]}, "module 'U2'.*shape"),
+        (lambda d: {**d, "U3": np.where(np.arange(5) == 2, np.nan, d["U3"])}, "module 'U3'.*NaN.*S0_V_per_K"),
+        (lambda d: {**d, "U1": d["U1"] * np.array([-1, 1, 1, 1, 1])}, "module 'U1'.*R0_ohm.*positive"),
+        (lambda d: {**d, "U1": d["U1"][:5]}, "module 'U1'.*at least 20"),
+        (lambda d: {**d, "U1": np.tile(d["U1"][:1], (50, 1))}, "module 'U1'.*do not vary"),
+        (lambda d: {**d, "U1": "abc"}, "module 'U1'"),
+        (lambda d: list(d.values()), "dict"),
+    ],
+)
 def test_refuses_bad_draws(mutate, match):
     with pytest.raises(ModelError, match=match):
         fit_population(mutate(_good()), DS, rng=np.random.default_rng(0))
@@ -355,8 +361,8 @@ def test_refuses_bad_options():
         fit_population(d, DS, rng=np.random.default_rng(0), spread_prior={"tau_R0": (0.02, 0.3)})
     with pytest.raises(ModelError, match="method"):
         fit_population(d, DS, rng=np.random.default_rng(0), method="laplace")
-    with pytest.raises(ModelError, match="unknown target"):
-        fit_population(d, DS, rng=np.random.default_rng(0), convergence={"rhat": 1.1})
+    with pytest.raises(ModelError, match="convergence must be a .*Targets"):
+        fit_population(d, DS, rng=np.random.default_rng(0), convergence={"rhat_max": 1.1})
     with pytest.raises(ModelError, match="interim prior is not finite"):
         fit_population(d, DS, rng=np.random.default_rng(0), log_interim_prior=lambda t: np.full(len(t), -np.inf))
     with pytest.raises(ModelError, match="module 'U2'.*callable"):

@@ -38,24 +38,54 @@ from tembayes.physics.rig import reference_rig  # noqa: E402
 
 def assert_units_everywhere(idata):
     """Every data variable of every group has a non-empty ``units``; raise naming those that lack one."""
-    missing = [f"{g}/{v}" for g in idata.groups() for v, da in getattr(idata, g).data_vars.items()
-               if not da.attrs.get("units")]
+    missing = [
+        f"{g}/{v}" for g in idata.groups() for v, da in getattr(idata, g).data_vars.items() if not da.attrs.get("units")
+    ]
     assert not missing, f"variables without units: {missing}"
 
 
-@pytest.mark.parametrize("name, unit", [
-    ("R0_ohm", "ohm"), ("R1_ohm_per_K", "ohm/K"), ("S0_V_per_K", "V/K"), ("S1_V_per_K2", "V/K^2"),
-    ("K_W_per_K", "W/K"), ("step_shift_s", "s"), ("offset_sd_dT_K", "K"), ("offset_sd_voltage_V", "V"),
-    ("noise_scale_voltage", "1"), ("g_cooler", "W/K"), ("c_legs", "J/K"), ("tab_share", "1"),
-    ("g_ceramic", "W/K"), ("depth_T1", "m"), ("K1_per_K", "1/K"), ("sensor_tau_s", "s"),
-    ("thomson_fraction", "1"), ("R2_rel_per_K2", "1/K^2"), ("contact_R_cold_K_per_W", "K/W"),
-    ("current_offset_A", "A"), ("hyper_mu_S1_V_per_K2", "V/K^2"), ("hyper_tau_R0_rel", "1"),
-    ("hyper_tau_R1_ohm_per_K", "ohm/K"), ("hyper_outlier_fraction", "1"), ("voltage_V", "V"),
-    ("Tmean_K", "K"), ("obs_time_s", "s"), ("obs_step", "1"), ("step_dI_A", "A"), ("step_direction", "1"),
-    ("step_Tavg_C", "degC"), ("step_response", "nat"), ("lp", "nat"),
-    ("noise_sd", "per channel: V, K, K"),
-    ("mystery", None), ("legs", None), ("x_per_legs", None),
-])
+@pytest.mark.parametrize(
+    "name, unit",
+    [
+        ("R0_ohm", "ohm"),
+        ("R1_ohm_per_K", "ohm/K"),
+        ("S0_V_per_K", "V/K"),
+        ("S1_V_per_K2", "V/K^2"),
+        ("K_W_per_K", "W/K"),
+        ("step_shift_s", "s"),
+        ("offset_sd_dT_K", "K"),
+        ("offset_sd_voltage_V", "V"),
+        ("noise_scale_voltage", "1"),
+        ("g_cooler", "W/K"),
+        ("c_legs", "J/K"),
+        ("tab_share", "1"),
+        ("g_ceramic", "W/K"),
+        ("depth_T1", "m"),
+        ("K1_per_K", "1/K"),
+        ("sensor_tau_s", "s"),
+        ("thomson_fraction", "1"),
+        ("R2_rel_per_K2", "1/K^2"),
+        ("contact_R_cold_K_per_W", "K/W"),
+        ("current_offset_A", "A"),
+        ("hyper_mu_S1_V_per_K2", "V/K^2"),
+        ("hyper_tau_R0_rel", "1"),
+        ("hyper_tau_R1_ohm_per_K", "ohm/K"),
+        ("hyper_outlier_fraction", "1"),
+        ("voltage_V", "V"),
+        ("Tmean_K", "K"),
+        ("obs_time_s", "s"),
+        ("obs_step", "1"),
+        ("step_dI_A", "A"),
+        ("step_direction", "1"),
+        ("step_Tavg_C", "degC"),
+        ("step_response", "nat"),
+        ("lp", "nat"),
+        ("noise_sd", "per channel: V, K, K"),
+        ("mystery", None),
+        ("legs", None),
+        ("x_per_legs", None),
+    ],
+)
 def test_variable_unit(name, unit):
     assert results.variable_unit(name) == unit
 
@@ -93,12 +123,11 @@ def written(tmp_path_factory):
     """posterior.nc of two modules with a population and the prior, from both writers."""
     tmp = tmp_path_factory.mktemp("units")
     mods, pop, prior = _modules()
-    memory = results.write_netcdf(results.to_inference_data(mods, population=pop, prior_draws=prior),
-                                  tmp / "memory" / "posterior.nc")
-    files = [results.write_netcdf(results.to_inference_data([m]), tmp / "modules" / f"{m.module_id}.nc")
-             for m in mods]
-    streamed = results.write_run_posterior(tmp / "streamed" / "posterior.nc", files, population=pop,
-                                           prior_draws=prior)
+    memory = results.write_netcdf(
+        results.to_inference_data(mods, population=pop, prior_draws=prior), tmp / "memory" / "posterior.nc"
+    )
+    files = [results.write_netcdf(results.to_inference_data([m]), tmp / "modules" / f"{m.module_id}.nc") for m in mods]
+    streamed = results.write_run_posterior(tmp / "streamed" / "posterior.nc", files, population=pop, prior_draws=prior)
     write_json(tmp / "streamed" / "summary.json", results.summary(mods, pop))
     return {"memory": memory, "streamed": streamed, "prior": prior, "files": files}
 
@@ -106,8 +135,15 @@ def written(tmp_path_factory):
 @pytest.mark.parametrize("writer", ["memory", "streamed"])
 def test_every_variable_of_posterior_nc_has_units(written, writer):
     idata = _read(written[writer])
-    assert {"posterior", "prior", "population", "sample_stats", "log_likelihood", "observed_data",
-            "constant_data"} <= set(idata.groups())
+    assert {
+        "posterior",
+        "prior",
+        "population",
+        "sample_stats",
+        "log_likelihood",
+        "observed_data",
+        "constant_data",
+    } <= set(idata.groups())
     assert_units_everywhere(idata)
     assert idata.posterior["R1_ohm_per_K"].attrs["units"] == "ohm/K"
     assert idata.log_likelihood["step_response"].attrs["units"] == "nat"

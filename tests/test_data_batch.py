@@ -43,10 +43,13 @@ def test_tec1_12706_conversions():
 
 def test_other_datasheet_gives_other_numbers():
     # TEC1-12706 at Th = 50 degC (docs/data-format.md, '[module_type]') and a small 3 A module
-    hot = Datasheet.from_table({"th_C": 50.0, "imax_A": 6.4, "vmax_V": 16.4, "dtmax_K": 75.0,
-                                "qmax_W": 57.0}, "batch.toml")
-    small = Datasheet.from_table({"name": "TEC1-12703", "th_C": 27.0, "imax_A": 3.0, "vmax_V": 15.4,
-                                  "dtmax_K": 67.0, "qmax_W": 26.0}, "batch.toml")
+    hot = Datasheet.from_table(
+        {"th_C": 50.0, "imax_A": 6.4, "vmax_V": 16.4, "dtmax_K": 75.0, "qmax_W": 57.0}, "batch.toml"
+    )
+    small = Datasheet.from_table(
+        {"name": "TEC1-12703", "th_C": 27.0, "imax_A": 3.0, "vmax_V": 15.4, "dtmax_K": 67.0, "qmax_W": 26.0},
+        "batch.toml",
+    )
     ref = _tec1_12706()
     assert hot.th == pytest.approx(323.15)
     assert hot.seebeck() == pytest.approx(16.4 / 323.15)
@@ -84,20 +87,23 @@ def test_datasheet_missing_key(key, data_factory):
     assert "b/batch.toml" in str(err)
 
 
-@pytest.mark.parametrize("key, value, match", [
-    ("imax_A", "6.4", r"imax_A = '6\.4' is not a finite number"),
-    ("vmax_V", True, r"vmax_V = True is not a finite number"),
-    ("qmax_W", float("nan"), r"qmax_W = nan is not a finite number"),
-    ("dtmax_K", float("inf"), r"not a finite number"),
-    ("imax_A", 0, r"imax_A = 0 must be positive"),
-    ("vmax_V", -14.4, r"vmax_V = -14\.4 must be positive"),
-    ("dtmax_K", 300.0, r"dtmax_K = 300\.0 is not below Th = 298\.15 K"),
-    ("th_C", -300.0, r"th_C = -300\.0 is not a plausible datasheet hot-side temperature in degC"),
-    ("th_C", 298.15, r"looks like kelvin"),
-    ("imax_A", 6400.0, r"disagree by a factor 1\.1\de\+03"),
-    ("vmax_V", 14400.0, r"disagree by a factor"),
-    ("qmax_W", 50000.0, r"disagree by a factor 0\.001"),
-])
+@pytest.mark.parametrize(
+    "key, value, match",
+    [
+        ("imax_A", "6.4", r"imax_A = '6\.4' is not a finite number"),
+        ("vmax_V", True, r"vmax_V = True is not a finite number"),
+        ("qmax_W", float("nan"), r"qmax_W = nan is not a finite number"),
+        ("dtmax_K", float("inf"), r"not a finite number"),
+        ("imax_A", 0, r"imax_A = 0 must be positive"),
+        ("vmax_V", -14.4, r"vmax_V = -14\.4 must be positive"),
+        ("dtmax_K", 300.0, r"dtmax_K = 300\.0 is not below Th = 298\.15 K"),
+        ("th_C", -300.0, r"th_C = -300\.0 is not a plausible datasheet hot-side temperature in degC"),
+        ("th_C", 298.15, r"looks like kelvin"),
+        ("imax_A", 6400.0, r"disagree by a factor 1\.1\de\+03"),
+        ("vmax_V", 14400.0, r"disagree by a factor"),
+        ("qmax_W", 50000.0, r"disagree by a factor 0\.001"),
+    ],
+)
 def test_datasheet_bad_value(key, value, match, data_factory):
     err = _ds_refusal({**data_factory.TEC1_12706, key: value})
     assert err.column == key
@@ -128,7 +134,9 @@ def test_rig_table_kept_and_preset_defaulted(data_factory, fake_rig):
 
 
 def test_population_table_states_known_spreads(data_factory):
-    toml = data_factory.batch_toml() + "\n[population]\nspread_S0_rel = 0.01\nspread_R0_rel = 0.02\nspread_log_sd = 0.5\n"
+    toml = (
+        data_factory.batch_toml() + "\n[population]\nspread_S0_rel = 0.01\nspread_R0_rel = 0.02\nspread_log_sd = 0.5\n"
+    )
     folder = data_factory.batch(toml=toml)
     assert load_population_table(folder) == {"spread_S0_rel": (0.01, 0.5), "spread_R0_rel": (0.02, 0.5)}
     assert load_batch(folder).population == {"spread_S0_rel": (0.01, 0.5), "spread_R0_rel": (0.02, 0.5)}
@@ -138,11 +146,14 @@ def test_population_table_states_known_spreads(data_factory):
     assert load_batch(data_factory.batch("b3")).population == {}
 
 
-@pytest.mark.parametrize("line, key, what", [
-    ("spread_S0 = 0.01", "spread_S0", "unknown key 'population.spread_S0' (did you mean 'spread_S0_rel'?)"),
-    ("spread_S0_rel = -0.01", "spread_S0_rel", "positive number"),
-    ("spread_S0_rel = 'one percent'", "spread_S0_rel", "positive number"),
-])
+@pytest.mark.parametrize(
+    "line, key, what",
+    [
+        ("spread_S0 = 0.01", "spread_S0", "unknown key 'population.spread_S0' (did you mean 'spread_S0_rel'?)"),
+        ("spread_S0_rel = -0.01", "spread_S0_rel", "positive number"),
+        ("spread_S0_rel = 'one percent'", "spread_S0_rel", "positive number"),
+    ],
+)
 def test_population_table_refuses_bad_keys_naming_them(data_factory, line, key, what):
     folder = data_factory.batch(toml=data_factory.batch_toml() + f"\n[population]\n{line}\n")
     with pytest.raises(DataError) as e:
@@ -189,22 +200,49 @@ def test_rig_checked_by_real_physics_when_available(data_factory):
 
 TOML_CASES = {
     "missing_file": (None, r"batch\.toml does not exist", None, None, r"needs a batch\.toml"),
-    "syntax_error": ('[module_type]\nname = "x"\nth_C = = 25\n', r"TOML syntax error", 3, None,
-                     r"Fix the TOML syntax"),
-    "no_module_type": ('[rig]\npreset = "reference"\n', r"no \[module_type\] table", None, "module_type",
-                       r"Add \[module_type\] with name, th_C, imax_A"),
-    "module_type_not_table": ('module_type = "TEC1-12706"\n', r"must be a table", None, "module_type",
-                              r"\[module_type\] section"),
-    "missing_key": ('[module_type]\nname = "x"\nth_C = 25.0\nimax_A = 6.4\nvmax_V = 14.4\ndtmax_K = 66.0\n',
-                    r"no 'qmax_W'", None, "qmax_W", r"Add qmax_W"),
-    "string_value": ('[module_type]\nth_C = 25.0\nimax_A = "6.4 A"\nvmax_V = 14.4\ndtmax_K = 66.0\n'
-                     'qmax_W = 50.0\n', r"imax_A = '6\.4 A' is not a finite number", None, "imax_A",
-                     r"plain number in A"),
-    "rig_not_table": ('rig = "reference"\n[module_type]\nth_C = 25.0\nimax_A = 6.4\nvmax_V = 14.4\n'
-                      'dtmax_K = 66.0\nqmax_W = 50.0\n', r"'rig' must be a table", None, "rig", r"\[rig\]"),
-    "preset_not_text": ('[module_type]\nth_C = 25.0\nimax_A = 6.4\nvmax_V = 14.4\ndtmax_K = 66.0\n'
-                        'qmax_W = 50.0\n[rig]\npreset = 1\n', r"rig\.preset must be text", None, "preset",
-                        r"quote it"),
+    "syntax_error": ('[module_type]\nname = "x"\nth_C = = 25\n', r"TOML syntax error", 3, None, r"Fix the TOML syntax"),
+    "no_module_type": (
+        '[rig]\npreset = "reference"\n',
+        r"no \[module_type\] table",
+        None,
+        "module_type",
+        r"Add \[module_type\] with name, th_C, imax_A",
+    ),
+    "module_type_not_table": (
+        'module_type = "TEC1-12706"\n',
+        r"must be a table",
+        None,
+        "module_type",
+        r"\[module_type\] section",
+    ),
+    "missing_key": (
+        '[module_type]\nname = "x"\nth_C = 25.0\nimax_A = 6.4\nvmax_V = 14.4\ndtmax_K = 66.0\n',
+        r"no 'qmax_W'",
+        None,
+        "qmax_W",
+        r"Add qmax_W",
+    ),
+    "string_value": (
+        '[module_type]\nth_C = 25.0\nimax_A = "6.4 A"\nvmax_V = 14.4\ndtmax_K = 66.0\nqmax_W = 50.0\n',
+        r"imax_A = '6\.4 A' is not a finite number",
+        None,
+        "imax_A",
+        r"plain number in A",
+    ),
+    "rig_not_table": (
+        'rig = "reference"\n[module_type]\nth_C = 25.0\nimax_A = 6.4\nvmax_V = 14.4\ndtmax_K = 66.0\nqmax_W = 50.0\n',
+        r"'rig' must be a table",
+        None,
+        "rig",
+        r"\[rig\]",
+    ),
+    "preset_not_text": (
+        "[module_type]\nth_C = 25.0\nimax_A = 6.4\nvmax_V = 14.4\ndtmax_K = 66.0\nqmax_W = 50.0\n[rig]\npreset = 1\n",
+        r"rig\.preset must be text",
+        None,
+        "preset",
+        r"quote it",
+    ),
     "not_utf8": (b'[module_type]\nname = "\xff"\n', r"not UTF-8", None, None, r"UTF-8"),
 }
 
@@ -312,15 +350,23 @@ def _build_folder(f, kind):
     raise AssertionError(kind)
 
 
-@pytest.mark.parametrize("kind, where, match, line, column", [
-    ("missing", "", r"batch folder does not exist", None, None),
-    ("file", "", r"not a folder.*Pass the batch folder", None, None),
-    ("no_toml", "batch.toml", r"batch\.toml does not exist", None, None),
-    ("no_modules", "", r"no module folders.*own sub-folder", None, None),
-    ("no_identification", "TEM2", r"no identification\.csv.*Each module folder needs identification\.csv",
-     None, None),
-    ("bad_validation", "TEM1/validation2.csv", r"'oops' is not a number", 5, "T2_C"),
-])
+@pytest.mark.parametrize(
+    "kind, where, match, line, column",
+    [
+        ("missing", "", r"batch folder does not exist", None, None),
+        ("file", "", r"not a folder.*Pass the batch folder", None, None),
+        ("no_toml", "batch.toml", r"batch\.toml does not exist", None, None),
+        ("no_modules", "", r"no module folders.*own sub-folder", None, None),
+        (
+            "no_identification",
+            "TEM2",
+            r"no identification\.csv.*Each module folder needs identification\.csv",
+            None,
+            None,
+        ),
+        ("bad_validation", "TEM1/validation2.csv", r"'oops' is not a number", 5, "T2_C"),
+    ],
+)
 def test_batch_folder_refusals(kind, where, match, line, column, data_factory):
     folder = _build_folder(data_factory, kind)
     with pytest.raises(DataError, match=match) as info:

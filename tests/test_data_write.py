@@ -69,15 +69,32 @@ def test_atomic_write_failure_keeps_old_file(tmp_path, monkeypatch):
 
 
 def test_write_json_numpy_and_nan(tmp_path):
-    p = write_json(tmp_path / "x.json", {
-        "a": np.float64(1.5), "b": np.arange(3), "c": np.int32(7), "d": float("nan"),
-        "e": [np.inf, -np.inf, 2.0], "f": (True, None), "g": {1: np.bool_(True)}, "p": tmp_path,
-    })
+    p = write_json(
+        tmp_path / "x.json",
+        {
+            "a": np.float64(1.5),
+            "b": np.arange(3),
+            "c": np.int32(7),
+            "d": float("nan"),
+            "e": [np.inf, -np.inf, 2.0],
+            "f": (True, None),
+            "g": {1: np.bool_(True)},
+            "p": tmp_path,
+        },
+    )
     text = p.read_text()
     assert "NaN" not in text and "Infinity" not in text
     assert text.startswith("{\n  ")  # indent=2
-    assert json.loads(text) == {"a": 1.5, "b": [0, 1, 2], "c": 7, "d": None, "e": [None, None, 2.0],
-                                "f": [True, None], "g": {"1": True}, "p": str(tmp_path)}
+    assert json.loads(text) == {
+        "a": 1.5,
+        "b": [0, 1, 2],
+        "c": 7,
+        "d": None,
+        "e": [None, None, 2.0],
+        "f": [True, None],
+        "g": {"1": True},
+        "p": str(tmp_path),
+    }
     with pytest.raises(TypeError, match="object"):
         write_json(tmp_path / "y.json", {"x": object()})
     assert not (tmp_path / "y.json").exists()
@@ -150,8 +167,7 @@ def test_experiment_csv_round_trip(tmp_path):
     exp = experiment_from_arrays(t, cur, volt, sensors, tw, ta, extra={"T5_C": np.linspace(0, 1, t.size)})
     path = write_experiment_csv(tmp_path / "TEM1" / "identification.csv", exp)
     back = load_experiment(path)
-    assert path.read_text().splitlines()[0] == (
-        "time_s,current_A,voltage_V,T1_C,T2_C,T3_C,T4_C,T_water_C,T_amb_C,T5_C")
+    assert path.read_text().splitlines()[0] == ("time_s,current_A,voltage_V,T1_C,T2_C,T3_C,T4_C,T_water_C,T_amb_C,T5_C")
     half = {"time_s": 5e-4, "current_A": 5e-6, "voltage_V": 5e-6}
     for name, tol in half.items():
         np.testing.assert_allclose(back.channel(name), exp.channel(name), rtol=0, atol=tol * (1 + 1e-9))

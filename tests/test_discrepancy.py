@@ -24,10 +24,10 @@ def _replicate(rng, spread):
     X = [np.column_stack([np.ones(N), rng.uniform(-1, 1, N) + k / K]) for k in range(K)]
     y = [x @ (TRUTH + spread * rng.standard_normal(2)) + SIGMA * rng.standard_normal(N) for x in X]
     A = np.vstack(X)
-    cov = SIGMA ** 2 * np.linalg.inv(A.T @ A)
-    mean = cov @ A.T @ np.concatenate(y) / SIGMA ** 2
+    cov = SIGMA**2 * np.linalg.inv(A.T @ A)
+    mean = cov @ A.T @ np.concatenate(y) / SIGMA**2
     draws = rng.multivariate_normal(mean, cov, 2000)
-    L = np.column_stack([-0.5 * np.sum((yk[None] - draws @ xk.T) ** 2, axis=1) / SIGMA ** 2 for xk, yk in zip(X, y)])
+    L = np.column_stack([-0.5 * np.sum((yk[None] - draws @ xk.T) ** 2, axis=1) / SIGMA**2 for xk, yk in zip(X, y)])
     return draws, L
 
 
@@ -93,13 +93,13 @@ def test_a_held_parameter_moves_the_mode_as_its_linear_response_says():
     class Model:
         def predict(self, P):
             a, b, q = (np.asarray(P[k], float)[:, None] for k in ("a", "b", "q"))
-            return (a * t + b + 0.3 * np.log(q) * t ** 2)[:, None, :]
+            return (a * t + b + 0.3 * np.log(q) * t**2)[:, None, :]
 
     J = np.stack([t, np.ones_like(t)])[:, None, :]  # (p, nc, n)
     held = {"q": RigParameter("q", 2.0, 2.0 * np.exp(-0.4), 2.0 * np.exp(0.4), "1")}
     spread = held_nuisance_spread(Model(), Space(), np.array([1.0, 0.5]), J, np.array([0.01]), held)
-    y_true = 1.0 * t + 0.5 + 0.3 * (np.log(2.0) + 0.2) * t ** 2
-    y_held = 1.0 * t + 0.5 + 0.3 * np.log(2.0) * t ** 2
+    y_true = 1.0 * t + 0.5 + 0.3 * (np.log(2.0) + 0.2) * t**2
+    y_held = 1.0 * t + 0.5 + 0.3 * np.log(2.0) * t**2
     A = np.column_stack([t, np.ones_like(t)])
     move = np.linalg.lstsq(A, y_true - y_held, rcond=None)[0]
     np.testing.assert_allclose(spread.shift[:, 0] * 0.2, -move, rtol=1e-6)  # the held value errs by -0.2

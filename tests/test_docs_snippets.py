@@ -79,14 +79,24 @@ def docs_workdir(tmp_path_factory):
     root = tmp_path_factory.mktemp("docs")
     (root / "data").symlink_to(REPO / "data", target_is_directory=True)
     batch = root / "bench" / "batch"
-    simulate_batch(batch, BenchConfig(n_modules=2, seed=7, hold=60.0, rate=1.0, n_validations=0),
-                   progress=lambda msg: None)
-    cheap = CalibrationOptions(max_steps=1000, pilot=500, max_relinearise=1, psis_draws=100, leg_cells=2,
-                               block_cells=2, model="paper", discrepancy="none")
+    simulate_batch(
+        batch, BenchConfig(n_modules=2, seed=7, hold=60.0, rate=1.0, n_validations=0), progress=lambda msg: None
+    )
+    cheap = CalibrationOptions(
+        max_steps=1000,
+        pilot=500,
+        max_relinearise=1,
+        psis_draws=100,
+        leg_cells=2,
+        block_cells=2,
+        model="paper",
+        discrepancy="none",
+    )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # "not converged": the cheap budget
-        calibrate_batch(load_batch(batch), root / "runs" / "example", seed=0, options=cheap, workers=1,
-                        figures=False, keep_unconverged=True)
+        calibrate_batch(
+            load_batch(batch), root / "runs" / "example", seed=0, options=cheap, workers=1, keep_unconverged=True
+        )
     return root
 
 

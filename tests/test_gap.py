@@ -27,14 +27,29 @@ def _fake_prediction(rng, n=6000, M=300, bump=0.0):
     mean = np.zeros((5, n)) + 300.0
     y = mean + sd_par * rng.standard_normal((5, 1)) * shape
     y += ou_paths(rng, t, np.full(5, sd_noise), np.full(5, tau))
-    total = np.sqrt(sd_par ** 2 * shape ** 2 + sd_noise ** 2)
+    total = np.sqrt(sd_par**2 * shape**2 + sd_noise**2)
     y[2] += bump * total * (current > 0)
     q = {50: 0.674, 90: 1.645, 95: 1.96}
     bands = {lv: (mean - k * total, mean + k * total) for lv, k in q.items()}
-    return Prediction(source="fake.csv", label="X", laws="linear", time=t, channels=CHANNELS, measured=y,
-                      mean=mean, median=mean, bands=bands, tavg=np.full(n, 300.0), current=current,
-                      n_draws=M, seconds=0.0, since_step=t % 900, deviations=dev.astype(np.float32),
-                      noise_sd=np.full((M, 5), sd_noise), noise_tau=np.full((M, 5), tau))
+    return Prediction(
+        source="fake.csv",
+        label="X",
+        laws="linear",
+        time=t,
+        channels=CHANNELS,
+        measured=y,
+        mean=mean,
+        median=mean,
+        bands=bands,
+        tavg=np.full(n, 300.0),
+        current=current,
+        n_draws=M,
+        seconds=0.0,
+        since_step=t % 900,
+        deviations=dev.astype(np.float32),
+        noise_sd=np.full((M, 5), sd_noise),
+        noise_tau=np.full((M, 5), tau),
+    )
 
 
 def test_ou_paths_have_the_stated_variance_and_correlation():
@@ -127,14 +142,25 @@ def test_refit_names_a_sensor_lag_at_the_noise_floor_and_recovers_its_time_const
     from tembayes.calibrate import CalibrationOptions
 
     # the paper's form, which has no sensor lag (the full form already samples one)
-    simulate_batch(b, BenchConfig(n_modules=1, seed=31, hold=300.0, n_validations=0, physics="paper",
-                                  effects={"sensor_lag": {"sensor_tau_s": 6.0}}), progress=lambda m: None)
+    simulate_batch(
+        b,
+        BenchConfig(
+            n_modules=1,
+            seed=31,
+            hold=300.0,
+            n_validations=0,
+            physics="paper",
+            effects={"sensor_lag": {"sensor_tau_s": 6.0}},
+        ),
+        progress=lambda m: None,
+    )
     truth = __import__("json").loads((b / "truth.json").read_text())["modules"]["TEM1"]
     batch = load_batch(b)
     start = {k: truth[k] for k in MODULE_PARAMETERS}
     paper = CalibrationOptions(model="paper", discrepancy="none")
-    fits = {e: refit(batch.modules["TEM1"], batch.datasheet, e, start=start, options=paper)
-            for e in (None, "sensor_lag")}
+    fits = {
+        e: refit(batch.modules["TEM1"], batch.datasheet, e, start=start, options=paper) for e in (None, "sensor_lag")
+    }
     lag = fits["sensor_lag"]
     assert lag.chi2_total < 1.3 < 3.0 < fits[None].chi2_total
     assert lag.size()["sensor_tau_s"]["mode"] == pytest.approx(6.0, rel=0.1)
@@ -171,7 +197,7 @@ def test_block_log_density_is_the_exact_ou_density():
     """The innovation decomposition equals the joint Gaussian density of an OU residual (known answer)."""
     from scipy.stats import multivariate_normal
 
-    from tembayes.gap.diagnose import block_log_density
+    from tembayes.gap.evidence import block_log_density
 
     rng = np.random.default_rng(5)
     t = np.cumsum(rng.uniform(0.5, 2.0, 40))
@@ -189,28 +215,51 @@ def test_block_log_density_is_the_exact_ou_density():
 
 
 def test_held_out_gap_is_the_error_beyond_the_predictive_variance():
-    from tembayes.gap.diagnose import RunEvaluation, held_out_gap
+    from tembayes.gap.evidence import RunEvaluation, held_out_gap
 
-    ev = [RunEvaluation("A", "v.csv", sse=0.05 ** 2 * 100, n=100, expected=0.03 ** 2 * 100, elpd_blocks=np.zeros(1),
-                        significant=[], gap_map=None)]
+    ev = [
+        RunEvaluation(
+            "A",
+            "v.csv",
+            sse=0.05**2 * 100,
+            n=100,
+            expected=0.03**2 * 100,
+            elpd_blocks=np.zeros(1),
+            significant=[],
+            gap_map=None,
+        )
+    ]
     assert held_out_gap(ev) == pytest.approx(0.04)  # sqrt(0.05^2 - 0.03^2)
-    ev[0].sse = 0.02 ** 2 * 100  # inside what the model expects: no gap
+    ev[0].sse = 0.02**2 * 100  # inside what the model expects: no gap
     assert held_out_gap(ev) == 0.0
 
 
+def _result(module, effect, **more):
+    """A job result as the race reads it."""
+    from types import SimpleNamespace
+
+    return SimpleNamespace(module=module, effect=effect, seconds=1.0, **more)
+
+
 def test_race_carries_only_helpful_candidates_to_the_other_modules_and_reuses_the_cache():
-    from tembayes.gap.diagnose import _race
+    from tembayes.gap.jobs import race
 
     ran = []
 
     def work(mid, effect):
         ran.append((mid, effect))
-        return {"module": mid, "effect": effect, "helps": effect == "good", "seconds": 1.0}
+        return _result(mid, effect, helps=effect == "good")
 
-    cache = {("B", "good"): {"module": "B", "effect": "good", "helps": True, "seconds": 0.0}}
-    out = _race([("A", "good"), ("A", "bad")],
-                lambda r: [("B", r["effect"]), ("C", r["effect"])] if r["helps"] else [],  # asked twice: run once
-                lambda mid, e: (mid, e), 1, cache, lambda msg: None, work=work)
+    cache = {("B", "good"): _result("B", "good", helps=True)}
+    out = race(
+        [("A", "good"), ("A", "bad")],
+        lambda r: [("B", r.effect), ("C", r.effect)] if r.helps else [],  # asked twice: run once
+        lambda mid, e: (mid, e),
+        work=work,
+        jobs=1,
+        cache=cache,
+        say=lambda msg: None,
+    )
     assert set(out) == {("A", "good"), ("A", "bad"), ("B", "good"), ("C", "good")}
     assert ("B", "good") not in ran and sorted(ran) == [("A", "bad"), ("A", "good"), ("C", "good")]
     assert set(cache) == set(out)  # filled for the next call (the withheld diagnosis)
@@ -220,23 +269,120 @@ def test_race_decisions_do_not_depend_on_which_candidate_finishes_first():
     """The lead's results are decided in the candidates' order: a later candidate that finishes first
     waits, and is judged against the earlier one whatever the finishing order (same seed, same
     diagnosis on any machine).  Here B is beaten by A only if A is decided first."""
-    from tembayes.gap.diagnose import _in_order
+    from tembayes.gap.jobs import in_order
 
     def run(arrivals):
         decided = []
 
         def decide(r):
-            decided.append(r["effect"])
-            return [] if r["effect"] == "B" and "A" in decided else [("M2", r["effect"])]
+            decided.append(r.effect)
+            return [] if r.effect == "B" and "A" in decided else [("M2", r.effect)]
 
-        follow = _in_order(["A", "B"], "M1", decide)
-        carried = [k for e in arrivals for k in follow({"module": "M1", "effect": e})]
-        assert follow({"module": "M2", "effect": "A"}) == []  # other modules' results carry nothing
+        follow = in_order(["A", "B"], "M1", decide)
+        carried = [k for e in arrivals for k in follow(_result("M1", e))]
+        assert follow(_result("M2", "A")) == []  # other modules' results carry nothing
         return decided, carried
 
     assert run(["A", "B"]) == run(["B", "A"]) == (["A", "B"], [("M2", "A")])
-    follow = _in_order(["A", "B"], "M1", lambda r: [("M2", r["effect"])])
-    assert follow({"module": "M1", "effect": "B"}) == []  # waits for A
+    follow = in_order(["A", "B"], "M1", lambda r: [("M2", r.effect)])
+    assert follow(_result("M1", "B")) == []  # waits for A
+
+
+def test_evidence_sums_the_blocks_and_the_windows_with_their_standard_errors():
+    from tembayes.gap.evidence import Evidence, HeldOut
+
+    v, i = np.array([1.0, 3.0, 2.0, 6.0]), np.array([0.5, -0.5])
+    ev = HeldOut(v + 1.0, i + 2.0).evidence_over(HeldOut(np.ones(4), np.full(2, 2.0)))
+    assert ev == Evidence.of(v, i)
+    assert ev.value == pytest.approx(12.0) and ev.validation == (12.0, pytest.approx(2 * np.std(v)))
+    assert ev.se == pytest.approx(np.hypot(2 * np.std(v), np.sqrt(2) * 0.5))
+    assert ev.significant() and not ev.indistinct()
+    assert Evidence.of(v, np.zeros(0)).identification == (0.0, 0.0)  # no windows: no term, no error
+
+
+def test_ranking_rows_write_the_gap_json_keys_of_their_kind():
+    """gap.json's ranking rows (docs/outputs.md): each kind its keys, in their order."""
+    from tembayes.gap import ranking as R
+    from tembayes.gap.evidence import Evidence
+
+    ev = Evidence.of(np.array([3.0, 4.0]), np.array([1.0]))
+    gaps = R.GapChange(primary="validation", validation=(0.02, 0.005), identification=(1.2, 0.0))
+    head = ["effect", "evidence", "evidence_se", "evidence_validation", "evidence_identification", "evidence_kind"]
+    gap_keys = ["gap_before", "gap_after", "shrink", "gaps"]
+    recal = R.RankingRow(
+        effect="e",
+        kind=R.RECALIBRATED,
+        evidence=ev,
+        gaps=gaps,
+        cells_left=R.CellsLeft(validation=1, identification=0, worst=[]),
+        rmse_T=(0.03, 0.01),
+        size={"M": {}},
+        conflicts_left={"M": []},
+        converged=True,
+        seconds=3.0,
+    )
+    assert list(recal.to_json()) == head + gap_keys + [
+        "remaining_cells",
+        "remaining",
+        "cells_left",
+        "rmse_T_before",
+        "rmse_T_after",
+        "size",
+        "conflicts_left",
+        "conflicts_resolved",
+        "converged",
+        "seconds",
+    ]
+    assert recal.to_json()["shrink"] == pytest.approx(0.75) and recal.to_json()["gaps"]["identification"]["shrink"] == 1
+    dropped = R.RankingRow(
+        effect="e",
+        kind=R.LEAD_MODULE,
+        evidence=ev,
+        gaps=gaps,
+        module="M",
+        size={"M": {}},
+        converged=False,
+        dropped="why",
+    )
+    assert list(dropped.to_json()) == head + ["module"] + gap_keys + ["size", "converged", "dropped"]
+    screened = R.RankingRow(
+        effect="e", kind=R.SCREENED, evidence=ev, gaps=gaps, module="M", size={"M": {}}, screen_log_bayes_factor=-3.0
+    )
+    assert list(screened.to_json()) == head + ["module"] + gap_keys + ["size", "screen_log_bayes_factor"]
+    failed = R.failed_row("e", kind=R.SCREEN_FAILED, failed="diverged", gap_before=0.02).to_json()
+    assert failed == {
+        "effect": "e",
+        "evidence": None,
+        "evidence_kind": "screen",
+        "gap_before": 0.02,
+        "gap_after": None,
+        "shrink": None,
+        "failed": "diverged",
+    }
+
+
+def test_the_race_carries_a_candidate_that_gains_and_is_not_beaten():
+    """The lead judge (known answers): a gain of many standard errors goes on to the other modules; a later
+    candidate beaten by it stops; one without a significant gain stops."""
+    from types import SimpleNamespace
+
+    from tembayes.gap.evidence import HeldOut
+    from tembayes.gap.ranking import LeadJudge
+
+    rng = np.random.default_rng(3)
+    base = HeldOut(rng.normal(0, 1, 40), rng.normal(0, 1, 10))
+
+    def result(effect, gain):
+        ev = [SimpleNamespace(elpd_blocks=base.blocks + gain + 0.1 * rng.standard_normal(40))]
+        return SimpleNamespace(
+            effect=effect, failed=None, evals=ev, refit=SimpleNamespace(cv_lpd=base.windows), conflicts=[]
+        )
+
+    judge = LeadJudge(lead="M1", rest=["M2", "M3"], base=base, gapped=["validation"])
+    assert judge(result("good", 2.0)) == [("M2", "good"), ("M3", "good")]
+    assert judge(result("second", 1.0)) == [] and judge.why["second"] == "beaten by good on M1"
+    assert judge(result("none", 0.0)) == [] and judge.why["none"] == "no significant held-out gain on M1"
+    assert judge(SimpleNamespace(effect="broken", failed="diverged")) == []
 
 
 @pytest.fixture(scope="module")
@@ -250,14 +396,24 @@ def lag_case(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("gap")
     b = root / "b_lag"
-    simulate_batch(b, BenchConfig(n_modules=1, seed=31, hold=300.0, validation_rate=1.0, physics="paper",
-                                  validation_duration=2700.0, effects={"sensor_lag": {"sensor_tau_s": 6.0}}),
-                   progress=lambda m: None)
+    simulate_batch(
+        b,
+        BenchConfig(
+            n_modules=1,
+            seed=31,
+            hold=300.0,
+            validation_rate=1.0,
+            physics="paper",
+            validation_duration=2700.0,
+            effects={"sensor_lag": {"sensor_tau_s": 6.0}},
+        ),
+        progress=lambda m: None,
+    )
     (b / "truth.json").rename(root / "truth_lag.json")  # the diagnosis is blind
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # short budget: convergence not the point here
         opts = CalibrationOptions(max_steps=5000, pilot=1000, model="paper", discrepancy="none")
-        calibrate_batch(load_batch(b), root / "r_lag", seed=0, options=opts, figures=False, population=False)
+        calibrate_batch(load_batch(b), root / "r_lag", seed=0, options=opts, population=False)
     return b, root / "r_lag"
 
 
@@ -272,8 +428,28 @@ def lag_gap(lag_case, tmp_path_factory):
     assert not (batch / "truth.json").exists()
     out = tmp_path_factory.mktemp("lag_gap") / "gap"
     with pytest.warns(RuntimeWarning):  # short recalibration budgets: not converged
-        assert main(["gap", str(run), str(batch), "--out", str(out), "--candidates", "1", "--draws", "80",
-                     "--exclude", "thomson", "--exclude", "quadratic_laws", "--exclude", "ambient_leak"]) == 0
+        assert (
+            main(
+                [
+                    "gap",
+                    str(run),
+                    str(batch),
+                    "--out",
+                    str(out),
+                    "--candidates",
+                    "1",
+                    "--draws",
+                    "80",
+                    "--exclude",
+                    "thomson",
+                    "--exclude",
+                    "quadratic_laws",
+                    "--exclude",
+                    "ambient_leak",
+                ]
+            )
+            == 0
+        )
     return __import__("json").loads((out / "gap.json").read_text()), out
 
 
@@ -293,16 +469,36 @@ def test_gap_names_a_sensor_lag_recovers_its_size_and_shrinks_the_gap(lag_gap):
     assert size["q05"] - 0.3 <= 6.0 <= size["q95"] + 0.3
     assert (out / "ranking.png").is_file() and list(out.glob("gap_map_TEM1_*.png"))
     # every screened effect is ranked, the ones not recalibrated by their refit's held-out evidence
-    assert {r["effect"] for r in doc["ranking"]} == {"k_temperature", "sensor_lag", "contact_resistance",
-                                                     "joule_split", "current_offset"}
+    assert {r["effect"] for r in doc["ranking"]} == {
+        "k_temperature",
+        "sensor_lag",
+        "contact_resistance",
+        "joule_split",
+        "current_offset",
+    }
     assert {r["evidence_kind"] for r in doc["ranking"][1:]} <= {"heldout_elpd", "heldout_elpd_laplace"}
     # the loop closed: the recalibrated run, which predict takes
     rec = doc["recalibrated"]
     assert rec["effects"] == ["sensor_lag"] and rec["run"] == "run" and set(rec["laws_after"]) == {"TEM1"}
     from tembayes.cli import main
 
-    assert main(["predict", str(out / "run"), str(next(lag_gap_batch(out)).parent / "validation.csv"),
-                 "--module", "TEM1", "--out", str(out.parent / "pred"), "--draws", "50", "--no-constant"]) == 0
+    assert (
+        main(
+            [
+                "predict",
+                str(out / "run"),
+                str(next(lag_gap_batch(out)).parent / "validation.csv"),
+                "--module",
+                "TEM1",
+                "--out",
+                str(out.parent / "pred"),
+                "--draws",
+                "50",
+                "--no-constant",
+            ]
+        )
+        == 0
+    )
 
 
 def test_a_run_that_misses_a_sensor_lag_says_its_model_does_not_fit_though_unconverged(lag_case):
@@ -326,8 +522,14 @@ def test_a_gap_is_screened_and_recalibrated_in_this_process_with_the_runs_own_op
     batch, run = lag_case
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # short budgets: not converged
-        diag = diagnose(load_run(run), load_batch(batch), exclude=[e for e in CATALOGUE if e != "sensor_lag"],
-                        candidates=1, n_draws=40, jobs=1)
+        diag = diagnose(
+            load_run(run),
+            load_batch(batch),
+            exclude=[e for e in CATALOGUE if e != "sensor_lag"],
+            candidates=1,
+            n_draws=40,
+            jobs=1,
+        )
     assert [r["effect"] for r in diag.screen if r["effect"]] == ["sensor_lag"]
     assert diag.best == "sensor_lag" and diag.recalibration_options.model == "paper"
     assert diag.recalibration_options.effects == ("sensor_lag",)
@@ -368,8 +570,15 @@ def test_gap_is_quiet_without_an_effect_and_refuses_a_batch_without_held_out_run
     held = tmp_path / "batch"
     shutil.copytree(batch3, held, ignore=shutil.ignore_patterns("truth.json"))
     rng = np.random.default_rng(12)
-    exp = B.run_experiment(validation_cycle(rng, 6.4, duration=2700.0), run3[2]["modules"]["TEM1"], {}, rng,
-                           rate=1.0, rig=hifi.hifi_rig(), t0=30.0)
+    exp = B.run_experiment(
+        validation_cycle(rng, 6.4, duration=2700.0),
+        run3[2]["modules"]["TEM1"],
+        {},
+        rng,
+        rate=1.0,
+        rig=hifi.hifi_rig(),
+        t0=30.0,
+    )
     write_experiment_csv(held / "TEM1" / "validation.csv", exp)
     d = diagnose(load_run(run3[0]), load_batch(held), n_draws=80)
     assert d.verdict == "no_gap" and d.best is None and d.where == []
@@ -390,26 +599,31 @@ def test_a_recalibrated_run_is_a_run_that_predict_takes(run3, batch3, tmp_path):
     before and after, read back by load_run and predicted from."""
     from types import SimpleNamespace
 
+    from benchdata import record_validation
+
     from tembayes.calibrate import results as res
     from tembayes.calibrate.module import CalibrationOptions
     from tembayes.calibrate.run import load_run
     from tembayes.data import load_batch
     from tembayes.gap.recalibrated import write_recalibrated_run
     from tembayes.predict import predict
-    from benchdata import record_validation
 
     out, summ, truth = run3
     run, batch = load_run(out), load_batch(batch3)
     recal = {m: res.read_module(out / "modules" / f"{m}.nc") for m in ("TEM1", "TEM2", "TEM3")}
-    diag = SimpleNamespace(best="current_offset", recalibration=recal,
-                           recalibration_options=CalibrationOptions(effects=("current_offset",)))
+    diag = SimpleNamespace(
+        best="current_offset",
+        recalibration=recal,
+        recalibration_options=CalibrationOptions(effects=("current_offset",)),
+    )
     block = write_recalibrated_run(diag, run, batch, tmp_path / "run", seed=0)
     assert block["effects"] == ["current_offset"] and block["modules_not_recalibrated"] == []
     assert block["laws_before"]["TEM2"]["R0_ohm"] == summ["modules"]["TEM2"]["R0_ohm"]
     again = load_run(tmp_path / "run")
     assert again.summary["calibration"]["effects"] == ["current_offset"]
     assert again.calibration_options().effects == ["current_offset"] or again.calibration_options().effects == (
-        "current_offset",)
+        "current_offset",
+    )
     exp = record_validation(truth["modules"]["TEM1"], tmp_path / "v.csv", 5, hours=0.5)
     p = predict(again, exp, "TEM1", batch, n_draws=30, seed=0, compare_constant=False)
     assert p.linear.metrics()["T3_C"]["rmse"] < 0.05

@@ -5,14 +5,14 @@ import pytest
 
 from tembayes.bench import BenchConfig, draw_truth, hifi, run_experiment
 from tembayes.bench.protocols import identification_staircase
+from tembayes.data.steps import detect_steps
 from tembayes.errors import ModelError
 from tembayes.identify.estimates import Steady, jump_resistance, junction_temperatures
 from tembayes.identify.fits import fit_line, hysteresis
-from tembayes.data.steps import detect_steps
 from tembayes.physics import Inputs, simulate
+from tembayes.physics import kernel as K
 from tembayes.physics.rig import REFERENCE
 from tembayes.physics.simulate import build
-from tembayes.physics import kernel as K
 
 # ----------------------------------------------------------------- steps
 
@@ -59,8 +59,14 @@ def test_no_staircase_refused_by_the_pipeline(tmp_path):
     from tembayes.identify.pipeline import _step_table
 
     t = np.arange(0, 600.0, 0.2)
-    exp = experiment_from_arrays(t, np.zeros_like(t), np.zeros_like(t), np.full((4, len(t)), 295.0),
-                                 np.full(len(t), 293.0), np.full(len(t), 295.0))
+    exp = experiment_from_arrays(
+        t,
+        np.zeros_like(t),
+        np.zeros_like(t),
+        np.full((4, len(t)), 295.0),
+        np.full(len(t), 293.0),
+        np.full(len(t), 295.0),
+    )
     with pytest.raises(ModelError, match="staircase"):
         _step_table(exp, REFERENCE)
 
@@ -114,16 +120,32 @@ def test_hysteresis_detects_an_offset_and_not_its_absence():
 def test_junction_temperatures_recover_the_plates_at_steady_state(current):
     # oracle: the model's own steady state, where the plate temperatures are known
     rig_values = {"g_paste_hot": 28.0, "g_paste_cold": 41.0, "leak_top": 0.015, "leak_bottom": 0.05}
-    params = {"R0_ohm": 1.75, "R1_ohm_per_K": 0.0087, "S0_V_per_K": 0.048, "S1_V_per_K2": 1e-4,
-              "K_W_per_K": 0.54, **rig_values}
+    params = {
+        "R0_ohm": 1.75,
+        "R1_ohm_per_K": 0.0087,
+        "S0_V_per_K": 0.048,
+        "S1_V_per_K2": 1e-4,
+        "K_W_per_K": 0.54,
+        **rig_values,
+    }
     m = build(params, REFERENCE)
     tw, ta = 293.15, 295.65
     y, ok = K.steady_one(np.full(6, tw), current, tw, ta, m["A"][0], m["Bb"][0], m["Cinv"][0], m["tem"], m["P"][0])
     assert ok
     names = m["network"].nodes
     sensors = np.array([y[names.index(REFERENCE.sensors[c])] for c in REFERENCE.sensors])
-    ss = Steady(t_end=0, window=60, current=current, voltage=0, voltage_sd=0, sensors=sensors,
-                sensors_sd=np.zeros(4), t_water=tw, t_amb=ta, drift=0)
+    ss = Steady(
+        t_end=0,
+        window=60,
+        current=current,
+        voltage=0,
+        voltage_sd=0,
+        sensors=sensors,
+        sensors_sd=np.zeros(4),
+        t_water=tw,
+        t_amb=ta,
+        drift=0,
+    )
     (th, tc), (sh, sc), _ = junction_temperatures(ss, REFERENCE, rig_values)
     assert th == pytest.approx(y[names.index("hot_plate")], abs=1e-6)
     assert tc == pytest.approx(y[names.index("cold_plate")], abs=1e-6)
@@ -177,9 +199,9 @@ def test_jump_extrapolation_beats_the_first_sample():
     ext, first, z = map(np.array, (ext, first, z))
     assert abs(ext.mean()) < 0.005
     assert first.mean() > 0.01  # the back-EMF has already moved by the first sample
-    assert np.sqrt(np.mean(ext ** 2)) < 0.6 * np.sqrt(np.mean(first ** 2))
+    assert np.sqrt(np.mean(ext**2)) < 0.6 * np.sqrt(np.mean(first**2))
     # stated uncertainties roughly honest (z rms ~1.2 measured)
-    assert 0.7 < np.sqrt(np.mean(z ** 2)) < 2.0
+    assert 0.7 < np.sqrt(np.mean(z**2)) < 2.0
 
 
 def test_shared_errors_widen_the_intercept_but_do_not_move_the_line():

@@ -40,8 +40,7 @@ def paper_bench(tmp_path_factory):
     """A module on a bench with the paper's physics (no Thomson heat, one node per plate, no sensor lag,
     constant K): the rig the paper's validation point (+-0.5 K) was made on."""
     out = tmp_path_factory.mktemp("paper") / "b"
-    simulate_batch(out, BenchConfig(n_modules=1, seed=2, physics="paper", validation_rate=1.0),
-                   progress=lambda m: None)
+    simulate_batch(out, BenchConfig(n_modules=1, seed=2, physics="paper", validation_rate=1.0), progress=lambda m: None)
     return _identified(out)
 
 
@@ -64,7 +63,7 @@ def test_corrected_method_recovers_the_laws(which, request):
 @pytest.mark.parametrize("which", ["example", "fresh"])
 def test_biases_of_the_papers_recipe_point_the_way_physics_says(which, request):
     batch, results, truth = request.getfixturevalue(which)
-    for mid, r in results.items():
+    for _mid, r in results.items():
         # after any step the back-EMF moves the voltage further the same way
         # (dT grows with an up-step and shrinks with a down-step), so the
         # first sample reads a larger apparent R than the jump itself
@@ -93,7 +92,7 @@ def test_rig_fit_and_the_papers_validation_point(paper_bench):
         assert abs(r.rig_fit.values["K_W_per_K"] / truth[mid]["K_W_per_K"] - 1) < 0.05
         # the steel-side rig values are recovered, the leaks within their range
         assert abs(r.rig_fit.values["g_cooler"] / truth[mid]["rig"]["g_cooler"] - 1) < 0.1
-        (name, v), = r.validation.items()
+        ((name, v),) = r.validation.items()
         lin = v["linear"]["T3_C"]["rmse"]
         const = v["constant"]["T3_C"]["rmse"]
         # Fig. 9 vs Fig. 8: temperature-dependent laws predict the validation
@@ -104,8 +103,11 @@ def test_rig_fit_and_the_papers_validation_point(paper_bench):
 
 def test_identify_command_writes_the_contract_json(tmp_path, capsys):
     batch = tmp_path / "b"
-    simulate_batch(batch, BenchConfig(n_modules=1, seed=5, hold=200.0, validation_duration=1200.0,
-                                      validation_rate=1.0), progress=lambda m: None)
+    simulate_batch(
+        batch,
+        BenchConfig(n_modules=1, seed=5, hold=200.0, validation_duration=1200.0, validation_rate=1.0),
+        progress=lambda m: None,
+    )
     out = tmp_path / "out"
     assert main(["identify", str(batch), "--out", str(out), "--no-figures"]) == 0
     doc = json.loads((out / "identify.json").read_text())

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tembayes.calibrate.module import CalibrationOptions, calibration_rig, parameter_space
 from tembayes.calibrate.modelform import FORMS
+from tembayes.calibrate.module import CalibrationOptions, calibration_rig, parameter_space
 from tembayes.cli import main
 from tembayes.constants import KELVIN, MODULE_PARAMETERS
 from tembayes.errors import ModelError
@@ -75,8 +75,20 @@ def test_calibrate_effect_option_samples_or_fixes_an_effect(monkeypatch, tmp_pat
     (b / "TEM1").mkdir(parents=True)
     shutil.copy(EXAMPLE / "batch.toml", b)
     shutil.copy(EXAMPLE / "TEM1" / "identification.csv", b / "TEM1")
-    argv = ["calibrate", str(b), "--out", str(tmp_path / "run"), "--effect", "k_temperature", "--effect",
-            "sensor_lag=5", "--workers", "1", "--model", "paper"]
+    argv = [
+        "calibrate",
+        str(b),
+        "--out",
+        str(tmp_path / "run"),
+        "--effect",
+        "k_temperature",
+        "--effect",
+        "sensor_lag=5",
+        "--workers",
+        "1",
+        "--model",
+        "paper",
+    ]
     assert main(argv) == 2 and "stop here" in capsys.readouterr().err
     opt = seen["options"]
     assert opt.effects == ("k_temperature",) and opt.effect_values == {"sensor_tau_s": 5.0}

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from typical import PAPER, TA, TW  # noqa: E402
 
 from tembayes.constants import MODULE_PARAMETERS, T_REF
 from tembayes.errors import ModelError
@@ -19,15 +20,14 @@ from tembayes.physics import kernel as K
 from tembayes.physics.rig import PRESETS, reference_rig
 from tembayes.physics.simulate import build, check_params, tem_vectors
 
-from typical import PAPER, TA, TW  # noqa: E402
-
 
 def _steady(params, current, rig=REFERENCE, tw=TW, ta=TA):
     """Steady state of one draw at constant inputs; returns (y, kernel arrays)."""
     m = build(params, rig)
     n = len(m["network"].nodes)
-    y, ok = K.steady_one(np.full(n, tw), float(current), tw, ta,
-                         m["A"][0], m["Bb"][0], m["Cinv"][0], m["tem"], m["P"][0])
+    y, ok = K.steady_one(
+        np.full(n, tw), float(current), tw, ta, m["A"][0], m["Bb"][0], m["Cinv"][0], m["tem"], m["P"][0]
+    )
     assert ok, "steady_one did not converge"
     return y, m
 
@@ -181,10 +181,12 @@ def test_tem_heat_with_joule_split_and_thomson_by_hand():
     k = PAPER["K_W_per_K"]
     thomson = -Tm * PAPER["S1_V_per_K2"] * current * (Th - Tc)
     Q = _heat([Th, Tc], current, p)
-    assert Q[0] == pytest.approx(k * (Tc - Th) + (0.5 + delta) * R * current**2 + S_of(Th) * Th * current
-                                 + 0.5 * thomson, rel=1e-12)
-    assert Q[1] == pytest.approx(k * (Th - Tc) + (0.5 - delta) * R * current**2 - S_of(Tc) * Tc * current
-                                 + 0.5 * thomson, rel=1e-12)
+    assert Q[0] == pytest.approx(
+        k * (Tc - Th) + (0.5 + delta) * R * current**2 + S_of(Th) * Th * current + 0.5 * thomson, rel=1e-12
+    )
+    assert Q[1] == pytest.approx(
+        k * (Th - Tc) + (0.5 - delta) * R * current**2 - S_of(Tc) * Tc * current + 0.5 * thomson, rel=1e-12
+    )
 
 
 def _insulated_cold_rig():
@@ -271,8 +273,14 @@ def test_larger_resistance_raises_voltage_at_the_jump(step):
 @pytest.mark.parametrize("legs", [0, 3])
 @pytest.mark.parametrize("current", [0.7, -1.3])
 def test_jacobian_matches_finite_differences(legs, current):
-    params = {**PAPER, "thomson_fraction": 1.0, "K1_per_K": 0.004, "R2_rel_per_K2": 4e-5,
-              "S2_rel_per_K2": -6e-5, "joule_hot_excess": 0.05}
+    params = {
+        **PAPER,
+        "thomson_fraction": 1.0,
+        "K1_per_K": 0.004,
+        "R2_rel_per_K2": 4e-5,
+        "S2_rel_per_K2": -6e-5,
+        "joule_hot_excess": 0.05,
+    }
     m = build(params, reference_rig(leg_cells=legs))
     A, Bb, Cinv, tem, p = m["A"][0], m["Bb"][0], m["Cinv"][0], m["tem"], m["P"][0]
     rng = np.random.default_rng(11)
@@ -287,8 +295,10 @@ def test_jacobian_matches_finite_differences(legs, current):
     for j in range(len(y)):
         e = np.zeros_like(y)
         e[j] = h
-        Jfd[:, j] = (K.rhs_one(y + e, current, TW, TA, A, Bb, Cinv, tem, p)
-                     - K.rhs_one(y - e, current, TW, TA, A, Bb, Cinv, tem, p)) / (2 * h)
+        Jfd[:, j] = (
+            K.rhs_one(y + e, current, TW, TA, A, Bb, Cinv, tem, p)
+            - K.rhs_one(y - e, current, TW, TA, A, Bb, Cinv, tem, p)
+        ) / (2 * h)
     scale = np.abs(J).max()
     np.testing.assert_allclose(J, Jfd, rtol=1e-8, atol=1e-8 * scale)
     # the module block is genuinely nonlinear (not just the network's A)
@@ -345,8 +355,9 @@ def test_quadratic_and_k_temperature_laws_by_hand():
 
 def test_network_effects_by_hand():
     base = build(PAPER)["network"]
-    net = build({**PAPER, "contact_R_cold_K_per_W": 0.06, "contact_R_hot_K_per_W": 0.02,
-                 "extra_leak_W_per_K": 0.15})["network"]
+    net = build({**PAPER, "contact_R_cold_K_per_W": 0.06, "contact_R_hot_K_per_W": 0.02, "extra_leak_W_per_K": 0.15})[
+        "network"
+    ]
     idx = base.index
     # a contact resistance in series with the plate's link to its block only
     for plate, block, r in (("cold_plate", "bottom_upper", 0.06), ("hot_plate", "top_lower", 0.02)):
@@ -370,8 +381,7 @@ def test_current_offset_inverts_the_measurement():
     true = np.select([t < 60, t < 150], [0.0, 0.8], -1.2)
     tw, ta = np.full_like(t, TW), np.full_like(t, TA)
     a = simulate(Inputs(t, true, tw, ta), PAPER)
-    b = simulate(Inputs(t, (1 + g) * true + o, tw, ta),
-                 {**PAPER, "current_gain_error": g, "current_offset_A": o})
+    b = simulate(Inputs(t, (1 + g) * true + o, tw, ta), {**PAPER, "current_gain_error": g, "current_offset_A": o})
     # same true current up to rounding in (I (1+g) + o - o)/(1+g): 1e-12 K
     # after integration; the effect itself moves things by ~20 mK
     np.testing.assert_allclose(b.sensors, a.sensors, rtol=0, atol=1e-9)
@@ -449,8 +459,12 @@ def test_override_changes_the_network():
 def _mini(**kw):
     args = dict(
         name="mini",
-        parameters=(RigParameter("a", 2.0, 1.0, 3.0, "W/K"), RigParameter("b", 6.0, 1.0, 9.0, "W/K"),
-                    RigParameter("c_plate_hot", 4.0, 3.0, 5.0, "J/K"), RigParameter("c_legs", 1.0, 0.5, 2.0, "J/K")),
+        parameters=(
+            RigParameter("a", 2.0, 1.0, 3.0, "W/K"),
+            RigParameter("b", 6.0, 1.0, 9.0, "W/K"),
+            RigParameter("c_plate_hot", 4.0, 3.0, 5.0, "J/K"),
+            RigParameter("c_legs", 1.0, 0.5, 2.0, "J/K"),
+        ),
         nodes=(("h", "c_plate_hot + 0.5*c_legs"), ("c", 4.0)),
         links=(("water", "h", ["a", "b"]), ("c", "ambient", "0.25*b"), ("h", "c", "a + 2*b")),
         hot="h",
@@ -480,29 +494,38 @@ def test_rig_expressions():
     assert legs.C[0].sum() == pytest.approx(ref.C[0].sum(), rel=1e-14)  # same total capacitance
 
 
-@pytest.mark.parametrize("kw, match", [
-    ({"links": (("water", "h", "a"), ("h", "nowhere", "a"))}, "nowhere"),
-    ({"links": (("water", "h", "a_typo"),)}, "a_typo"),
-    ({"nodes": (("h", "c_plate_hot + 0.5*c_leggs"), ("c", 4.0))}, "c_leggs"),
-    ({"links": (("water", "h", "x*a"),)}, "unknown parameter 'x'"),
-    ({"links": (("water", "h", "1.5.2*a"),)}, "bad factor"),
-    ({"links": (("water", "h", "a + 2.0"),)}, "names no parameter"),
-    ({"links": (("water", "ambient", "a"),)}, "two boundaries"),
-    ({"links": (("water", "h", []),)}, "empty series"),
-    ({"links": (("water", "h", -1.0),)}, "non-positive"),
-    ({"hot": "hh"}, "hh"),
-    ({"legs": ("h",)}, "leg node"),
-    ({"sensors": {"T1_C": "zz"}}, "zz"),
-    ({"parameters": (RigParameter("a", 1.0, 0.5, 2.0, "W/K"),) * 2}, "duplicate"),
-])
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        ({"links": (("water", "h", "a"), ("h", "nowhere", "a"))}, "nowhere"),
+        ({"links": (("water", "h", "a_typo"),)}, "a_typo"),
+        ({"nodes": (("h", "c_plate_hot + 0.5*c_leggs"), ("c", 4.0))}, "c_leggs"),
+        ({"links": (("water", "h", "x*a"),)}, "unknown parameter 'x'"),
+        ({"links": (("water", "h", "1.5.2*a"),)}, "bad factor"),
+        ({"links": (("water", "h", "a + 2.0"),)}, "names no parameter"),
+        ({"links": (("water", "ambient", "a"),)}, "two boundaries"),
+        ({"links": (("water", "h", []),)}, "empty series"),
+        ({"links": (("water", "h", -1.0),)}, "non-positive"),
+        ({"hot": "hh"}, "hh"),
+        ({"legs": ("h",)}, "leg node"),
+        ({"sensors": {"T1_C": "zz"}}, "zz"),
+        ({"parameters": (RigParameter("a", 1.0, 0.5, 2.0, "W/K"),) * 2}, "duplicate"),
+    ],
+)
 def test_bad_rig_description_raises(kw, match):
     with pytest.raises(ModelError, match=match):
         _mini(**kw)
 
 
 def test_rig_with_only_numeric_expressions_builds():
-    rig = RigDescription(name="numbers", parameters=(), nodes=(("h", 4.0), ("c", 4.0)),
-                         links=(("water", "h", 100.0), ("c", "ambient", 0.1)), hot="h", cold="c")
+    rig = RigDescription(
+        name="numbers",
+        parameters=(),
+        nodes=(("h", 4.0), ("c", 4.0)),
+        links=(("water", "h", 100.0), ("c", "ambient", 0.1)),
+        hot="h",
+        cold="c",
+    )
     net = rig.network()
     assert net.C.shape == (1, 2)
 
@@ -534,12 +557,14 @@ def test_a_sensor_off_its_cells_centre_reads_the_steel_at_its_own_depth():
     rig = reference_rig(leg_cells=2, block_cells=6)
     dx = 0.010 / 6
     t = np.linspace(0.0, 600.0, 61)
-    inputs = Inputs(time=t, current=np.full_like(t, 3.0), t_water=np.full_like(t, 298.15),
-                    t_amb=np.full_like(t, 296.15))
+    inputs = Inputs(
+        time=t, current=np.full_like(t, 3.0), t_water=np.full_like(t, 298.15), t_amb=np.full_like(t, 296.15)
+    )
     laws = {"R0_ohm": 2.0, "R1_ohm_per_K": 0.01, "S0_V_per_K": 0.05, "S1_V_per_K2": 1e-4, "K_W_per_K": 0.5}
     # T2 one cell deeper (towards the cooler) reads the next cell's centre, the T1 side unchanged
-    nominal, deeper = (simulate(inputs, {**laws, "depth_T2": d}, rig=rig).sensors[0]
-                       for d in (SENSOR_DEPTH, SENSOR_DEPTH + dx))
+    nominal, deeper = (
+        simulate(inputs, {**laws, "depth_T2": d}, rig=rig).sensors[0] for d in (SENSOR_DEPTH, SENSOR_DEPTH + dx)
+    )
     assert np.array_equal(nominal[[0, 2, 3]], deeper[[0, 2, 3]])
     profile = simulate(inputs, laws, rig=reference_rig(leg_cells=2, block_cells=6)).sensors[0]
     assert np.array_equal(profile, nominal)

@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from typical import PAPER, TA, TW  # noqa: E402
 
 from tembayes.errors import ModelError
 from tembayes.physics import Inputs, simulate
 from tembayes.physics import kernel as K
 from tembayes.physics.reference import simulate_reference
 from tembayes.physics.rig import reference_rig
-
-from typical import PAPER, TA, TW  # noqa: E402
 
 # Three draws around the typical module (a few % to ~20 % apart), with rig values.
 DRAWS = {

@@ -19,6 +19,7 @@ import pytest  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
 from tembayes.calibrate import results  # noqa: E402
+from tembayes.calibrate.diagnostics import ModuleDiagnostics, PsisCheck  # noqa: E402
 from tembayes.calibrate.module import ModuleCalibration  # noqa: E402
 from tembayes.calibrate.population import PopulationResult  # noqa: E402
 from tembayes.constants import KELVIN, MODULE_PARAMETERS  # noqa: E402
@@ -62,26 +63,65 @@ def make_module(mid, rng, *, n_steps=6, offset=0.0, converged=True, hyst_z=0.5):
     t_s = 120.0 * np.arange(n_steps)
     time_s = t_s[step] + np.tile(np.arange(PER_STEP) * 2.0, n_steps)
     priors = {k: {"kind": "lognormal", "center": TRUTH[k], "scale": 0.3} for k in ("R0_ohm", "S0_V_per_K", "K_W_per_K")}
-    priors.update({k: {"kind": "normal", "center": TRUTH[k], "scale": 0.2 * TRUTH[k]}
-                   for k in ("R1_ohm_per_K", "S1_V_per_K2")})
+    priors.update(
+        {k: {"kind": "normal", "center": TRUTH[k], "scale": 0.2 * TRUTH[k]} for k in ("R1_ohm_per_K", "S1_V_per_K2")}
+    )
     priors["step_shift_s"] = {"kind": "uniform", "center": 0.0, "scale": 1.0}
-    diag = {
-        "rhat_max": 1.002 if converged else 1.09, "ess_bulk_min": 900.0 if converged else 120.0,
-        "converged": converged, "tau_max_steps": 50.0, "chain_over_tau": 60.0, "steps": 3000,
-        "psis": [{"stage": 0, "k_hat": 0.3}], "sampler_converged": converged, "timings": {"total_s": 1.0},
-    }
+    diag = ModuleDiagnostics(
+        rhat={},
+        ess_bulk={},
+        ess_tail={},
+        tau_steps={},
+        rhat_max=1.002 if converged else 1.09,
+        rhat_walkers_max=1.01,
+        ess_bulk_min=900.0 if converged else 120.0,
+        tau_max_steps=50.0,
+        tau_max_all_steps=50.0,
+        chain_over_tau=60.0,
+        steps=3000,
+        burn_in_steps=750,
+        nwalkers=NW,
+        acceptance_mean=0.3,
+        acceptance_min=0.2,
+        sampler_converged=converged,
+        psis=(PsisCheck(stage=1, k_hat=0.3, weight_ess_fraction=0.9, max_logw_dev=1.0),),
+        resumed=False,
+        map_nfev=10,
+        level_band_neglected=0.0,
+        discrepancy={"method": "none"},
+        adequacy={},
+        timings={"total_s": 1.0},
+    )
     hyst = {
         "R_ohm": {"estimate": hyst_z * 1e-4, "sd": 1e-4, "z": hyst_z},
         "S_V_per_K": {"estimate": -hyst_z * 2e-7, "sd": 2e-7, "z": -hyst_z},
     }
     return ModuleCalibration(
-        module_id=mid, names=names, draws=draws, log_prob=rng.normal(-100, 1, (NW, KEEP)), step_loglike=step_ll,
-        priors=priors, map={k: centre[k] for k in MODULE_PARAMETERS}, diagnostics=diag,
-        steps={"t_s": t_s, "dI_A": 0.5 * np.where(np.arange(n_steps) % 2 == 0, 1.0, -1.0),
-               "direction": np.where(np.arange(n_steps) % 2 == 0, 1, -1), "Tavg_K": tavg_C + KELVIN},
-        observed={"time_s": time_s, "step": step, "since_s": time_s - t_s[step],
-                  "obs": rng.normal(0, 1, (3, n_obs)), "noise": np.array([1e-4, 1e-3, 1e-3])},
-        hysteresis=hyst, seed={"run": 0, "emcee": 1}, rig="test", options={},
+        module_id=mid,
+        names=names,
+        draws=draws,
+        log_prob=rng.normal(-100, 1, (NW, KEEP)),
+        step_loglike=step_ll,
+        priors=priors,
+        map={k: centre[k] for k in MODULE_PARAMETERS},
+        diagnostics=diag,
+        steps={
+            "t_s": t_s,
+            "dI_A": 0.5 * np.where(np.arange(n_steps) % 2 == 0, 1.0, -1.0),
+            "direction": np.where(np.arange(n_steps) % 2 == 0, 1, -1),
+            "Tavg_K": tavg_C + KELVIN,
+        },
+        observed={
+            "time_s": time_s,
+            "step": step,
+            "since_s": time_s - t_s[step],
+            "obs": rng.normal(0, 1, (3, n_obs)),
+            "noise": np.array([1e-4, 1e-3, 1e-3]),
+        },
+        hysteresis=hyst,
+        seed={"run": 0, "emcee": 1},
+        rig="test",
+        options={},
     )
 
 
@@ -90,8 +130,13 @@ def make_population(mods, outlier_prob, rng, nw=4, nd=50):
     pred = centre * (1 + 0.02 * rng.standard_normal((nw * nd, len(centre))))
     hyper = {f"mu_{k}": TRUTH[k] * (1 + 1e-3 * rng.standard_normal((nw, nd))) for k in MODULE_PARAMETERS}
     hyper["outlier_fraction"] = rng.uniform(0, 0.2, (nw, nd))
-    return PopulationResult(module_ids=tuple(m.module_id for m in mods), outlier_prob=dict(outlier_prob),
-                            predictive=pred, hyper=hyper, diagnostics={"converged": True, "rhat_max": 1.01})
+    return PopulationResult(
+        module_ids=tuple(m.module_id for m in mods),
+        outlier_prob=dict(outlier_prob),
+        predictive=pred,
+        hyper=hyper,
+        diagnostics={"converged": True, "rhat_max": 1.01},
+    )
 
 
 def write_run(path, mods, pop=None, rng=None):
@@ -107,8 +152,11 @@ def write_run(path, mods, pop=None, rng=None):
 def run3(tmp_path_factory):
     """Three modules with a population fit: TEM2 is an outlier (p 0.91) with 4 steps (NaN padding), TEM3 not converged."""
     rng = np.random.default_rng(1)
-    mods = [make_module("TEM1", rng), make_module("TEM2", rng, n_steps=4, offset=0.03, hyst_z=3.0),
-            make_module("TEM3", rng, converged=False, offset=-0.01)]
+    mods = [
+        make_module("TEM1", rng),
+        make_module("TEM2", rng, n_steps=4, offset=0.03, hyst_z=3.0),
+        make_module("TEM3", rng, converged=False, offset=-0.01),
+    ]
     pop = make_population(mods, {"TEM1": 0.02, "TEM2": 0.91, "TEM3": 0.10}, rng)
     return write_run(tmp_path_factory.mktemp("run3"), mods, pop, rng)
 
@@ -236,8 +284,9 @@ def test_corner_population_many_modules_stays_readable(tmp_path):
     assert {t.split(":")[0] for t in labels} == set(top)
     assert any("other 8 modules" in t for t in all_texts(fig))
     laws = plot_laws(run)
-    assert len([ln for ln in laws.axes[0].get_lines() if (ln.get_gid() or "").startswith("law:U")]) == \
-        MAX_OVERLAY_MODULES
+    assert (
+        len([ln for ln in laws.axes[0].get_lines() if (ln.get_gid() or "").startswith("law:U")]) == MAX_OVERLAY_MODULES
+    )
     assert len(plot_step_loglike(run).axes) == MAX_OVERLAY_MODULES
 
 
@@ -291,8 +340,10 @@ def test_step_loglike_per_sample_and_padding(run3):
     assert len(x) == 4  # the padded steps are not drawn
     expect = run.step_loglike("TEM2").mean(axis=(0, 1)) / PER_STEP
     assert np.sort(y) == pytest.approx(np.sort(expect))
-    assert {tuple(matplotlib.colors.to_rgb(ln.get_color())) for ln in pts} == \
-        {matplotlib.colors.to_rgb("C3"), matplotlib.colors.to_rgb("C0")}  # up and down steps
+    assert {tuple(matplotlib.colors.to_rgb(ln.get_color())) for ln in pts} == {
+        matplotlib.colors.to_rgb("C3"),
+        matplotlib.colors.to_rgb("C0"),
+    }  # up and down steps
 
 
 # --------------------------------------------------------------------------- without a population, saving
@@ -314,11 +365,33 @@ def test_single_module_without_population(run1):
 def test_save_calibration_figures_writes_nontrivial_pngs(run3):
     paths = save_calibration_figures(run3, dpi=50)
     names = [p.name for p in paths]
-    assert names == ["corner_TEM1.png", "corner_TEM2.png", "corner_TEM3.png", "corner_population.png",
-                     "laws.png", "hysteresis.png", "step_loglike.png"]
+    assert names == [
+        "corner_TEM1.png",
+        "corner_TEM2.png",
+        "corner_TEM3.png",
+        "corner_population.png",
+        "laws.png",
+        "hysteresis.png",
+        "step_loglike.png",
+    ]
     for p in paths:
         assert p.parent == run3 / "figures" and p.is_file()
         assert p.stat().st_size > MIN_PNG_BYTES, p
         img = mpimg.imread(p)
         assert img.ndim == 3 and float(np.std(img[..., :3])) > MIN_PIXEL_STD, p
     assert not [f for f in (run3 / "figures").iterdir() if f.name.startswith(".")]  # no temporary files left
+
+
+def test_plots_draw_into_the_figure_given(run3):
+    from matplotlib.figure import Figure
+
+    run = load_run(run3)
+    for plot in (plot_laws, plot_hysteresis, plot_step_loglike, plot_corner_population):
+        fig = Figure()
+        assert plot(run, fig=fig) is fig and len(fig.axes) >= 2, plot.__name__
+    fig = Figure()
+    assert plot_corner_module(run, "TEM1", fig=fig) is fig
+    assert len(fig.axes) == len(MODULE_PARAMETERS) ** 2
+    # a corner plot lays out its own grid: a figure that already holds axes is refused
+    with pytest.raises(ValueError, match="empty figure"):
+        plot_corner_module(run, "TEM1", fig=fig)

@@ -52,9 +52,13 @@ def offset_simulation(exp, offset_K):
     """A Simulation that reads ``offset_K`` below the measurement on every sensor."""
     n = exp.n
     return Simulation(
-        time=exp.time.copy(), channels=("T1_C", "T2_C", "T3_C", "T4_C"),
-        sensors=(exp.sensors - offset_K)[None], voltage=exp.voltage[None].copy(),
-        t_hot=exp.sensors[1][None].copy(), t_cold=exp.sensors[2][None].copy(), steps=np.array([n]),
+        time=exp.time.copy(),
+        channels=("T1_C", "T2_C", "T3_C", "T4_C"),
+        sensors=(exp.sensors - offset_K)[None],
+        voltage=exp.voltage[None].copy(),
+        t_hot=exp.sensors[1][None].copy(),
+        t_cold=exp.sensors[2][None].copy(),
+        steps=np.array([n]),
     )
 
 
@@ -67,13 +71,22 @@ def fake_identification(seed, R0=1.7, R1=0.01, S0=0.048, S1=9e-5):
     S[3] = np.nan  # a hold without usable S
     rows = []
     for k, (t, r, s) in enumerate(zip(T, R, S)):
-        rows.append({
-            "direction": "up" if k % 2 == 0 else "down",
-            "Tavg_R": t, "Tavg_R_sd": 0.05, "Tavg_R_paper": t - 1.0,
-            "jump": SimpleNamespace(R=r, R_sd=0.005, R_first=r * 1.03),
-            "Tavg": t, "Th_sd": 0.1, "Tc_sd": 0.1, "S": s, "S_sd": 2e-4,
-            "Tavg_paper": t - 1.5, "S_paper": s * 0.97,
-        })
+        rows.append(
+            {
+                "direction": "up" if k % 2 == 0 else "down",
+                "Tavg_R": t,
+                "Tavg_R_sd": 0.05,
+                "Tavg_R_paper": t - 1.0,
+                "jump": SimpleNamespace(R=r, R_sd=0.005, R_first=r * 1.03),
+                "Tavg": t,
+                "Th_sd": 0.1,
+                "Tc_sd": 0.1,
+                "S": s,
+                "S_sd": 2e-4,
+                "Tavg_paper": t - 1.5,
+                "S_paper": s * 0.97,
+            }
+        )
     ok = np.isfinite(S)
     lines = {"R": fit_line(T, R, np.full(T.size, 0.005)), "S": fit_line(T[ok], S[ok], np.full(ok.sum(), 2e-4))}
     hysteresis = {"R": {"diff": 0.0012, "sd": 0.003}, "S": {"diff": None, "sd": None}}
@@ -134,8 +147,15 @@ def test_validation_residuals_and_rmse(loaded_batch):
 def test_validation_interpolates_a_coarser_simulation(loaded_batch):
     exp = loaded_batch.modules["TEM1"].validations[0]
     sim = offset_simulation(exp, 0.2)
-    coarse = Simulation(sim.time[::5], sim.channels, sim.sensors[:, :, ::5], sim.voltage[:, ::5],
-                        sim.t_hot[:, ::5], sim.t_cold[:, ::5], sim.steps)
+    coarse = Simulation(
+        sim.time[::5],
+        sim.channels,
+        sim.sensors[:, :, ::5],
+        sim.voltage[:, ::5],
+        sim.t_hot[:, ::5],
+        sim.t_cold[:, ::5],
+        sim.steps,
+    )
     fig = plot_validation(exp, coarse)
     res = [ln for ln in fig.axes[1].get_lines() if ln.get_gid() == "residual:T1"][0]
     assert res.get_ydata().shape == exp.time.shape
@@ -198,8 +218,11 @@ def identified(tmp_path_factory):
     from tembayes.identify.pipeline import identify_batch
 
     root = tmp_path_factory.mktemp("plots_identify")
-    simulate_batch(root / "batch", BenchConfig(n_modules=2, hold=120, rate=2, n_validations=1,
-                                               validation_duration=1200), progress=lambda m: None)
+    simulate_batch(
+        root / "batch",
+        BenchConfig(n_modules=2, hold=120, rate=2, n_validations=1, validation_duration=1200),
+        progress=lambda m: None,
+    )
     batch = load_batch(root / "batch")
     return batch, identify_batch(batch), root
 
@@ -222,8 +245,11 @@ def test_save_identify_figures_writes_readable_pngs(identified):
     paths = save_identify_figures(results, batch, out)
     expected = ["identification_run.png", "law_R.png", "law_S.png"]
     for mid in ("TEM1", "TEM2"):
-        expected += [f"validation_{mid}_validation_constant.png", f"validation_{mid}_validation_linear.png",
-                     f"error_vs_tavg_{mid}_validation.png"]
+        expected += [
+            f"validation_{mid}_validation_constant.png",
+            f"validation_{mid}_validation_linear.png",
+            f"error_vs_tavg_{mid}_validation.png",
+        ]
     assert [p.name for p in paths] == expected
     assert sorted(p.name for p in out.iterdir()) == sorted(expected)  # no temp files left behind
     for p in paths:

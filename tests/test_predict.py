@@ -14,6 +14,7 @@ import json
 
 import numpy as np
 import pytest
+from benchdata import record_validation as _record_validation
 
 from tembayes.calibrate.run import load_run
 from tembayes.cli import main
@@ -25,8 +26,6 @@ from tembayes.predict import RunModel, constant_laws, predict, simulate_predicti
 from tembayes.predict.anchor import ResidualProcess, fit_residual_process
 from tembayes.predict.predictive import LEVELS, PredictiveDraws
 
-from benchdata import record_validation as _record_validation
-
 RIG = reference_rig(4, 6)
 CONTRACT_METRICS = {"rmse", "max_abs", "coverage50", "coverage90", "coverage95"}
 CHANNELS = ("T1_C", "T2_C", "T3_C", "T4_C", "voltage_V")
@@ -37,23 +36,25 @@ def _truth_params(truth, mid):
     return {k: t[k] for k in MODULE_PARAMETERS} | t["rig"]
 
 
-
-
 @pytest.fixture(scope="module")
 def validations(run3, tmp_path_factory):
     """A fresh 2-hour validation run (1 Hz) of every module of run3, on the bench."""
     _, _, truth = run3
     d = tmp_path_factory.mktemp("val")
-    return {mid: _record_validation(truth["modules"][mid], d / f"{mid}.csv", 100 + i)
-            for i, mid in enumerate(truth["modules"])}
+    return {
+        mid: _record_validation(truth["modules"][mid], d / f"{mid}.csv", 100 + i)
+        for i, mid in enumerate(truth["modules"])
+    }
 
 
 @pytest.fixture(scope="module")
 def predictions(run3, batch3, validations):
     out, _, _ = run3
     run, batch = load_run(out), load_batch(batch3)
-    return {mid: predict(run, validations[mid], mid, batch, n_draws=300, seed=1, compare_constant=(mid == "TEM1"))
-            for mid in run.module_ids}
+    return {
+        mid: predict(run, validations[mid], mid, batch, n_draws=300, seed=1, compare_constant=(mid == "TEM1"))
+        for mid in run.module_ids
+    }
 
 
 # --------------------------------------------------------------------------- the run model
@@ -71,8 +72,10 @@ def test_run_model_interpolates_within_a_millikelvin_and_matches_the_bench_at_th
     assert np.max(np.abs(s - s2)) < 1.5e-3  # K; the sensors' noise is 4 mK
     assert np.max(np.abs(v - v2)) < 1e-4  # V; the voltage noise is 1 mV
     # at the best of a scan of step phases the model is the bench to its noise (4 mK, 1 mV)
-    best = min((np.sqrt(np.mean((exp.sensors - rm.simulate(p, sh)[0][0]) ** 2, axis=1)).max(), sh)
-               for sh in np.linspace(-0.49, 0.49, 15))
+    best = min(
+        (np.sqrt(np.mean((exp.sensors - rm.simulate(p, sh)[0][0]) ** 2, axis=1)).max(), sh)
+        for sh in np.linspace(-0.49, 0.49, 15)
+    )
     assert best[0] < 0.0065
     # a wrong law moves it far off: the comparison can fail
     s3, _ = rm.simulate({**p, "S0_V_per_K": 1.02 * p["S0_V_per_K"]}, best[1])
@@ -104,8 +107,13 @@ def test_residual_process_recovers_a_known_ou_process():
 
 
 def test_constant_laws_freeze_r_and_s_at_35_C():
-    d = {"R0_ohm": np.array([1.7]), "R1_ohm_per_K": np.array([0.01]), "S0_V_per_K": np.array([0.048]),
-         "S1_V_per_K2": np.array([1e-4]), "K_W_per_K": np.array([0.5])}
+    d = {
+        "R0_ohm": np.array([1.7]),
+        "R1_ohm_per_K": np.array([0.01]),
+        "S0_V_per_K": np.array([0.048]),
+        "S1_V_per_K2": np.array([1e-4]),
+        "K_W_per_K": np.array([0.5]),
+    }
     c = constant_laws(d)
     assert c["R0_ohm"][0] == pytest.approx(1.8) and c["S0_V_per_K"][0] == pytest.approx(0.049)
     assert c["R1_ohm_per_K"][0] == 0 and c["S1_V_per_K2"][0] == 0 and c["K_W_per_K"][0] == 0.5
@@ -221,8 +229,22 @@ def test_predict_cli_module_and_population(run3, batch3, validations, tmp_path, 
     out, _, _ = run3
     csv = validations["TEM2"].path
     dest = tmp_path / "pred"
-    rc = main(["predict", str(out), str(csv), "--module", "TEM2", "--out", str(dest), "--batch", str(batch3),
-               "--draws", "100", "--no-constant"])
+    rc = main(
+        [
+            "predict",
+            str(out),
+            str(csv),
+            "--module",
+            "TEM2",
+            "--out",
+            str(dest),
+            "--batch",
+            str(batch3),
+            "--draws",
+            "100",
+            "--no-constant",
+        ]
+    )
     assert rc == 0
     doc = json.loads((dest / "metrics.json").read_text())
     assert set(doc["channels"]) == set(CHANNELS)
@@ -230,24 +252,113 @@ def test_predict_cli_module_and_population(run3, batch3, validations, tmp_path, 
     assert (dest / "prediction.png").stat().st_size > 10_000 and (dest / "residuals.png").is_file()
     # population: a new unit known only by its batch; wider bands than the module's own
     dest2 = tmp_path / "pop"
-    rc = main(["predict", str(out), str(csv), "--module", "population", "--out", str(dest2), "--batch",
-               str(batch3), "--draws", "100", "--no-constant", "--no-figures"])
+    rc = main(
+        [
+            "predict",
+            str(out),
+            str(csv),
+            "--module",
+            "population",
+            "--out",
+            str(dest2),
+            "--batch",
+            str(batch3),
+            "--draws",
+            "100",
+            "--no-constant",
+            "--no-figures",
+        ]
+    )
     assert rc == 0
     pop = json.loads((dest2 / "metrics.json").read_text())
     assert pop["module"] == "population"
     assert pop["channels"]["T3_C"]["coverage90"] >= doc["channels"]["T3_C"]["coverage90"] - 0.02
     # the same seed, the same metrics
     dest3 = tmp_path / "again"
-    main(["predict", str(out), str(csv), "--module", "TEM2", "--out", str(dest3), "--batch", str(batch3),
-          "--draws", "100", "--no-constant", "--no-figures"])
+    main(
+        [
+            "predict",
+            str(out),
+            str(csv),
+            "--module",
+            "TEM2",
+            "--out",
+            str(dest3),
+            "--batch",
+            str(batch3),
+            "--draws",
+            "100",
+            "--no-constant",
+            "--no-figures",
+        ]
+    )
     assert json.loads((dest3 / "metrics.json").read_text())["channels"] == doc["channels"]
+
+
+def test_predict_netcdf_is_arviz_inference_data_whose_draws_give_the_bands(run3, batch3, validations, tmp_path):
+    import arviz as az
+    import matplotlib
+
+    matplotlib.use("Agg")
+    out, _, _ = run3
+    csv = validations["TEM1"].path
+    args = [
+        str(out),
+        str(csv),
+        "--module",
+        "TEM1",
+        "--batch",
+        str(batch3),
+        "--draws",
+        "60",
+        "--no-constant",
+        "--no-figures",
+    ]
+    assert main(["predict", *args, "--out", str(tmp_path / "ppc"), "--netcdf"]) == 0
+    assert main(["predict", *args, "--out", str(tmp_path / "plain")]) == 0
+    doc = json.loads((tmp_path / "ppc" / "metrics.json").read_text())
+    plain = json.loads((tmp_path / "plain" / "metrics.json").read_text())
+    assert doc["channels"] == plain["channels"]  # keeping the draws changes no number
+    assert doc["predictive_netcdf"] == "predictive.nc" and not (tmp_path / "plain" / "predictive.nc").exists()
+    idata = az.from_netcdf(tmp_path / "ppc" / "predictive.nc")
+    assert {"posterior_predictive", "observed_data", "constant_data"} <= set(idata.groups())
+    pp, obs = idata.posterior_predictive, idata.observed_data
+    assert set(pp.data_vars) == set(obs.data_vars) == set(CHANNELS)
+    for ch in CHANNELS:
+        assert pp[ch].dims == ("chain", "draw", *obs[ch].dims) and pp[ch].sizes["time"] == obs[ch].sizes["time"]
+        assert pp[ch].attrs["units"] == obs[ch].attrs["units"] == ("V" if ch == "voltage_V" else "K")
+    assert pp.sizes["draw"] == 60 and np.array_equal(obs["time"].values, np.asarray(validations["TEM1"].time))
+    assert idata.constant_data["current_A"].attrs["units"] == "A"
+    # the bands of metrics.json are quantiles of these draws
+    lo, hi = pp["T3_C"].quantile([0.05, 0.95], dim=("chain", "draw")).values
+    inside = np.mean((obs["T3_C"].values >= lo) & (obs["T3_C"].values <= hi))
+    assert inside == pytest.approx(doc["channels"]["T3_C"]["coverage90"], abs=0.005)
+    # arviz's own tools take the file as it is
+    first = obs["time"].values[:3]
+    summ = az.summary(
+        idata, group="posterior_predictive", var_names=["voltage_V"], kind="stats", coords={"time": first}
+    )
+    assert len(summ) == 3 and np.all(np.isfinite(summ["mean"]))
+    az.plot_ppc(idata, var_names=["T3_C"], num_pp_samples=10)
+    matplotlib.pyplot.close("all")
 
 
 def test_predict_refuses_an_unknown_module_and_writes_nothing(run3, batch3, validations, tmp_path, capsys):
     out, _, _ = run3
     dest = tmp_path / "nope"
-    rc = main(["predict", str(out), str(validations["TEM1"].path), "--module", "SN0042", "--out", str(dest),
-               "--batch", str(batch3)])
+    rc = main(
+        [
+            "predict",
+            str(out),
+            str(validations["TEM1"].path),
+            "--module",
+            "SN0042",
+            "--out",
+            str(dest),
+            "--batch",
+            str(batch3),
+        ]
+    )
     assert rc == 2
     err = capsys.readouterr().err
     assert "SN0042" in err and "TEM1" in err and "population" in err
@@ -259,11 +370,23 @@ def test_predict_refuses_an_unknown_module_and_writes_nothing(run3, batch3, vali
 def test_predict_refuses_a_missing_batch_and_a_bad_draw_count(run3, validations, tmp_path, capsys):
     out, _, _ = run3
     dest = tmp_path / "x"
-    rc = main(["predict", str(out), str(validations["TEM1"].path), "--module", "TEM1", "--out", str(dest),
-               "--batch", str(tmp_path / "missing")])
+    rc = main(
+        [
+            "predict",
+            str(out),
+            str(validations["TEM1"].path),
+            "--module",
+            "TEM1",
+            "--out",
+            str(dest),
+            "--batch",
+            str(tmp_path / "missing"),
+        ]
+    )
     assert rc == 2 and not dest.exists()
-    rc = main(["predict", str(out), str(validations["TEM1"].path), "--module", "TEM1", "--out", str(dest),
-               "--draws", "3"])
+    rc = main(
+        ["predict", str(out), str(validations["TEM1"].path), "--module", "TEM1", "--out", str(dest), "--draws", "3"]
+    )
     assert rc == 2 and "--draws" in capsys.readouterr().err and not dest.exists()
 
 
@@ -272,11 +395,11 @@ def test_residual_process_whitening_matches_the_exact_ou_likelihood():
     rng = np.random.default_rng(5)
     t = np.cumsum(rng.uniform(0.2, 3.0, 60))
     p = ResidualProcess(0.02, 7.0, 0.0)
-    C = p.sd ** 2 * np.exp(-np.abs(t[:, None] - t[None, :]) / p.tau_s)
+    C = p.sd**2 * np.exp(-np.abs(t[:, None] - t[None, :]) / p.tau_s)
     r = rng.multivariate_normal(np.zeros(len(t)), C)
     e = p.whiten(t, r)
     phi = np.exp(-np.diff(t) / p.tau_s)
-    logdet = 2 * len(t) * np.log(p.sd) + np.sum(np.log(1 - phi ** 2))
+    logdet = 2 * len(t) * np.log(p.sd) + np.sum(np.log(1 - phi**2))
     ll_white = -0.5 * (e @ e) - 0.5 * logdet
     sign, ld = np.linalg.slogdet(C)
     ll_exact = -0.5 * r @ np.linalg.solve(C, r) - 0.5 * ld

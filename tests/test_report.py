@@ -18,13 +18,25 @@ import subprocess
 
 import numpy as np
 import pytest
-
 from benchdata import record_validation
+
 from tembayes.cli import main
 from tembayes.report.tolerances import DEFAULT_TOLERANCES, Tolerance, parse_tolerance
 
-SECTIONS = ("acceptance", "overview", "quality", "laws", "population", "hysteresis", "convergence", "adequacy",
-            "corner", "validation", "gap", "provenance")
+SECTIONS = (
+    "acceptance",
+    "overview",
+    "quality",
+    "laws",
+    "population",
+    "hysteresis",
+    "convergence",
+    "adequacy",
+    "corner",
+    "validation",
+    "gap",
+    "provenance",
+)
 
 
 def test_tolerances_parse_and_bad_ones_are_named():
@@ -33,9 +45,15 @@ def test_tolerances_parse_and_bad_ones_are_named():
     assert parse_tolerance("outlier_prob=0.3").kind == "max"
     assert parse_tolerance("converged=no").value == (False,)
     assert len([parse_tolerance(t) for t in DEFAULT_TOLERANCES]) == 5
-    for bad, says in (("R1=5%", "datasheet gives no value of R1_ohm_per_K"), ("Q=5%", "unknown name 'Q'"),
-                      ("R0", "expected NAME=VALUE"), ("K=0.6:0.5", "LOW < HIGH"), ("S0=abc%", "'abc' is not"),
-                      ("outlier_prob=2", "between 0 and 1"), ("R0=0.5", "PERCENT%")):
+    for bad, says in (
+        ("R1=5%", "datasheet gives no value of R1_ohm_per_K"),
+        ("Q=5%", "unknown name 'Q'"),
+        ("R0", "expected NAME=VALUE"),
+        ("K=0.6:0.5", "LOW < HIGH"),
+        ("S0=abc%", "'abc' is not"),
+        ("outlier_prob=2", "between 0 and 1"),
+        ("R0=0.5", "PERCENT%"),
+    ):
         with pytest.raises(ValueError, match=re.escape(says)):
             parse_tolerance(bad)
 
@@ -50,17 +68,51 @@ def report_inputs(run3, batch3, tmp_path_factory):
     record_validation(truth["modules"]["TEM1"], batch / "TEM1" / "validation.csv", 7, hours=1.0)
     gap = d / "gap"
     gap.mkdir()
-    (gap / "gap.json").write_text(json.dumps({
-        "verdict": "explained", "best": "sensor_lag", "best_group": ["sensor_lag"],
-        "metric": "excess RMSE [K] over T1..T4",
-        "where": [{"channel": "T3_C", "regime": "heating, transient", "score": 4.2}],
-        "ranking": [{"effect": "sensor_lag", "evidence": 812.5, "evidence_se": 40.1, "evidence_kind": "heldout_elpd",
-                     "gap_before": 0.021, "gap_after": 0.0012, "shrink": 0.94},
-                    {"effect": "thomson", "evidence": 3.0, "evidence_kind": "screen", "gap_before": 0.021,
-                     "gap_after": 0.0209, "shrink": 0.005}],
-        "conflicts": {"TEM1": [{"parameter": "g_paste_cold", "unit": "W/K", "low": 20.0, "high": 50.0,
-                                "median": 11.5, "q_low": 11.2, "q_high": 11.8, "outside_sd": 2.4,
-                                "conflict": True}]}}))
+    (gap / "gap.json").write_text(
+        json.dumps(
+            {
+                "verdict": "explained",
+                "best": "sensor_lag",
+                "best_group": ["sensor_lag"],
+                "metric": "excess RMSE [K] over T1..T4",
+                "where": [{"channel": "T3_C", "regime": "heating, transient", "score": 4.2}],
+                "ranking": [
+                    {
+                        "effect": "sensor_lag",
+                        "evidence": 812.5,
+                        "evidence_se": 40.1,
+                        "evidence_kind": "heldout_elpd",
+                        "gap_before": 0.021,
+                        "gap_after": 0.0012,
+                        "shrink": 0.94,
+                    },
+                    {
+                        "effect": "thomson",
+                        "evidence": 3.0,
+                        "evidence_kind": "screen",
+                        "gap_before": 0.021,
+                        "gap_after": 0.0209,
+                        "shrink": 0.005,
+                    },
+                ],
+                "conflicts": {
+                    "TEM1": [
+                        {
+                            "parameter": "g_paste_cold",
+                            "unit": "W/K",
+                            "low": 20.0,
+                            "high": 50.0,
+                            "median": 11.5,
+                            "q_low": 11.2,
+                            "q_high": 11.8,
+                            "outside_sd": 2.4,
+                            "conflict": True,
+                        }
+                    ]
+                },
+            }
+        )
+    )
     return out, batch, gap, truth
 
 
@@ -69,9 +121,29 @@ def report(report_inputs, tmp_path_factory):
     """``tembayes report`` run through the CLI: (folder, html text, report.json)."""
     run, batch, gap, _ = report_inputs
     out = tmp_path_factory.mktemp("rep_out") / "report"
-    assert main(["report", str(run), "--out", str(out), "--batch", str(batch), "--gap", str(gap),
-                 "--draws", "60", "--tolerance", "R0=5%", "--tolerance", "S0=0.1%",
-                 "--tolerance", "outlier_prob=0.5"]) == 0
+    assert (
+        main(
+            [
+                "report",
+                str(run),
+                "--out",
+                str(out),
+                "--batch",
+                str(batch),
+                "--gap",
+                str(gap),
+                "--draws",
+                "60",
+                "--tolerance",
+                "R0=5%",
+                "--tolerance",
+                "S0=0.1%",
+                "--tolerance",
+                "outlier_prob=0.5",
+            ]
+        )
+        == 0
+    )
     return out, (out / "report.html").read_text(encoding="utf-8"), json.loads((out / "report.json").read_text())
 
 
@@ -106,7 +178,7 @@ def test_report_content_matches_the_run(report, run3):
     _, html, doc = report
     _, summ, truth = run3
     # every module's R0 posterior mean as in summary.json, in the laws table
-    for mid, m in summ["modules"].items():
+    for _mid, m in summ["modules"].items():
         assert f"{m['R0_ohm']['mean']:.5g} ± {m['R0_ohm']['sd']:.2g}" in html
         assert f"{m['outlier_prob']:.3f}" in html
     # the datasheet-derived value and the calibration command are shown
@@ -167,10 +239,22 @@ def _chromium():
 
 
 def _screenshot(browser, html_path, png_path, tmp_path, height=5200):
-    cmd = [browser, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-           "--disable-background-networking", "--disable-component-update", "--disable-sync",
-           f"--user-data-dir={tmp_path / ('profile-' + png_path.stem)}", "--hide-scrollbars",
-           f"--window-size=1280,{height}", f"--screenshot={png_path}", html_path.as_uri()]
+    cmd = [
+        browser,
+        "--headless",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--disable-quic",
+        "--no-first-run",
+        "--disable-background-networking",
+        "--disable-component-update",
+        "--disable-sync",
+        f"--user-data-dir={tmp_path / ('profile-' + png_path.stem)}",
+        "--hide-scrollbars",
+        f"--window-size=1280,{height}",
+        f"--screenshot={png_path}",
+        html_path.as_uri(),
+    ]
     subprocess.run(cmd, check=True, capture_output=True, timeout=180)
     from PIL import Image
 
@@ -210,8 +294,15 @@ def test_the_gap_section_shows_the_laws_before_and_after_the_recalibration():
     law = {"mean": 1.8, "sd": 0.002, "q05": 1.797, "q95": 1.803}
     before = {p: dict(law) for p in ("R0_ohm", "R1_ohm_per_K", "S0_V_per_K", "S1_V_per_K2", "K_W_per_K")}
     after = {**before, "R0_ohm": {**law, "mean": 1.81, "sd": 0.003}}
-    html = _recalibrated({"effects": ["sensor_lag"], "run": "run", "laws_before": {"TEM1": before, "TEM2": before},
-                          "laws_after": {"TEM1": after}, "modules_not_recalibrated": ["TEM2"]})
+    html = _recalibrated(
+        {
+            "effects": ["sensor_lag"],
+            "run": "run",
+            "laws_before": {"TEM1": before, "TEM2": before},
+            "laws_after": {"TEM1": after},
+            "modules_not_recalibrated": ["TEM2"],
+        }
+    )
     row = html.split("<tr>")[2]  # the first module's R0
     assert ">TEM1<" in row and "1.8 ± 0.002" in row and "1.81 ± 0.003" in row and "+5.0" in row
     assert html.count("<tr>") == 1 + 5 and "Not recalibrated (laws as before): TEM2" in html

@@ -15,9 +15,9 @@ import shutil
 
 import numpy as np
 import pytest
-
 from corpus import DATA_CASES, EXAMPLE, colliding_ids, good_batch
-from tembayes.calibrate.runfolder import RunFolder, module_usable, partial_path
+
+from tembayes.calibrate.runfolder import module_usable, partial_path
 from tembayes.cli import main
 from tembayes.data import load_batch, load_experiment
 from tembayes.data.outputs import MARKER, RunLock, check_output, marker
@@ -26,8 +26,11 @@ from tembayes.errors import DataError
 
 def tree(folder):
     """``{relative path: sha256}`` of every file under ``folder`` (hidden ones too)."""
-    return {p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(folder.rglob("*")) if p.is_file()}
+    return {
+        p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
+    }
 
 
 def listing(folder):
@@ -53,8 +56,11 @@ def test_impossible_data_is_refused_by_every_command_and_nothing_is_written(case
     build, words, where = DATA_CASES[case]
     batch = build(tmp_path, "b")
     before = tree(batch)
-    for argv in (["inspect", batch], ["identify", batch, "--out", tmp_path / "ident"],
-                 ["calibrate", batch, "--out", tmp_path / "run", "--workers", "1"]):
+    for argv in (
+        ["inspect", batch],
+        ["identify", batch, "--out", tmp_path / "ident"],
+        ["calibrate", batch, "--out", tmp_path / "run", "--workers", "1"],
+    ):
         msg = refused(capsys, argv, words, where)
         assert str(batch) in msg
     assert tree(batch) == before
@@ -139,8 +145,11 @@ def test_overwrite_never_deletes_a_users_files_or_another_kind_of_output(small, 
     mine.mkdir()
     (mine / "notes.txt").write_text("measurements I cannot get back")
     for cmd in (["calibrate", small], ["identify", small], ["simulate"]):
-        refused(capsys, [*cmd[:1], *([cmd[1]] if len(cmd) > 1 else []), *(["--out"] if len(cmd) > 1 else []),
-                         mine, "--overwrite"], "not a tembayes output")
+        refused(
+            capsys,
+            [*cmd[:1], *([cmd[1]] if len(cmd) > 1 else []), *(["--out"] if len(cmd) > 1 else []), mine, "--overwrite"],
+            "not a tembayes output",
+        )
     run = fake_run(tmp_path / "run")
     (run / "my_plot.png").write_text("mine")
     refused(capsys, ["calibrate", small, "--out", run, "--overwrite"], "did not write", "my_plot.png")
@@ -158,8 +167,11 @@ def test_an_out_that_is_a_file_is_refused_before_any_work(command, small, tmp_pa
     f.write_text("x")
     argv = [command, f] if command == "simulate" else [command, small, "--out", f]
     refused(capsys, argv, "is a file")
-    refused(capsys, [command, tmp_path / "afile" / "sub"] if command == "simulate"
-            else [command, small, "--out", f / "sub"], "is a file")
+    refused(
+        capsys,
+        [command, tmp_path / "afile" / "sub"] if command == "simulate" else [command, small, "--out", f / "sub"],
+        "is a file",
+    )
     assert f.read_text() == "x"
 
 
@@ -167,8 +179,12 @@ def test_commands_reading_a_run_refuse_bad_outs_before_reading_it(tmp_path, caps
     run = fake_run(tmp_path / "run")
     exp = EXAMPLE / "TEM1" / "validation.csv"
     before = tree(run)
-    for cmd in (["report", run], ["export", run, "--format", "json"], ["gap", run, EXAMPLE],
-                ["predict", run, exp, "--module", "TEM1"]):
+    for cmd in (
+        ["report", run],
+        ["export", run, "--format", "json"],
+        ["gap", run, EXAMPLE],
+        ["predict", run, exp, "--module", "TEM1"],
+    ):
         refused(capsys, [*cmd, "--out", run, "--overwrite"], "the output is the run folder itself")
         refused(capsys, [*cmd, "--out", tmp_path, "--overwrite"], "holds the run folder")
     refused(capsys, ["gap", run, EXAMPLE, "--out", EXAMPLE / "gap"], "inside the batch folder")
@@ -248,8 +264,9 @@ def test_no_space_mid_write_is_one_line_and_leaves_nothing_half_written(small, t
     monkeypatch.setattr("tembayes.data.write_json", full, raising=False)
     monkeypatch.setattr("tembayes.identify.pipeline.identify_batch", lambda *a, **k: {})
     monkeypatch.setattr("tembayes.identify.pipeline.to_json", lambda *a, **k: {})
-    refused(capsys, ["identify", small, "--out", tmp_path / "ident", "--no-figures"], "No space left",
-            "Free some space")
+    refused(
+        capsys, ["identify", small, "--out", tmp_path / "ident", "--no-figures"], "No space left", "Free some space"
+    )
     assert listing(tmp_path) == []
 
 
@@ -275,7 +292,7 @@ def test_a_failed_overwrite_leaves_the_previous_run_intact_and_resumable(small, 
     before = tree(run)
     _fail_inside(monkeypatch)
     with pytest.raises(Boom):
-        calibrate_batch(load_batch(small), run, seed=3, overwrite=True, figures=False)
+        calibrate_batch(load_batch(small), run, seed=3, overwrite=True)
     assert tree(run) == before
     part = partial_path(run)
     state = json.loads((part / MARKER).read_text())
@@ -291,12 +308,16 @@ def test_resume_refuses_another_seed_or_a_changed_batch(small, tmp_path, monkeyp
     _fail_inside(monkeypatch)
     run = tmp_path / "run"
     with pytest.raises(Boom):
-        calibrate_batch(load_batch(b), run, seed=3, figures=False)
+        calibrate_batch(load_batch(b), run, seed=3)
     part = partial_path(run)
     before = tree(part)
     refused(capsys, ["calibrate", b, "--out", run], "holds an interrupted run", "Continue it with --resume")
-    refused(capsys, ["calibrate", b, "--out", run, "--resume", "--seed", "4"], "started with --seed 3",
-            "Resume it with --seed 3")
+    refused(
+        capsys,
+        ["calibrate", b, "--out", run, "--resume", "--seed", "4"],
+        "started with --seed 3",
+        "Resume it with --seed 3",
+    )
     ident = b / "TEM1" / "identification.csv"
     ident.write_bytes(ident.read_bytes().replace(b"\n0.185,", b"\n0.186,", 1))
     refused(capsys, ["calibrate", b, "--out", run, "--resume", "--seed", "3"], "changed: TEM1/identification.csv")
@@ -307,8 +328,9 @@ def test_one_writer_per_run_and_a_stale_lock_is_named_and_taken_over(small, tmp_
     run = tmp_path / "run"
     held = RunLock(run).acquire()
     try:
-        refused(capsys, ["calibrate", small, "--out", run, "--resume", "--seed", "4"],
-                f"being written by pid {os.getpid()}")
+        refused(
+            capsys, ["calibrate", small, "--out", run, "--resume", "--seed", "4"], f"being written by pid {os.getpid()}"
+        )
     finally:
         held.release()
     assert not run.exists() and not partial_path(run).exists()

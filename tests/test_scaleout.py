@@ -26,10 +26,12 @@ import pytest
 
 from tembayes.calibrate import calibrate_batch
 from tembayes.calibrate import results as res
-from tembayes.calibrate.batch import exclusion_reason, finish_run
+from tembayes.calibrate.batch import finish_run
+from tembayes.calibrate.diagnostics import ModuleDiagnostics, PsisCheck
 from tembayes.calibrate.module import CalibrationOptions
-from tembayes.calibrate.runfolder import partial_path
+from tembayes.calibrate.moduledigest import exclusion_reason
 from tembayes.calibrate.run import load_run
+from tembayes.calibrate.runfolder import partial_path
 from tembayes.constants import MODULE_PARAMETERS
 from tembayes.data import LazyModule, load_batch
 
@@ -43,8 +45,7 @@ def serial4(batch4, tmp_path_factory):
     out = tmp_path_factory.mktemp("s4") / "run"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # "not converged": the cheap budget
-        summ = calibrate_batch(load_batch(batch4), out, seed=5, options=CHEAP, workers=1, figures=False,
-                               keep_unconverged=True)
+        summ = calibrate_batch(load_batch(batch4), out, seed=5, options=CHEAP, workers=1, keep_unconverged=True)
     return out, summ
 
 
@@ -96,13 +97,20 @@ def test_two_workers_and_a_scheduler_give_the_serial_bits(batch4, serial4, tmp_p
     assert summ["population"] is not None and not summ["population_excluded"]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        calibrate_batch(load_batch(batch4, lazy=True), tmp_path / "w2", seed=5, options=CHEAP, workers=2,
-                        figures=False, keep_unconverged=True)
+        calibrate_batch(
+            load_batch(batch4, lazy=True), tmp_path / "w2", seed=5, options=CHEAP, workers=2, keep_unconverged=True
+        )
         _same_run(out_ref, tmp_path / "w2")
         # an existing cluster, reached by its address (what --scheduler does)
         with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cl:
-            s = calibrate_batch(load_batch(batch4, lazy=True), tmp_path / "sch", seed=5, options=CHEAP,
-                                scheduler=cl.scheduler_address, figures=False, keep_unconverged=True)
+            s = calibrate_batch(
+                load_batch(batch4, lazy=True),
+                tmp_path / "sch",
+                seed=5,
+                options=CHEAP,
+                scheduler=cl.scheduler_address,
+                keep_unconverged=True,
+            )
     assert s["calibration"]["executor"]["scheduler"].startswith("tcp://")
     _same_run(out_ref, tmp_path / "sch")
 
@@ -114,7 +122,7 @@ from tembayes.calibrate.module import CalibrationOptions
 from tembayes.data import load_batch
 if __name__ == "__main__":
     warnings.simplefilter("ignore", RuntimeWarning)
-    calibrate_batch(load_batch(sys.argv[1], lazy=True), sys.argv[2], seed=5, workers=2, figures=False,
+    calibrate_batch(load_batch(sys.argv[1], lazy=True), sys.argv[2], seed=5, workers=2,
                     keep_unconverged=True, resume=sys.argv[3] == "resume",
                     options=CalibrationOptions({kw}), progress=lambda m: print(m, flush=True))
 """.format(kw=CHEAP_KW)
@@ -123,10 +131,17 @@ if __name__ == "__main__":
 def _start(tmp_path, batch, out, mode):
     script = tmp_path / "run.py"
     script.write_text(_SCRIPT)
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(__file__).parents[1]), os.environ.get("PYTHONPATH", "")]))
+    env = dict(
+        os.environ, PYTHONPATH=os.pathsep.join([str(Path(__file__).parents[1]), os.environ.get("PYTHONPATH", "")])
+    )
     log = open(tmp_path / f"{mode}.log", "w")
-    return subprocess.Popen([sys.executable, str(script), str(batch), str(out), mode], stdout=log,
-                            stderr=subprocess.STDOUT, env=env, start_new_session=True), tmp_path / f"{mode}.log"
+    return subprocess.Popen(
+        [sys.executable, str(script), str(batch), str(out), mode],
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        env=env,
+        start_new_session=True,
+    ), tmp_path / f"{mode}.log"
 
 
 def _wait(pred, timeout, what):
@@ -140,8 +155,11 @@ def _wait(pred, timeout, what):
 def _workers(pid):
     import psutil
 
-    return [p for p in psutil.Process(pid).children(recursive=True)
-            if "spawn_main" in " ".join(p.cmdline()) and "resource_tracker" not in " ".join(p.cmdline())]
+    return [
+        p
+        for p in psutil.Process(pid).children(recursive=True)
+        if "spawn_main" in " ".join(p.cmdline()) and "resource_tracker" not in " ".join(p.cmdline())
+    ]
 
 
 def test_a_killed_worker_is_replaced_and_a_killed_run_resumes_with_the_missing_modules(batch4, serial4, tmp_path):
@@ -189,7 +207,7 @@ def test_a_failing_or_unconverged_module_does_not_sink_the_batch(batch4, serial4
     (b / "TEM5" / "identification.csv").write_text("\n".join([head] + [",".join(r) for r in rows]) + "\n")
     out = tmp_path / "run"
     with pytest.warns(RuntimeWarning, match=r"TEM5: calibration failed"):
-        summ = calibrate_batch(load_batch(b, lazy=True), out, seed=5, options=CHEAP, workers=2, figures=False)
+        summ = calibrate_batch(load_batch(b, lazy=True), out, seed=5, options=CHEAP, workers=2)
     assert "TEM5" in summ["failed_modules"] and "TEM5" not in summ["modules"]
     assert json.loads((out / "modules" / "TEM5.failed.json").read_text())["error"] == summ["failed_modules"]["TEM5"]
     assert summ["converged"] is False
@@ -201,9 +219,10 @@ def test_a_failing_or_unconverged_module_does_not_sink_the_batch(batch4, serial4
     # mark two of them converged: the population is fitted on those two only
     for mid in ("TEM2", "TEM4"):
         r = res.read_module(out / "modules" / f"{mid}.nc")
-        r.diagnostics["converged"] = True
+        passed = (PsisCheck(stage=1, k_hat=0.3, weight_ess_fraction=0.9, max_logw_dev=1.0),)
+        r = dataclasses.replace(r, diagnostics=dataclasses.replace(r.diagnostics, sampler_converged=True, psis=passed))
         res.write_netcdf(res.to_inference_data([r]), out / "modules" / f"{mid}.nc")
-    summ = finish_run(load_batch(b, lazy=True), out, seed=5, options=CHEAP, figures=False)
+    summ = finish_run(load_batch(b, lazy=True), out, seed=5, options=CHEAP)
     assert set(summ["population_excluded"]) == {"TEM1", "TEM3", "TEM5"}
     assert summ["population"] is not None
     ops = {m: e["outlier_prob"] for m, e in summ["modules"].items()}
@@ -213,12 +232,24 @@ def test_a_failing_or_unconverged_module_does_not_sink_the_batch(batch4, serial4
 
 
 def test_exclusion_reason_names_every_failed_target():
-    d = {"converged": False, "rhat_max": 1.05, "ess_bulk_min": 400.0, "chain_over_tau": 20.0, "steps": 9000,
-         "psis": [{"k_hat": 0.9}]}
+    d = ModuleDiagnostics.from_json(
+        {
+            "rhat_max": 1.05,
+            "ess_bulk_min": 400.0,
+            "chain_over_tau": 20.0,
+            "steps": 9000,
+            "sampler_converged": False,
+            "psis": [{"stage": 1, "k_hat": 0.9, "weight_ess_fraction": 0.1, "max_logw_dev": 5.0}],
+        }
+    )
     why = exclusion_reason(d)
     for s in ("R-hat 1.050 > 1.01", "bulk ESS 400 < 1000", "20 autocorrelation times < 50", "k_hat 0.90", "9000 steps"):
         assert s in why
-    assert exclusion_reason({**d, "converged": True}) is None
+    # the sampler's targets met but the expansion off: still left out, for that reason alone
+    off = dataclasses.replace(d, rhat_max=1.005, ess_bulk_min=1500.0, chain_over_tau=60.0, sampler_converged=True)
+    assert off.reasons() == ["expansion PSIS k_hat 0.90 >= 0.7"]
+    good = dataclasses.replace(off, psis=(PsisCheck(stage=2, k_hat=0.4, weight_ess_fraction=0.8, max_logw_dev=1.0),))
+    assert good.converged and exclusion_reason(good) is None
 
 
 def test_posterior_nc_streamed_module_by_module_equals_the_in_memory_one(serial4, tmp_path):
@@ -230,8 +261,12 @@ def test_posterior_nc_streamed_module_by_module_equals_the_in_memory_one(serial4
     r = rs[1]
     k = len(r.steps["t_s"]) - 5
     keep = r.observed["step"] < k
-    rs[1] = dataclasses.replace(r, step_loglike=r.step_loglike[..., :k], steps={key: v[:k] for key, v in r.steps.items()},
-                                observed={key: (v[..., keep] if key != "noise" else v) for key, v in r.observed.items()})
+    rs[1] = dataclasses.replace(
+        r,
+        step_loglike=r.step_loglike[..., :k],
+        steps={key: v[:k] for key, v in r.steps.items()},
+        observed={key: (v[..., keep] if key != "noise" else v) for key, v in r.observed.items()},
+    )
     files = []
     for r in rs:
         files.append(res.write_netcdf(res.to_inference_data([r]), tmp_path / "m" / f"{r.module_id}.nc"))
@@ -250,7 +285,7 @@ def test_posterior_nc_streamed_module_by_module_equals_the_in_memory_one(serial4
             assert ga[v].dims == gb[v].dims
             np.testing.assert_array_equal(ga[v].values, gb[v].values, err_msg=f"{g}/{v}")
     assert np.isnan(b.constant_data["step_time_s"].sel(module="TEM2").values[k:]).all()
-    assert (b.constant_data["obs_step"].sel(module="TEM2").values[keep.sum():] == -1).all()
+    assert (b.constant_data["obs_step"].sel(module="TEM2").values[keep.sum() :] == -1).all()
     assert set(MODULE_PARAMETERS) <= set(b.posterior.data_vars)
 
 
@@ -261,8 +296,9 @@ def test_real_run_posterior_nc_has_units_and_a_prior_shaped_like_the_posterior(s
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         idata = az.from_netcdf(out / "posterior.nc", engine="h5netcdf")
-    missing = [f"{g}/{v}" for g in idata.groups() for v, da in getattr(idata, g).data_vars.items()
-               if not da.attrs.get("units")]
+    missing = [
+        f"{g}/{v}" for g in idata.groups() for v, da in getattr(idata, g).data_vars.items() if not da.attrs.get("units")
+    ]
     assert not missing, f"variables without units: {missing}"
     for k in MODULE_PARAMETERS:
         assert idata.prior[k].dims == idata.posterior[k].dims

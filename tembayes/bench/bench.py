@@ -20,10 +20,18 @@ from __future__ import annotations
 
 import sys
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 import tembayes
+from tembayes.bench import hifi, outside
+from tembayes.bench.protocols import (
+    boundary_drifts,
+    identification_staircase,
+    sample_times,
+    validation_cycle,
+)
 from tembayes.constants import KELVIN, T_REF
 from tembayes.data import (
     Datasheet,
@@ -33,16 +41,17 @@ from tembayes.data import (
     write_experiment_csv,
     write_json,
 )
-from tembayes.bench import hifi, outside
 from tembayes.errors import ModelError
-from tembayes.bench.protocols import (
-    boundary_drifts,
-    identification_staircase,
-    sample_times,
-    validation_cycle,
-)
 from tembayes.physics.rig import CERAMIC, DEPTHS
 from tembayes.physics.simulate import Inputs, simulate
+
+if TYPE_CHECKING:
+    from collections.abc import Callable, Mapping
+    from pathlib import Path
+
+    from tembayes.bench.protocols import Protocol
+    from tembayes.data import Experiment
+    from tembayes.physics.rig import RigDescription
 
 #: The reference module type (``docs/data-format.md``, 'The reference rig').
 TEC1_12706 = Datasheet(name="TEC1-12706", th=25.0 + KELVIN, imax=6.4, vmax=14.4, dtmax=66.0, qmax=50.0)
@@ -142,11 +151,12 @@ class BenchConfig:
             raise ModelError("n_validations must be >= 0")
 
     @property
-    def module_ids(self):
+    def module_ids(self) -> tuple[str, ...]:
+        """Ids of the batch's modules, ``("TEM1", "TEM2", ...)``."""
         return tuple(f"TEM{i + 1}" for i in range(self.n_modules))
 
 
-def draw_truth(config, rng):
+def draw_truth(config: BenchConfig, rng: np.random.Generator) -> dict:
     """True parameters of the batch's type and of each module.
 
     Returns
@@ -175,8 +185,13 @@ def draw_truth(config, rng):
         shared.update(shares)
         layout = {"depth_sides": sides, "physics": {"thomson_fraction": 1.0, "K1_per_K": float(rng.normal(0, K1_SD))}}
     elif full:  # the calibration model's own physics, with values a real rig and module would have
-        layout = {"physics": {"thomson_fraction": 1.0, "K1_per_K": float(rng.normal(0, K1_SD)),
-                              "sensor_tau_s": float(rng.uniform(*SENSOR_TAU_RANGE))}}
+        layout = {
+            "physics": {
+                "thomson_fraction": 1.0,
+                "K1_per_K": float(rng.normal(0, K1_SD)),
+                "sensor_tau_s": float(rng.uniform(*SENSOR_TAU_RANGE)),
+            }
+        }
     if full:  # the steel is known to its documented range, not exactly: one rig, one draw
         shared.update({k: _draw_rig(rng, k, params) for k in ("c_cell", "g_cell")})
         if not high:
@@ -190,8 +205,9 @@ def draw_truth(config, rng):
         if is_out:
             laws["S0_V_per_K"] *= 1.0 + config.outlier_shift * rng.choice([-1.0, 1.0])
         rig = dict(shared)
-        for k in ("g_paste_hot", "g_paste_cold", "c_plate_hot", "c_plate_cold", "c_legs") + (("g_ceramic",) if full
-                                                                                              else ()):
+        for k in ("g_paste_hot", "g_paste_cold", "c_plate_hot", "c_plate_cold", "c_legs") + (
+            ("g_ceramic",) if full else ()
+        ):
             rig[k] = _draw_rig(rng, k, params)
         if high:  # the cooler clamped and the enclosure closed again for every module
             for k, sd in REMOUNT_SD.items():
@@ -215,8 +231,19 @@ def _draw_rig(rng, name, parameters):
             return v
 
 
-def run_experiment(protocol, module, effect_params, rng, *, rate=5.0, rig=None, t0=0.0, path=None, start="steady",
-                   slow_noise=None):
+def run_experiment(
+    protocol: Protocol,
+    module: dict,
+    effect_params: Mapping[str, float],
+    rng: np.random.Generator,
+    *,
+    rate: float = 5.0,
+    rig: RigDescription | None = None,
+    t0: float = 0.0,
+    path: Path | str | None = None,
+    start: str = "steady",
+    slow_noise: tuple[float, float] | None = None,
+) -> Experiment:
     """Run one experiment on the bench and return it as a measured Experiment.
 
     Parameters
@@ -274,7 +301,9 @@ def run_experiment(protocol, module, effect_params, rng, *, rate=5.0, rig=None, 
     return experiment_from_arrays(ts + t0, current, voltage, sensors, water, amb, path=path)
 
 
-def simulate_batch(out, config, *, overwrite=False, progress=None):
+def simulate_batch(
+    out: Path | str, config: BenchConfig, *, overwrite: bool = False, progress: Callable[[str], None] | None = None
+) -> dict:
     """Make a synthetic batch folder (``docs/data-format.md``, 'The batch folder') with ``truth.json``.
 
     Parameters
@@ -292,8 +321,10 @@ def simulate_batch(out, config, *, overwrite=False, progress=None):
         The truth that was written to ``truth.json``.
     """
     if progress is None:
+
         def progress(msg):
             print(msg, file=sys.stderr, flush=True)
+
     # one stream for the batch-level draws, one per module (adding modules
     # does not change the earlier ones)
     ss = np.random.SeedSequence(config.seed)
@@ -317,17 +348,31 @@ def simulate_batch(out, config, *, overwrite=False, progress=None):
             (tmp / mid).mkdir()
             progress(f"bench: {mid} identification ({config.hold:.0f} s holds)")
             exp = run_experiment(
-                identification_staircase(ds.imax, hold=config.hold), module, eff_flat, mrng, rate=config.rate, **run,
+                identification_staircase(ds.imax, hold=config.hold),
+                module,
+                eff_flat,
+                mrng,
+                rate=config.rate,
+                **run,
             )
             write_experiment_csv(tmp / mid / "identification.csv", exp)
             for v in range(config.n_validations):
                 name = "validation.csv" if v == 0 else f"validation{v + 1}.csv"
                 progress(f"bench: {mid} {name}")
                 rest = config.validation_start == "rest"
-                proto = validation_cycle(mrng, ds.imax, duration=config.validation_duration, rest=0.0 if rest else 300.0)
-                exp = run_experiment(proto, module, eff_flat, mrng, rate=config.validation_rate or config.rate,
-                                     t0=float(np.round(mrng.uniform(0, 1000), 3)), start="rest" if rest else "steady",
-                                     **run)
+                proto = validation_cycle(
+                    mrng, ds.imax, duration=config.validation_duration, rest=0.0 if rest else 300.0
+                )
+                exp = run_experiment(
+                    proto,
+                    module,
+                    eff_flat,
+                    mrng,
+                    rate=config.validation_rate or config.rate,
+                    t0=float(np.round(mrng.uniform(0, 1000), 3)),
+                    start="rest" if rest else "steady",
+                    **run,
+                )
                 write_experiment_csv(tmp / mid / name, exp)
         truth = {
             "generator": {
@@ -354,4 +399,3 @@ def simulate_batch(out, config, *, overwrite=False, progress=None):
         }
         write_json(tmp / "truth.json", truth)
     return truth
-

@@ -18,8 +18,24 @@ It reuses the same compiled kernel: a leg chain is just a longer module chain.
 
 from __future__ import annotations
 
-from tembayes.physics.rig import (AREA, CERAMIC, DEPTHS, JUNCTION_SHARE, K_STEEL, REFERENCE, RHO_C, SENSOR_DEPTH,
-                                  RigDescription, RigParameter, SensorDepth)
+from typing import TYPE_CHECKING
+
+from tembayes.physics.rig import (
+    AREA,
+    CERAMIC,
+    DEPTHS,
+    JUNCTION_SHARE,
+    K_STEEL,
+    REFERENCE,
+    RHO_C,
+    SENSOR_DEPTH,
+    RigDescription,
+    RigParameter,
+    SensorDepth,
+)
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping
 
 N_BLOCK_CELLS = 6
 N_LEG_CELLS = 4
@@ -27,8 +43,16 @@ N_LEG_CELLS = 4
 #: Bench rig parameters that the reference rig has too (same name, meaning
 #: and documented range), so a calibration's rig posterior can be checked.
 SHARED_WITH_REFERENCE = (
-    "g_cooler", "g_paste_hot", "g_paste_cold", "c_plate_hot", "c_plate_cold", "c_legs", "leak_top", "leak_bottom",
-    "g_ceramic", *(p.name for p in DEPTHS),
+    "g_cooler",
+    "g_paste_hot",
+    "g_paste_cold",
+    "c_plate_hot",
+    "c_plate_cold",
+    "c_legs",
+    "leak_top",
+    "leak_bottom",
+    "g_ceramic",
+    *(p.name for p in DEPTHS),
 )
 
 _DX = 0.010 / N_BLOCK_CELLS  # cell thickness [m]
@@ -44,7 +68,7 @@ HIFI_PARAMETERS = tuple(p for p in REFERENCE.parameters if p.name in SHARED_WITH
 )
 
 
-def hifi_rig(n_leg=N_LEG_CELLS, layers=False):
+def hifi_rig(n_leg: int = N_LEG_CELLS, layers: bool = False) -> RigDescription:
     """The bench's higher-fidelity description of the reference rig.
 
     With ``layers`` (the ``full`` model form's structure) each plate is two
@@ -57,11 +81,17 @@ def hifi_rig(n_leg=N_LEG_CELLS, layers=False):
     legs = [f"leg_{i + 1}" for i in range(n_leg)]  # leg_1 at the hot plate
     share, rest = repr(JUNCTION_SHARE), repr(1.0 - JUNCTION_SHARE)
     nodes = [(n, "c_cell") for n in top]
-    nodes += ([("hot_ceramic", f"{rest}*c_plate_hot"), ("hot_plate", f"{share}*c_plate_hot")] if layers
-              else [("hot_plate", "c_plate_hot")])
+    nodes += (
+        [("hot_ceramic", f"{rest}*c_plate_hot"), ("hot_plate", f"{share}*c_plate_hot")]
+        if layers
+        else [("hot_plate", "c_plate_hot")]
+    )
     nodes += [(n, f"{1.0 / n_leg!r}*c_legs") for n in legs]
-    nodes += ([("cold_plate", f"{share}*c_plate_cold"), ("cold_ceramic", f"{rest}*c_plate_cold")] if layers
-              else [("cold_plate", "c_plate_cold")])
+    nodes += (
+        [("cold_plate", f"{share}*c_plate_cold"), ("cold_ceramic", f"{rest}*c_plate_cold")]
+        if layers
+        else [("cold_plate", "c_plate_cold")]
+    )
     nodes += [(n, "c_cell") for n in bottom]
     half = ["2.0*g_ceramic"] if layers else []
     links = [("water", top[0], ["g_cooler", "g_half_cell"])]
@@ -85,12 +115,14 @@ def hifi_rig(n_leg=N_LEG_CELLS, layers=False):
         # 6 cells of 1.67 mm: centres 2, 5 are 2.5 mm from a face
         sensors={"T1_C": top[1], "T2_C": top[4], "T3_C": bottom[1], "T4_C": bottom[4]},
         legs=tuple(legs),
-        depths={ch: SensorDepth(deeper, f"depth_{ch[:2]}", SENSOR_DEPTH, _DX)
-                for ch, deeper in (("T1_C", top[2]), ("T2_C", top[3]), ("T3_C", bottom[2]), ("T4_C", bottom[3]))},
+        depths={
+            ch: SensorDepth(deeper, f"depth_{ch[:2]}", SENSOR_DEPTH, _DX)
+            for ch, deeper in (("T1_C", top[2]), ("T2_C", top[3]), ("T3_C", bottom[2]), ("T4_C", bottom[3]))
+        },
     )
 
 
-def reference_equivalent(bench_values):
+def reference_equivalent(bench_values: Mapping[str, float]) -> dict[str, float]:
     """The reference rig's parameter values that correspond to bench rig values.
 
     Written to ``truth.json`` so that a calibration's rig posterior can be

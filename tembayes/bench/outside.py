@@ -34,9 +34,14 @@ on this bench measures the method on data its model cannot reproduce exactly.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from tembayes.physics.rig import AREA, K_STEEL, RHO_C, RigDescription, RigParameter
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping
 
 N_BLOCK_CELLS = 18
 N_LEG_CELLS = 8
@@ -48,8 +53,16 @@ _G_CELL = K_STEEL * AREA / _DX
 _C_CELL = RHO_C * AREA * _DX
 
 #: Parameters the reference rig has too (same name, meaning and documented range).
-SHARED_WITH_REFERENCE = ("g_cooler", "g_paste_hot", "g_paste_cold", "c_plate_hot", "c_plate_cold", "c_legs",
-                         "leak_top", "leak_bottom")
+SHARED_WITH_REFERENCE = (
+    "g_cooler",
+    "g_paste_hot",
+    "g_paste_cold",
+    "c_plate_hot",
+    "c_plate_cold",
+    "c_legs",
+    "leak_top",
+    "leak_bottom",
+)
 
 OUTSIDE_PARAMETERS = (
     RigParameter("g_cooler", 12.5, 10.0, 15.0, "W/K", "water cooler to top block face"),
@@ -66,10 +79,14 @@ OUTSIDE_PARAMETERS = (
     RigParameter("g_sensor", 0.012, 0.006, 0.03, "W/K", "a thermistor's contact with its hole"),
     RigParameter("c_cell", _C_CELL, 0.97 * _C_CELL, 1.03 * _C_CELL, "J/K", "one steel cell"),
     RigParameter("g_cell", _G_CELL, 0.95 * _G_CELL, 1.05 * _G_CELL, "W/K", "steel, cell centre to centre"),
-    *(RigParameter(f"w_{s}", 1.0, 0.0, 1.0, "1", f"{s}'s contact share with its own cell")
-      for s in ("T1", "T2", "T3", "T4")),
-    *(RigParameter(f"v_{s}", 1e-9, 0.0, 1.0, "1", f"{s}'s contact share with the next cell")
-      for s in ("T1", "T2", "T3", "T4")),
+    *(
+        RigParameter(f"w_{s}", 1.0, 0.0, 1.0, "1", f"{s}'s contact share with its own cell")
+        for s in ("T1", "T2", "T3", "T4")
+    ),
+    *(
+        RigParameter(f"v_{s}", 1e-9, 0.0, 1.0, "1", f"{s}'s contact share with the next cell")
+        for s in ("T1", "T2", "T3", "T4")
+    ),
 )
 
 #: How far a thermistor sits off its nominal depth, at most [m].
@@ -78,7 +95,7 @@ DEPTH_OFFSET_MAX = 0.25e-3
 COPPER_SHARE = 0.15
 
 
-def outside_rig(depth_sides=None):
+def outside_rig(depth_sides: Mapping[str, int] | None = None) -> RigDescription:
     """The out-of-model bench rig.
 
     Parameters
@@ -101,8 +118,7 @@ def outside_rig(depth_sides=None):
     nodes = [(n, "c_cell") for n in top]
     nodes += [("hot_ceramic", f"{1 - COPPER_SHARE!r}*c_plate_hot"), ("hot_copper", f"{COPPER_SHARE!r}*c_plate_hot")]
     nodes += [(n, f"{1.0 / N_LEG_CELLS!r}*c_legs") for n in legs]
-    nodes += [("cold_copper", f"{COPPER_SHARE!r}*c_plate_cold"),
-              ("cold_ceramic", f"{1 - COPPER_SHARE!r}*c_plate_cold")]
+    nodes += [("cold_copper", f"{COPPER_SHARE!r}*c_plate_cold"), ("cold_ceramic", f"{1 - COPPER_SHARE!r}*c_plate_cold")]
     nodes += [(n, "c_cell") for n in bottom]
     nodes += [(f"sensor_{s}", "c_sensor") for s in sensor_cell]
     links = [("water", top[0], ["g_cooler", "2.0*g_cell"])]
@@ -131,7 +147,7 @@ def outside_rig(depth_sides=None):
     )
 
 
-def draw_sensor_depths(rng):
+def draw_sensor_depths(rng: np.random.Generator) -> tuple[dict[str, int], dict[str, float]]:
     """Per-rig sensor depth offsets: ``(depth_sides, {w_T1, v_T1, ...})``.
 
     A sensor ``d`` metres off its cell's centre (towards a neighbour) reads a
@@ -148,12 +164,12 @@ def draw_sensor_depths(rng):
     return sides, shares
 
 
-def reference_equivalent(bench_values):
+def reference_equivalent(bench_values: Mapping[str, float]) -> dict[str, float]:
     """The reference rig's parameter values that correspond to bench rig values (for ``truth.json``)."""
     return {k: bench_values[k] for k in SHARED_WITH_REFERENCE if k in bench_values}
 
 
-def ou_noise(rng, t, sd, tau):
+def ou_noise(rng: np.random.Generator, t: np.ndarray, sd: float, tau: float) -> np.ndarray:
     """An Ornstein-Uhlenbeck path of standard deviation ``sd`` and time constant ``tau`` [s] at times ``t``."""
     x = np.empty(len(t))
     x[0] = rng.normal(0.0, sd)

@@ -33,21 +33,24 @@ class Protocol:
     durations: np.ndarray
 
     @property
-    def step_times(self):
+    def step_times(self) -> np.ndarray:
         """Times of the current steps from the protocol start [s]."""
         return np.cumsum(self.durations)[:-1]
 
     @property
-    def duration(self):
+    def duration(self) -> float:
+        """Total duration of the protocol [s]."""
         return float(np.sum(self.durations))
 
-    def current(self, t):
+    def current(self, t: np.ndarray) -> np.ndarray:
         """True current [A] at times ``t`` [s] from the protocol start."""
         idx = np.searchsorted(self.step_times, t, side="right")
         return self.levels[np.minimum(idx, len(self.levels) - 1)]
 
 
-def identification_staircase(imax=REFERENCE_IMAX, hold=600.0, step=0.2, top=0.8, bottom=-1.6):
+def identification_staircase(
+    imax: float = REFERENCE_IMAX, hold: float = 600.0, step: float = 0.2, top: float = 0.8, bottom: float = -1.6
+) -> Protocol:
     """The identification staircase: every level visited by an up- and a down-step.
 
     Parameters
@@ -66,8 +69,15 @@ def identification_staircase(imax=REFERENCE_IMAX, hold=600.0, step=0.2, top=0.8,
     return Protocol(levels, np.full(len(levels), float(hold)))
 
 
-def validation_cycle(rng, imax=REFERENCE_IMAX, duration=4 * 3600.0, low=-1.6, high=0.9, hold_range=(300.0, 1200.0),
-                     rest=300.0):
+def validation_cycle(
+    rng: np.random.Generator,
+    imax: float = REFERENCE_IMAX,
+    duration: float = 4 * 3600.0,
+    low: float = -1.6,
+    high: float = 0.9,
+    hold_range: tuple[float, float] = (300.0, 1200.0),
+    rest: float = 300.0,
+) -> Protocol:
     """A validation run: random holds between ``low`` and ``high`` amperes.
 
     Starts with a ``rest`` [s] at 0 A (0: straight into the first level);
@@ -92,7 +102,9 @@ def validation_cycle(rng, imax=REFERENCE_IMAX, duration=4 * 3600.0, low=-1.6, hi
     return Protocol(np.array(levels) * scale, np.array(durations))
 
 
-def sample_times(rng, duration, rate=5.0, jitter=0.002, t0=0.0):
+def sample_times(
+    rng: np.random.Generator, duration: float, rate: float = 5.0, jitter: float = 0.002, t0: float = 0.0
+) -> np.ndarray:
     """Sample times of a data-acquisition system [s].
 
     ``rate`` Hz with timing jitter, on a clock whose phase is independent of
@@ -106,7 +118,9 @@ def sample_times(rng, duration, rate=5.0, jitter=0.002, t0=0.0):
     return t0 + t
 
 
-def boundary_drifts(rng, t, t_water=20.0 + 273.15, t_amb=22.0 + 273.15):
+def boundary_drifts(
+    rng: np.random.Generator, t: np.ndarray, t_water: float = 20.0 + 273.15, t_amb: float = 22.0 + 273.15
+) -> tuple[np.ndarray, np.ndarray]:
     """True water and ambient temperatures [K] at times ``t`` [s].
 
     The chiller wobbles by a few hundredths of a kelvin (a control cycle of a

@@ -1,6 +1,6 @@
-"""Bayesian calibration of a batch (``tembayes calibrate``), as a pipeline:
+"""Bayesian calibration of a batch (``tembayes calibrate``).
 
-``stepdata`` (the run cut into step windows) -> ``model`` (the step-response
+The pipeline: ``stepdata`` (the run cut into step windows) -> ``model`` (the step-response
 model, exact and expanded) -> ``likelihood`` (noise and window offsets) with
 ``priors``/``parameters`` -> ``sampler`` (emcee until converged,
 checkpointed) -> ``module`` (one module's posterior) -> ``scaleout`` (where

@@ -28,11 +28,18 @@ passes; a 6 s sensor lag left out of the model fails every check.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from tembayes.calibrate.likelihood import NOISE_SCALE, OFFSET_SD
 from tembayes.calibrate.stepdata import CHANNELS
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping, Sequence
+
+    from tembayes.calibrate.discrepancy import WindowSandwich
+    from tembayes.calibrate.stepdata import StepData
 
 __all__ = ["AdequacyCheck", "Adequacy", "adequacy_numbers", "assess", "LIMITS"]
 
@@ -63,9 +70,11 @@ class AdequacyCheck:
 
     @property
     def passed(self) -> bool:
+        """Whether the value is finite and within the limit in magnitude."""
         return bool(np.isfinite(self.value) and abs(self.value) <= self.limit)
 
     def says(self) -> str:
+        """Plain-language reason the check failed (names where, and the value)."""
         return _SAYS[self.name].format(what=self.where, value=self.value)
 
 
@@ -90,15 +99,28 @@ class Adequacy:
 
     @property
     def reasons(self) -> list:
+        """Plain-language reasons of the failed checks (empty when the model fits)."""
         return [c.says() for c in self.checks if not c.passed]
 
     def to_json(self) -> dict:
-        return {**self.numbers, "verdict": self.verdict, "reasons": self.reasons,
-                "checks": {c.name: {"value": c.value, "limit": c.limit, "where": c.where, "passed": c.passed}
-                           for c in self.checks}}
+        """JSON-ready dict: the raw numbers, the verdict, its reasons and every check."""
+        return {
+            **self.numbers,
+            "verdict": self.verdict,
+            "reasons": self.reasons,
+            "checks": {
+                c.name: {"value": c.value, "limit": c.limit, "where": c.where, "passed": c.passed} for c in self.checks
+            },
+        }
 
 
-def adequacy_numbers(scatter, values, data, resid, law_names):
+def adequacy_numbers(
+    scatter: WindowSandwich,
+    values: Mapping[str, np.ndarray],
+    data: StepData,
+    resid: np.ndarray,
+    law_names: Sequence[str],
+) -> dict:
     """The numbers the verdict reads, from a module's kept draws.
 
     Parameters
@@ -126,8 +148,9 @@ def adequacy_numbers(scatter, values, data, resid, law_names):
         "window_score_variance_ratio_max": float(np.max(scatter.ratios)),
         "window_score_variance_ratios": dict(zip(law_names, map(float, scatter.ratios))),
         "noise_scale_median": {c: float(np.median(values[n])) for c, n in zip(CHANNELS, NOISE_SCALE)},
-        "offset_sd_over_noise_median": {c: float(np.median(values[n]) / sd)
-                                        for c, n, sd in zip(CHANNELS, OFFSET_SD, data.noise)},
+        "offset_sd_over_noise_median": {
+            c: float(np.median(values[n]) / sd) for c, n, sd in zip(CHANNELS, OFFSET_SD, data.noise)
+        },
         "residual_lag1_autocorrelation": rho,
     }
 
@@ -137,7 +160,7 @@ def _worst(name, values, limit, key=abs):
     return AdequacyCheck(name, float(value), float(limit), str(where))
 
 
-def assess(numbers, limits=None):
+def assess(numbers: dict, limits: Mapping[str, float] | None = None) -> Adequacy:
     """The verdict on :func:`adequacy_numbers`' output.
 
     Parameters

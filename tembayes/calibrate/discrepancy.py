@@ -35,8 +35,16 @@ a draw of the held parameter.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping, Sequence
+
+    from tembayes.calibrate.model import StepResponseModel
+    from tembayes.calibrate.parameters import ParameterSpace
+    from tembayes.physics.rig import RigParameter
 
 __all__ = ["WindowSandwich", "window_scores", "window_sandwich", "HeldSpread", "held_nuisance_spread"]
 
@@ -63,13 +71,17 @@ class WindowSandwich:
     sd_factor: np.ndarray
     n_windows: int
 
-    def to_json(self, names):
-        return {"method": "window-sandwich", "n_windows": int(self.n_windows),
-                "sd_factor": {n: float(f) for n, f in zip(names, self.sd_factor)},
-                "variance_ratios": [float(r) for r in self.ratios]}
+    def to_json(self, names: Sequence[str]) -> dict:
+        """JSON-ready dict: method, window count, each coordinate's sd factor (keyed by ``names``), variance ratios."""
+        return {
+            "method": "window-sandwich",
+            "n_windows": int(self.n_windows),
+            "sd_factor": {n: float(f) for n, f in zip(names, self.sd_factor)},
+            "variance_ratios": [float(r) for r in self.ratios],
+        }
 
 
-def window_scores(X, L):
+def window_scores(X: np.ndarray, L: np.ndarray) -> np.ndarray:
     """Gradient of every window's log-likelihood at the draws' mean, ``(K, p)``.
 
     Parameters
@@ -85,7 +97,7 @@ def window_scores(X, L):
     return coef.T
 
 
-def window_sandwich(X, L, idx):
+def window_sandwich(X: np.ndarray, L: np.ndarray, idx: Sequence[int]) -> WindowSandwich:
     """The stretch of coordinates ``idx`` that widens the posterior to the window sandwich.
 
     Parameters
@@ -129,21 +141,35 @@ class HeldSpread:
     log_sd: np.ndarray
     shift: np.ndarray
 
-    def apply(self, X, rng):
+    def apply(self, X: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """``X`` ``(n, >= p)`` with every draw moved by the held parameters' drawn deviations (in place: a copy)."""
         X = np.array(X, dtype=float)
         xi = rng.standard_normal((len(X), len(self.names))) * self.log_sd
-        X[:, :self.shift.shape[0]] += xi @ self.shift.T
+        X[:, : self.shift.shape[0]] += xi @ self.shift.T
         return X
 
-    def to_json(self, coordinate_names, law_idx, law_sd):
+    def to_json(
+        self, coordinate_names: Sequence[str], law_idx: Sequence[int], law_sd: np.ndarray
+    ) -> dict[str, dict[str, float]]:
         """Each held parameter's sd contribution to each law, as a fraction of the law's posterior sd."""
-        return {q: {coordinate_names[j]: float(abs(self.shift[j, i]) * self.log_sd[i] / law_sd[k])
-                    for k, j in enumerate(law_idx)}
-                for i, q in enumerate(self.names)}
+        return {
+            q: {
+                coordinate_names[j]: float(abs(self.shift[j, i]) * self.log_sd[i] / law_sd[k])
+                for k, j in enumerate(law_idx)
+            }
+            for i, q in enumerate(self.names)
+        }
 
 
-def held_nuisance_spread(model, space, x, J, noise, held, h=0.05):
+def held_nuisance_spread(
+    model: StepResponseModel,
+    space: ParameterSpace,
+    x: np.ndarray,
+    J: np.ndarray,
+    noise: np.ndarray,
+    held: Mapping[str, RigParameter],
+    h: float = 0.05,
+) -> HeldSpread:
     """Carry the uncertainty of held rig parameters over to the posterior, to first order.
 
     A parameter the calibration holds at its nominal value (``RigParameter.held``,
@@ -188,7 +214,7 @@ def held_nuisance_spread(model, space, x, J, noise, held, h=0.05):
     D = (Y[0::2] - Y[1::2]) / (2.0 * h)  # (m, nc, n)
     w = 1.0 / np.asarray(noise, float) ** 2
     JtWJ = np.einsum("icn,jcn,c->ij", J, J, w)
-    prec = np.array([0.0 if p.kind == "uniform" else 1.0 / p.scale ** 2 for p in space.priors])
+    prec = np.array([0.0 if p.kind == "uniform" else 1.0 / p.scale**2 for p in space.priors])
     JtWD = np.einsum("icn,qcn,c->iq", J, D, w)
     shift = -np.linalg.solve(JtWJ + np.diag(prec), JtWD)
     # a documented range read as uniform: sd = width / sqrt(12)

@@ -45,11 +45,18 @@ term per step window (the ``log_likelihood`` group of ``posterior.nc``).
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 from numba import njit
 
 from tembayes.calibrate.priors import ParameterPrior
 from tembayes.calibrate.stepdata import CHANNELS
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping
+
+    from tembayes.calibrate.stepdata import StepData
 
 #: Names of the noise parameters, per channel: scale of the measurement
 #: noise (dimensionless) and the sd of the window offsets (channel unit).
@@ -58,7 +65,7 @@ OFFSET_SD = tuple(f"offset_sd_{c}" for c in CHANNELS)
 NOISE_PARAMETERS = NOISE_SCALE + OFFSET_SD
 
 
-def noise_priors(data):
+def noise_priors(data: StepData) -> tuple[ParameterPrior, ...]:
     """Priors of the noise parameters for a :class:`StepData`.
 
     ``s_c``: log-normal around 1, log-sd 0.5 (the second-difference
@@ -80,7 +87,7 @@ def _window_terms(S1, S2, n, sigma, beta):
     return (-0.5 * (quad + logdet + n * np.log(2.0 * np.pi))).sum(axis=1)
 
 
-def window_loglike(R, starts, sigma, beta):
+def window_loglike(R: np.ndarray, starts: np.ndarray, sigma: np.ndarray, beta: np.ndarray) -> np.ndarray:
     """Log-likelihood of residuals with a random offset per window.
 
     Parameters
@@ -105,9 +112,12 @@ def window_loglike(R, starts, sigma, beta):
 
 @njit(cache=True)
 def _tridiagonal_terms(u, d, off):
-    """Per hold ``y_h^2 / (2 D_h) - log(D_h) / 2`` of the LDL^T factorisation
-    of the tridiagonal ``P`` (diagonal ``d``, off-diagonal ``off``) and the
-    forward solve ``L y = u``: summed, ``u^T P^-1 u / 2 - log det P / 2``."""
+    """Per-hold terms ``y_h^2 / (2 D_h) - log(D_h) / 2`` of a tridiagonal quadratic form.
+
+    From the LDL^T factorisation of the tridiagonal ``P`` (diagonal ``d``,
+    off-diagonal ``off``) and the forward solve ``L y = u``: summed, they are
+    ``u^T P^-1 u / 2 - log det P / 2``.
+    """
     nw, nh = u.shape
     out = np.empty((nw, nh))
     for w in range(nw):
@@ -155,22 +165,27 @@ class LevelErrors:
         self.starts = starts
         self.s2inv = 1.0 / np.asarray(level_sd, dtype=float) ** 2
         self.g1 = np.add.reduceat(band, starts, axis=2)  # (2, nc, ns)
-        self.GG = np.stack([np.add.reduceat(band[0] * band[0], starts, axis=1),
-                            np.add.reduceat(band[0] * band[1], starts, axis=1),
-                            np.add.reduceat(band[1] * band[1], starts, axis=1)])  # (3, nc, ns)
+        self.GG = np.stack(
+            [
+                np.add.reduceat(band[0] * band[0], starts, axis=1),
+                np.add.reduceat(band[0] * band[1], starts, axis=1),
+                np.add.reduceat(band[1] * band[1], starts, axis=1),
+            ]
+        )  # (3, nc, ns)
         self.neglected = 0.0
         if noise is not None:
             rest = response.copy()
             rest[win, :, i] = 0.0
             rest[win + 1, :, i] = 0.0
-            self.neglected = float(np.max(np.abs(rest) * np.asarray(level_sd)[:, None, None]
-                                          / np.asarray(noise)[None, :, None]))
+            self.neglected = float(
+                np.max(np.abs(rest) * np.asarray(level_sd)[:, None, None] / np.asarray(noise)[None, :, None])
+            )
 
-    def projections(self, R):
+    def projections(self, R: np.ndarray) -> np.ndarray:
         """``sum_window r G`` of residuals ``R`` ``(nw, nc, n)`` -> ``(nw, 2, nc, ns)``."""
         return np.add.reduceat(R[:, None] * self.band[None], self.starts, axis=3)
 
-    def terms(self, GR, S1, n, sigma, beta):
+    def terms(self, GR: np.ndarray, S1: np.ndarray, n: np.ndarray, sigma: np.ndarray, beta: np.ndarray) -> np.ndarray:
         """Log-likelihood correction of every window ``(nw, ns)``.
 
         ``GR``: :meth:`projections` of the residuals; ``S1`` their window sums
@@ -227,8 +242,9 @@ class _ExpansionSums:
 
     def sums(self, D):
         nw = D.shape[0]
-        z = np.concatenate([np.ones((nw, 1)), -D, -0.5 * D * D, -D[:, self.pairs[:, 0]] * D[:, self.pairs[:, 1]]],
-                           axis=1)  # (nw, m)
+        z = np.concatenate(
+            [np.ones((nw, 1)), -D, -0.5 * D * D, -D[:, self.pairs[:, 0]] * D[:, self.pairs[:, 1]]], axis=1
+        )  # (nw, m)
         S1 = np.einsum("wm,mcs->wcs", z, self.M1)
         T = (z @ self.G).reshape(nw, self.m, self.nc, self.ns)
         S2 = np.einsum("wm,wmcs->wcs", z, T)
@@ -270,14 +286,14 @@ class StepLikelihood:
         vals = np.exp(X[:, self._ni]) * self.data.noise[None, :], np.exp(X[:, self._bi])
         return vals
 
-    def predict(self, X):
+    def predict(self, X: np.ndarray) -> np.ndarray:
         """Model channels ``(nw, 3, n)`` for coordinate vectors ``X``."""
         if hasattr(self.model, "x0"):
             return self.model.predict(X[:, self._mi])
         # a draw whose simulation fails is NaN here and impossible below
         return self.model.predict(self.space.params(X, self.model_names), strict=False)
 
-    def pointwise(self, X, Y=None):
+    def pointwise(self, X: np.ndarray, Y: np.ndarray | None = None) -> np.ndarray:
         """Log-likelihood of every step window, ``(nw, ns)``.
 
         ``Y``: predictions for ``X`` if already computed.
@@ -299,18 +315,20 @@ class StepLikelihood:
         ll[np.isnan(ll)] = -np.inf
         return ll
 
-    def log_likelihood_x(self, X):
+    def log_likelihood_x(self, X: np.ndarray) -> np.ndarray:
         """Total log-likelihood ``(nw,)`` of coordinate vectors ``(nw, p)``."""
         return self.pointwise(X).sum(axis=1)
 
-    def log_likelihood(self, params):
+    def log_likelihood(self, params: Mapping[str, float]) -> float:
         """Log-likelihood of one parameter mapping ``name -> value`` (SI)."""
         x = self.space.to_x(params)
         return float(self.log_likelihood_x(x[None])[0])
 
-    def log_prob(self, X):
-        """Log posterior density of coordinate vectors ``(nw, p)`` -> ``(nw,)``
-        (``-inf`` outside the prior's support): the sampler's callable."""
+    def log_prob(self, X: np.ndarray) -> np.ndarray:
+        """Log posterior density of coordinate vectors ``(nw, p)`` -> ``(nw,)``.
+
+        ``-inf`` outside the prior's support; the sampler's callable.
+        """
         X = np.atleast_2d(X)
         lp = self.space.log_prior(X)
         ok = np.isfinite(lp)

@@ -23,6 +23,8 @@ this exact model by importance sampling.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from tembayes.calibrate.stepdata import step_grid
@@ -30,6 +32,11 @@ from tembayes.constants import MODULE_PARAMETERS
 from tembayes.errors import ModelError
 from tembayes.physics import effects
 from tembayes.physics.simulate import build, integrate_on_grids
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping
+
+    from numpy.typing import ArrayLike
 
 #: Name of the step-instant nuisance parameter [s].
 SHIFT = "step_shift_s"
@@ -93,11 +100,13 @@ class StepResponseModel:
         self._tw, self._ta = tw, ta
         self.shift_bound = sg.shift_bound
 
-    def grid(self, shift):
+    def grid(self, shift: ArrayLike) -> np.ndarray:
         """Per-draw time grids ``(nd, n)`` for step shifts ``shift`` [s] (see :class:`StepGrid`)."""
         return self._steps.shifted(shift)
 
-    def simulate(self, params, strict=True, levels=None):
+    def simulate(
+        self, params: Mapping[str, float | np.ndarray], strict: bool = True, levels: np.ndarray | None = None
+    ) -> dict:
         """Simulate the run for a parameter mapping (arrays of shape ``(nd,)``).
 
         ``params`` needs the five module parameters and :data:`SHIFT`; rig
@@ -131,17 +140,19 @@ class StepResponseModel:
             Ic = np.ascontiguousarray(np.broadcast_to(levels, (nd, len(self.data.levels)))[:, self._hold])
         out, volt, failed, steps = integrate_on_grids(m, G, Ic, self._tw, self._ta, rec, self.atol, self.hmax)
         if strict and np.any(failed):
-            raise ModelError("the step-response simulation failed (no steady start, step budget exceeded or "
-                             "non-finite values)")
+            raise ModelError(
+                "the step-response simulation failed (no steady start, step budget exceeded or non-finite values)"
+            )
         sensors = out[:, :, :2] + f[:, None, :] * (out[:, :, 4:] - out[:, :, :2])
         sensors = np.ascontiguousarray(sensors.transpose(0, 2, 1))
         if effects.has_sensor_effect(m["params"]):
             effects.apply_sensors(G[0], sensors, m["params"])
         o = self.obs_pos
-        return dict(sensors=sensors[:, :, o], voltage=volt[:, o], t_hot=out[:, o, 2], t_cold=out[:, o, 3],
-                    steps=steps)
+        return dict(sensors=sensors[:, :, o], voltage=volt[:, o], t_hot=out[:, o, 2], t_cold=out[:, o, 3], steps=steps)
 
-    def predict(self, params, strict=True, levels=None):
+    def predict(
+        self, params: Mapping[str, float | np.ndarray], strict: bool = True, levels: np.ndarray | None = None
+    ) -> np.ndarray:
         """Predicted channels ``(nd, 3, n_obs)``: voltage [V], dT [K], Tmean [K].
 
         With ``strict=False`` a draw whose simulation fails comes back as NaN
@@ -151,7 +162,7 @@ class StepResponseModel:
         T2, T3 = s["sensors"][:, 0], s["sensors"][:, 1]
         return np.stack([s["voltage"], T2 - T3, 0.5 * (T2 + T3)], axis=1)
 
-    def level_jacobian(self, params, dI=1e-3):
+    def level_jacobian(self, params: Mapping[str, float | np.ndarray], dI: float = 1e-3) -> np.ndarray:
         """Response of the channels to each hold's current level, at one point.
 
         Parameters
@@ -232,32 +243,40 @@ class LinearisedModel:
             X[bad] = self.x0 + 0.5 * (X[bad] - self.x0)
             Y[bad] = model.predict(space.params(X[bad]), strict=False)
         if not np.all(np.isfinite(Y)):
-            raise ModelError("the step-response simulation failed at the expansion point or next to it (no steady "
-                             "start, step budget exceeded or non-finite values)")
+            raise ModelError(
+                "the step-response simulation failed at the expansion point or next to it (no steady "
+                "start, step budget exceeded or non-finite values)"
+            )
         self.f0 = Y[0]
         jj = np.arange(p)
-        Xp, Xm = X[1:1 + 2 * p:2], X[2:2 + 2 * p:2]
+        Xp, Xm = X[1 : 1 + 2 * p : 2], X[2 : 2 + 2 * p : 2]
         hp = (Xp[jj, jj] - self.x0)[:, None, None]
         hm = (self.x0 - Xm[jj, jj])[:, None, None]
-        Yp, Ym = Y[1:1 + 2 * p:2], Y[2:2 + 2 * p:2]
+        Yp, Ym = Y[1 : 1 + 2 * p : 2], Y[2 : 2 + 2 * p : 2]
         dp, dm = Yp - Y[0], Y[0] - Ym
         # the parabola through the three points (uneven if clipped at a bound)
         self.C = 2.0 * (dp / hp - dm / hm) / (hp + hm)  # (p, nc, n)
         self.J = dp / hp - 0.5 * self.C * hp
         kept, H = [], []
         if pairs:
-            D = X[1 + 2 * p:] - self.x0
+            D = X[1 + 2 * p :] - self.x0
             hi = D[np.arange(len(pairs)), [i for i, _ in pairs]]
             hj = D[np.arange(len(pairs)), [j for _, j in pairs]]
-            Yij = Y[1 + 2 * p:]
+            Yij = Y[1 + 2 * p :]
             ii = np.array([i for i, _ in pairs])
             jx = np.array([j for _, j in pairs])
             # what the diagonal expansion predicts at x0 + h_i + h_j; the rest is the mixed term
-            diag = (Y[0] + self.J[ii] * hi[:, None, None] + 0.5 * self.C[ii] * hi[:, None, None] ** 2
-                    + self.J[jx] * hj[:, None, None] + 0.5 * self.C[jx] * hj[:, None, None] ** 2)
+            diag = (
+                Y[0]
+                + self.J[ii] * hi[:, None, None]
+                + 0.5 * self.C[ii] * hi[:, None, None] ** 2
+                + self.J[jx] * hj[:, None, None]
+                + 0.5 * self.C[jx] * hj[:, None, None] ** 2
+            )
             Hall = (Yij - diag) / (hi * hj)[:, None, None]
-            size = np.sqrt(np.sum((Hall * (hi * hj)[:, None, None] / np.asarray(noise)[None, :, None]) ** 2,
-                                  axis=(1, 2)))
+            size = np.sqrt(
+                np.sum((Hall * (hi * hj)[:, None, None] / np.asarray(noise)[None, :, None]) ** 2, axis=(1, 2))
+            )
             order = np.argsort(size)[::-1]
             for k in order[:max_cross]:
                 if size[k] > cross_threshold:
@@ -266,7 +285,7 @@ class LinearisedModel:
         self.pairs = np.array(kept, dtype=int).reshape(-1, 2)
         self.H = np.array(H).reshape((len(kept),) + self.f0.shape)
 
-    def predict(self, X):
+    def predict(self, X: np.ndarray) -> np.ndarray:
         """Predicted channels ``(nw, 3, n)`` for coordinate vectors ``X`` ``(nw, p)``."""
         D = np.atleast_2d(X) - self.x0
         out = self.f0[None] + np.tensordot(D, self.J, axes=(1, 0)) + 0.5 * np.tensordot(D * D, self.C, axes=(1, 0))
@@ -275,6 +294,6 @@ class LinearisedModel:
         return out
 
 
-def module_params_of(params):
+def module_params_of(params: Mapping[str, float | np.ndarray]) -> dict[str, float | np.ndarray]:
     """The five module parameters of a mapping."""
     return {k: params[k] for k in MODULE_PARAMETERS}

@@ -71,20 +71,27 @@ class ModelForm:
     min_range: float
 
 
-FORMS = {f.name: f for f in (
-    ModelForm("full", True, {"thomson_fraction": 1.0},
-              (ParameterPrior("sensor_tau_s", "uniform", 1.5, 1.5),
-               ParameterPrior("K1_per_K", "normal", 0.0, 1e-3)),
-              ("thomson", "sensor_lag", "k_temperature"), 1.05),
-    # the paper's steel is known: its material and size
-    ModelForm("paper", False, {}, (), (), 1.2),
-)}
+FORMS = {
+    f.name: f
+    for f in (
+        ModelForm(
+            "full",
+            True,
+            {"thomson_fraction": 1.0},
+            (ParameterPrior("sensor_tau_s", "uniform", 1.5, 1.5), ParameterPrior("K1_per_K", "normal", 0.0, 1e-3)),
+            ("thomson", "sensor_lag", "k_temperature"),
+            1.05,
+        ),
+        # the paper's steel is known: its material and size
+        ModelForm("paper", False, {}, (), (), 1.2),
+    )
+}
 
 #: The form a calibration uses unless told otherwise.
 DEFAULT_FORM = "full"
 
 
-def get_form(name) -> ModelForm:
+def get_form(name: str) -> ModelForm:
     """The form called ``name`` (``"full"`` or ``"paper"``)."""
     try:
         return FORMS[name]

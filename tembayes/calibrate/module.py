@@ -34,28 +34,40 @@ import json
 import os
 import time
 import warnings
-import zlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
-import arviz as az
 import numpy as np
 from scipy.optimize import least_squares
 from threadpoolctl import threadpool_limits
 
 from tembayes.calibrate import sampler as smp
+from tembayes.calibrate.adequacy import adequacy_numbers, assess
+from tembayes.calibrate.diagnostics import PSIS_K_MAX, ModuleDiagnostics, PsisCheck
+from tembayes.calibrate.discrepancy import held_nuisance_spread, window_sandwich
 from tembayes.calibrate.likelihood import OFFSET_SD, LevelErrors, StepLikelihood, noise_priors
 from tembayes.calibrate.model import SHIFT, LinearisedModel, StepResponseModel
-from tembayes.calibrate.parameters import ParameterSpace
-from tembayes.calibrate.adequacy import adequacy_numbers, assess
-from tembayes.calibrate.discrepancy import held_nuisance_spread, window_sandwich
 from tembayes.calibrate.modelform import DEFAULT_FORM, get_form
+from tembayes.calibrate.parameters import ParameterSpace
 from tembayes.calibrate.priors import ParameterPrior, effect_priors, law_priors, rig_prior
 from tembayes.calibrate.stepdata import step_data
+from tembayes.common.arvizlib import az
+from tembayes.common.draws import even_indices
+from tembayes.common.seeds import spawned, stream
 from tembayes.constants import MODULE_PARAMETERS
 from tembayes.data.write import atomic_write_text
 from tembayes.errors import ModelError
 from tembayes.physics.effects import EFFECT_PARAMETERS
 from tembayes.physics.rig import rig_from_config
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping, Sequence
+
+    from scipy.optimize import OptimizeResult
+
+    from tembayes.calibrate.stepdata import StepData
+    from tembayes.data import Datasheet, LazyModule, Module
+    from tembayes.physics.rig import RigDescription
 
 #: Resolution of the calibration model: legs in 4 cells, blocks in 6.  The
 #: paper-sized model (lumped module, 2 cells per block) misses the first
@@ -78,7 +90,7 @@ EARLY_REBUILD_K = 1.0
 #: ``15 - 6 h^2 + h^4``, least at h = sqrt(3) (40 % below h = 1).  Measured
 #: on a bench module: log-weight sd 0.52 -> 0.23, PSIS k 0.53 -> 0.35, so the
 #: first expansion usually passes and the second sampling run is saved.
-EXPANSION_STEP_SD = 3.0 ** 0.5
+EXPANSION_STEP_SD = 3.0**0.5
 
 
 @dataclass(frozen=True)
@@ -160,8 +172,10 @@ class CalibrationOptions:
             raise ModelError(f"unknown effect parameter(s) {bad}")
         inside = sorted(named & set(form.includes))
         if inside:
-            raise ModelError(f"the '{form.name}' model already contains {', '.join(inside)}; add it only to a "
-                             "--model paper calibration")
+            raise ModelError(
+                f"the '{form.name}' model already contains {', '.join(inside)}; add it only to a "
+                "--model paper calibration"
+            )
         both = sorted(set(self.effects) & {EFFECT_PARAMETERS[k] for k in self.effect_values})
         if both:
             raise ModelError(f"effect {', '.join(both)} given both sampled and at a fixed value")
@@ -185,10 +199,8 @@ class ModuleCalibration:
         ``name -> ParameterPrior.to_dict()``.
     map : dict
         Posterior mode (SI).
-    diagnostics : dict
-        Per-parameter ``rhat``, ``ess_bulk``, ``ess_tail``, ``tau``, and
-        ``rhat_max``, ``ess_bulk_min`` (module parameters), ``converged``,
-        ``steps``, ``psis_k``, timings.
+    diagnostics : ModuleDiagnostics
+        How the sampling went (:mod:`tembayes.calibrate.diagnostics`).
     steps : dict
         Per step: ``t_s``, ``dI_A``, ``direction``, ``Tavg_K`` (model's junction
         mean at the step, at the mode).
@@ -209,7 +221,7 @@ class ModuleCalibration:
     step_loglike: np.ndarray
     priors: dict
     map: dict
-    diagnostics: dict
+    diagnostics: ModuleDiagnostics
     steps: dict
     observed: dict
     hysteresis: dict
@@ -217,12 +229,12 @@ class ModuleCalibration:
     rig: str
     options: dict = field(default_factory=dict)
 
-    def law_draws(self):
+    def law_draws(self) -> np.ndarray:
         """``(n, 5)`` draws of the module parameters (contract order, SI)."""
         return np.column_stack([self.draws[k].ravel() for k in MODULE_PARAMETERS])
 
 
-def module_seed(seed, module_id):
+def module_seed(seed: int, module_id: str) -> tuple[int, np.random.Generator]:
     """Seeds of a module derived from the run seed and the module id.
 
     Returns
@@ -230,23 +242,35 @@ def module_seed(seed, module_id):
     (int, numpy.random.Generator)
         emcee's seed and a Generator for everything else.
     """
-    key = zlib.crc32(str(module_id).encode())
-    ss = np.random.SeedSequence(entropy=int(seed), spawn_key=(key,))
-    a, b = ss.generate_state(2)
+    a, b = spawned(seed, str(module_id)).generate_state(2)
     return int(a), np.random.default_rng(int(b))
 
 
-def calibration_rig(rig_config, options):
+def calibration_rig(rig_config: Mapping | None, options: CalibrationOptions) -> RigDescription:
     """The calibration model's rig for a batch's ``[rig]`` table and the options' resolution and form."""
     form = get_form(options.model)
-    return rig_from_config(rig_config or {}, leg_cells=options.leg_cells, block_cells=options.block_cells,
-                           layers=form.layers, physics={**form.physics, **dict(options.effect_values)})
+    return rig_from_config(
+        rig_config or {},
+        leg_cells=options.leg_cells,
+        block_cells=options.block_cells,
+        layers=form.layers,
+        physics={**form.physics, **dict(options.effect_values)},
+    )
 
 
-def parameter_space(rig, datasheet, data, shift_bound, effects=(), form=DEFAULT_FORM):
-    """The sampled coordinates: laws and K, rig nuisances, the model form's
-    sampled physics, the parameters of ``effects`` (catalogue names added to
-    the model), step shift, noise.
+def parameter_space(
+    rig: RigDescription,
+    datasheet: Datasheet,
+    data: StepData,
+    shift_bound: float,
+    effects: Sequence[str] = (),
+    form: str = DEFAULT_FORM,
+) -> tuple[ParameterSpace, ParameterSpace]:
+    """The sampled coordinates of a module.
+
+    Laws and K, rig nuisances, the model form's sampled physics, the
+    parameters of ``effects`` (catalogue names added to the model), step
+    shift, noise.
 
     Raises
     ------
@@ -256,12 +280,12 @@ def parameter_space(rig, datasheet, data, shift_bound, effects=(), form=DEFAULT_
     form = get_form(form)
     inside = [e for e in effects if e in form.includes]
     if inside:
-        raise ModelError(f"the '{form.name}' model already contains {', '.join(inside)}; add it only to a "
-                         "--model paper calibration")
+        raise ModelError(
+            f"the '{form.name}' model already contains {', '.join(inside)}; add it only to a --model paper calibration"
+        )
     nuis = [p for p in rig.parameters if p.high / p.low > form.min_range and not p.held]
     fixed = {p.name: p.nominal for p in rig.parameters if p not in nuis}
-    pri = (list(law_priors(datasheet)) + [rig_prior(p) for p in nuis] + list(form.priors)
-           + list(effect_priors(effects)))
+    pri = list(law_priors(datasheet)) + [rig_prior(p) for p in nuis] + list(form.priors) + list(effect_priors(effects))
     pri.append(ParameterPrior(SHIFT, "uniform", 0.0, shift_bound))
     model_space = ParameterSpace(tuple(pri), fixed)
     return model_space, ParameterSpace(tuple(pri) + noise_priors(data), fixed)
@@ -282,7 +306,7 @@ def _prior_sd(space):
     return np.array([p.scale / np.sqrt(3.0) if p.kind == "uniform" else p.scale for p in space.priors])
 
 
-def fd_steps(space):
+def fd_steps(space: ParameterSpace) -> np.ndarray:
     """Finite-difference steps per coordinate (~0.1-1 % of a prior width)."""
     h = []
     for p in space.priors:
@@ -295,9 +319,12 @@ def fd_steps(space):
     return np.array(h)
 
 
-def fit_map(model, space, data, x0, *, max_nfev=60):
-    """Posterior mode of the model coordinates with white noise at the
-    measured level, and its Laplace covariance.
+def fit_map(
+    model: StepResponseModel, space: ParameterSpace, data: StepData, x0: np.ndarray, *, max_nfev: int = 60
+) -> tuple[np.ndarray, np.ndarray, OptimizeResult]:
+    """Posterior mode of the model coordinates, and its Laplace covariance.
+
+    The noise is white at the measured level.
 
     Returns
     -------
@@ -337,18 +364,21 @@ def fit_map(model, space, data, x0, *, max_nfev=60):
         else:
             scale[j] = 0.1 * p.scale
     x0 = np.clip(x0, lo + 1e-12, hi - 1e-12)
-    sol = least_squares(lambda x: resid(x[None])[0], x0, jac=jac, bounds=(lo, hi), x_scale=scale,
-                        method="trf", max_nfev=max_nfev)
+    sol = least_squares(
+        lambda x: resid(x[None])[0], x0, jac=jac, bounds=(lo, hi), x_scale=scale, method="trf", max_nfev=max_nfev
+    )
     J = sol.jac
     cov = np.linalg.pinv(J.T @ J)
     return sol.x, cov, sol
 
 
-def start_point(space, start=None):
-    """Coordinates where a mode search starts: the prior centres, the step
-    shift at the middle of its interval, every effect at zero (the base
-    model), overridden by ``start`` (``name -> value``, SI; names not in
-    ``space`` ignored)."""
+def start_point(space: ParameterSpace, start: Mapping[str, float] | None = None) -> np.ndarray:
+    """Coordinates where a mode search starts.
+
+    The prior centres, the step shift at the middle of its interval, every
+    effect at zero (the base model), overridden by ``start`` (``name ->
+    value``, SI; names not in ``space`` ignored).
+    """
     x0 = np.array([pr.to_unconstrained(pr.center) for pr in space.priors])
     x0[space.index(SHIFT)] = 0.0
     for name in EFFECT_PARAMETERS:
@@ -376,7 +406,9 @@ def _initial_walkers(rng, space, model_space, x_map, cov, data, nw):
     return space.clip(X)
 
 
-def psis_check(like_exact, like_lin, X, rng, n):
+def psis_check(
+    like_exact: StepLikelihood, like_lin: StepLikelihood, X: np.ndarray, rng: np.random.Generator, n: int
+) -> tuple[float, float, float]:
     """Pareto-k of importance weights exact/linearised on ``n`` posterior draws."""
     idx = rng.choice(len(X), size=min(n, len(X)), replace=False)
     Xs = X[idx]
@@ -387,7 +419,14 @@ def psis_check(like_exact, like_lin, X, rng, n):
     return float(k), ess / len(Xs), float(np.max(np.abs(lw - np.median(lw))))
 
 
-def hysteresis(lin, like, x_mean, data, space, level_response=None):
+def hysteresis(
+    lin: LinearisedModel,
+    like: StepLikelihood,
+    x_mean: np.ndarray,
+    data: StepData,
+    space: ParameterSpace,
+    level_response: np.ndarray | None = None,
+) -> dict:
     """Up- minus down-step difference of R and S (GLS on the expansion).
 
     The model gets two extra terms: R and S raised by ``h/2`` in the windows
@@ -433,7 +472,7 @@ def hysteresis(lin, like, x_mean, data, space, level_response=None):
     return out
 
 
-def calibrate_module(module, datasheet, **kw):
+def calibrate_module(module: Module | LazyModule, datasheet: Datasheet, **kw) -> ModuleCalibration:
     """Posterior of one module's parameters from its identification run.
 
     Parameters
@@ -480,19 +519,33 @@ def _read_state(path):
             return json.load(f)
     except (OSError, ValueError) as exc:
         os.replace(path, path + ".damaged")
-        warnings.warn(f"resume state {path} cannot be read ({exc}); renamed {os.path.basename(path)}.damaged, the "
-                      "module starts again from its posterior mode", RuntimeWarning, stacklevel=3)
+        warnings.warn(
+            f"resume state {path} cannot be read ({exc}); renamed {os.path.basename(path)}.damaged, the "
+            "module starts again from its posterior mode",
+            RuntimeWarning,
+            stacklevel=3,
+        )
         return None
 
 
-def _calibrate_module(module, datasheet, *, rig_config=None, seed=0, options=None, checkpoint=None, resume=False,
-                      progress=None, progress_bar=False, effects=(), start=None):
-    opt = options or CalibrationOptions()
-    say = progress or (lambda msg: None)
-    timings = {}
-    t_start = time.perf_counter()
+@dataclass(frozen=True)
+class _Problem:
+    """One module's calibration problem: its step data, the model, the sampled space and the likelihood pieces."""
+
+    module_id: str
+    data: object
+    rig: object
+    model: StepResponseModel
+    model_space: ParameterSpace
+    space: ParameterSpace
+    nwalkers: int
+    options: CalibrationOptions
+    base_seed: int
+    emcee_seed: int
+
+
+def _problem(module, datasheet, rig_config, opt, effects, seed) -> _Problem:
     emcee_seed, rng = module_seed(seed, module.id)
-    base_seed = int(rng.integers(2 ** 63))
     data = step_data(module.identification)
     rig = calibration_rig(rig_config, opt)
     model = StepResponseModel(data, rig)
@@ -501,190 +554,351 @@ def _calibrate_module(module, datasheet, *, rig_config=None, seed=0, options=Non
     nwalkers = 2 * space.ndim + 2 if opt.nwalkers is None else int(opt.nwalkers)
     if nwalkers < 2 * space.ndim:
         raise ModelError(f"nwalkers must be at least 2 x {space.ndim} parameters, got {nwalkers}")
-    p = model_space.ndim
-    state_file = None if checkpoint is None else f"{checkpoint}.json"
-    state = None
+    return _Problem(
+        module.id,
+        data,
+        rig,
+        model,
+        model_space,
+        space,
+        nwalkers,
+        opt,
+        base_seed=int(rng.integers(2**63)),
+        emcee_seed=emcee_seed,
+    )
+
+
+def _start_state(prob, state_file, resume, start, say) -> dict:
+    """The resume state, or a new one at the posterior mode (written to ``state_file``)."""
     if resume and state_file and os.path.exists(state_file):
         state = _read_state(state_file)
-    if state is None:
-        say(f"{module.id}: posterior mode")
-        x0 = start_point(model_space, {k: v for k, v in (start or {}).items() if k != SHIFT})
-        x_map, cov, sol = fit_map(model, model_space, data, x0)
-        state = {"x_map": x_map.tolist(), "cov": cov.tolist(), "x_lin": x_map.tolist(), "x_level": x_map.tolist(),
-                 "stage": 0, "map_nfev": int(sol.nfev)}
-        if state_file:
-            atomic_write_text(state_file, json.dumps(state))
-    x_map = np.array(state["x_map"])
-    cov = np.array(state["cov"])
-    timings["map_s"] = time.perf_counter() - t_start
-    # the hold currents' errors: their effect on the channels, once, at the
-    # mode (linear in the ~0.02 mA errors; the posterior is ~0.1 % wide)
-    G = model.level_jacobian(model_space.params(np.array(state.get("x_level", state["x_map"]))[None]))
-    levels = LevelErrors(G, data.level_sd, data.window_starts, data.noise)
-    exact_like = StepLikelihood(data, model, space, levels)
-    psis = list(state.get("psis", []))
+        if state is not None:
+            return state
+    say(f"{prob.module_id}: posterior mode")
+    x0 = start_point(prob.model_space, {k: v for k, v in (start or {}).items() if k != SHIFT})
+    x_map, cov, sol = fit_map(prob.model, prob.model_space, prob.data, x0)
+    state = {
+        "x_map": x_map.tolist(),
+        "cov": cov.tolist(),
+        "x_lin": x_map.tolist(),
+        "x_level": x_map.tolist(),
+        "stage": 0,
+        "map_nfev": int(sol.nfev),
+    }
+    if state_file:
+        atomic_write_text(state_file, json.dumps(state))
+    return state
+
+
+@dataclass
+class _Stage:
+    """One sampling run on one expansion of the model."""
+
+    run: smp.SamplerRun
+    lin: LinearisedModel
+    like: StepLikelihood
+    rng: np.random.Generator
+    early: dict
+    budget: int
+
+
+def _run_stage(prob, state, levels, exact_like, *, checkpoint, resume, progress_bar, say) -> _Stage:
+    """Sample the posterior on the expansion at ``state["x_lin"]`` (stage ``state["stage"]``)."""
+    opt, space, stage = prob.options, prob.space, state["stage"]
+    pilot, last = stage == 0, stage >= opt.max_relinearise
+    # steps of sqrt(3) posterior sds: the expansion interpolates over the posterior
+    h = np.maximum(EXPANSION_STEP_SD * np.sqrt(np.diag(np.array(state["cov"]))), fd_steps(prob.model_space))
+    # never probe beyond two prior sds: a coordinate the data leave open (an
+    # effect traded against a rig parameter) would send the expansion
+    # where the rig cannot be simulated
+    h = np.minimum(h, 2.0 * _prior_sd(prob.model_space))
+    lin = LinearisedModel(prob.model, prob.model_space, np.array(state["x_lin"]), h, noise=prob.data.noise)
+    like = StepLikelihood(prob.data, lin, space, levels)
+    # a stream per stage: a resumed run draws exactly what a straight one does
+    rng = stream(prob.base_seed, stage)
+    p0 = _initial_walkers(
+        rng, space, prob.model_space, np.array(state["x_map"]), np.array(state["cov"]), prob.data, prob.nwalkers
+    )
+    if state.get("walkers") is not None:
+        p0 = space.clip(np.array(state["walkers"]))
+    say(f"{prob.module_id}: {'pilot' if pilot else 'sampling'} (expansion {stage})")
+    budget = opt.pilot if pilot else (opt.max_steps if last else min(opt.max_steps, opt.stage_steps))
+    early = {}
+
+    def probe(post, steps):
+        """One PSIS check of a rebuildable stage's expansion, at the first check past psis_probe steps."""
+        if early or steps < opt.psis_probe:
+            return False
+        # its own stream: the stage's draws stay those of a run without the probe
+        k, ess_frac, maxdev = psis_check(
+            exact_like, like, post.reshape(-1, space.ndim), stream(prob.base_seed, stage, 1), opt.psis_draws
+        )
+        early.update(stage=stage, k_hat=k, weight_ess_fraction=ess_frac, max_logw_dev=maxdev, early_steps=steps)
+        return k > EARLY_REBUILD_K
+
+    prop = state.get("proposal")
+    with warnings.catch_warnings():
+        # only the final run's convergence is reported (by the caller)
+        warnings.simplefilter("ignore", RuntimeWarning)
+        run = smp.sample(
+            like.log_prob,
+            p0,
+            seed=prob.emcee_seed + stage,
+            monitor=range(len(MODULE_PARAMETERS)),
+            checkpoint=None if checkpoint is None else f"{checkpoint}.stage{stage}",
+            resume=resume,
+            thin_by=opt.thin_by,
+            max_steps=budget,
+            progress=progress_bar,
+            label=prob.module_id + (" pilot" if pilot else ""),
+            proposal=None if prop is None else (np.array(prop["mean"]), np.array(prop["cov"])),
+            stop=None if pilot or last or opt.psis_probe <= 0 else probe,
+        )
+    return _Stage(run, lin, like, rng, early, budget)
+
+
+def _next_state(state, run, psis, p) -> dict:
+    """The state of the next stage: the expansion recentred on this run's posterior, its walkers as the start."""
+    half = run.chain[len(run.chain) // 2 :].reshape(-1, run.chain.shape[-1])
+    x_map = half[:, :p].mean(axis=0)
+    # the next run also proposes independently from this one's posterior
+    proposal = {"mean": half.mean(axis=0).tolist(), "cov": np.cov(half.T).tolist()}
+    return {
+        **state,
+        "x_lin": x_map.tolist(),
+        "stage": state["stage"] + 1,
+        "x_map": x_map.tolist(),
+        "cov": np.cov(half[:, :p].T).tolist(),
+        "walkers": run.chain[-1].tolist(),
+        "psis": [c.to_json() for c in psis],
+        "proposal": proposal,
+    }
+
+
+def _sample_stages(prob, state, levels, exact_like, *, state_file, timings, say, **stage_kw):
+    """Pilot, then sampling runs until one converges on an expansion PSIS accepts (or the last stage).
+
+    Returns
+    -------
+    (_Stage, list of PsisCheck, bool, dict)
+        The last run, every expansion check, whether any run resumed from a
+        checkpoint, and the last stage's state (its ``x_map`` is the centre
+        the run started from).
+    """
+    psis = [PsisCheck(**c) for c in state.get("psis", [])]
     resumed = False
     while True:
         t0 = time.perf_counter()
         stage = state["stage"]
-        pilot = stage == 0
-        x_lin = np.array(state["x_lin"])
-        # steps of sqrt(3) posterior sds: the expansion interpolates over the posterior
-        h = np.maximum(EXPANSION_STEP_SD * np.sqrt(np.diag(cov)), fd_steps(model_space))
-        # never probe beyond two prior sds: a coordinate the data leave open (an
-        # effect traded against a rig parameter) would send the expansion
-        # where the rig cannot be simulated
-        h = np.minimum(h, 2.0 * _prior_sd(model_space))
-        lin = LinearisedModel(model, model_space, x_lin, h, noise=data.noise)
-        like = StepLikelihood(data, lin, space, levels)
-        # a stream per stage: a resumed run draws exactly what a straight one does
-        rng = np.random.default_rng([base_seed, stage])
-        p0 = _initial_walkers(rng, space, model_space, x_map, cov, data, nwalkers)
-        if state.get("walkers") is not None:
-            p0 = space.clip(np.array(state["walkers"]))
-        say(f"{module.id}: {'pilot' if pilot else 'sampling'} (expansion {stage})")
-        chunks = None if checkpoint is None else f"{checkpoint}.stage{stage}"
-        last = stage >= opt.max_relinearise
-        budget = opt.pilot if pilot else (opt.max_steps if last else min(opt.max_steps, opt.stage_steps))
-        early = {}
-
-        def probe(post, steps, stage=stage, like=like, early=early):
-            """One PSIS check of a rebuildable stage's expansion, at the first check past psis_probe steps."""
-            if early or steps < opt.psis_probe:
-                return False
-            # its own stream: the stage's draws stay those of a run without the probe
-            k, ess_frac, maxdev = psis_check(exact_like, like, post.reshape(-1, space.ndim),
-                                             np.random.default_rng([base_seed, stage, 1]), opt.psis_draws)
-            early.update(stage=stage, k_hat=k, weight_ess_fraction=ess_frac, max_logw_dev=maxdev, early_steps=steps)
-            return k > EARLY_REBUILD_K
-
-        with warnings.catch_warnings():
-            # only the final run's convergence is reported (below)
-            warnings.simplefilter("ignore", RuntimeWarning)
-            prop = state.get("proposal")
-            run = smp.sample(like.log_prob, p0, seed=emcee_seed + stage, monitor=range(len(MODULE_PARAMETERS)),
-                             checkpoint=chunks, resume=resume, thin_by=opt.thin_by, max_steps=budget,
-                             progress=progress_bar, label=f"{module.id}" + (" pilot" if pilot else ""),
-                             proposal=None if prop is None else (np.array(prop["mean"]), np.array(prop["cov"])),
-                             stop=None if pilot or last or opt.psis_probe <= 0 else probe)
+        st = _run_stage(prob, state, levels, exact_like, say=say, **stage_kw)
         timings[f"sample_s_{stage}"] = time.perf_counter() - t0
-        resumed = resumed or run.resumed
-        flat = run.chain.reshape(-1, space.ndim)
-        if early and early["k_hat"] > EARLY_REBUILD_K:
-            psis.append(early)
-            say(f"{module.id}: expansion off after {early['early_steps']} steps (k_hat {early['k_hat']:.2f}); "
-                "rebuilding it at the posterior mean")
-        elif not pilot:
-            k, ess_frac, maxdev = psis_check(exact_like, like, flat, rng, opt.psis_draws)
-            psis.append({"stage": stage, "k_hat": k, "weight_ess_fraction": ess_frac, "max_logw_dev": maxdev})
-            if (k < 0.7 and run.converged) or last:
-                break
-            why = f"expansion off (k_hat {k:.2f})" if k >= 0.7 else f"not converged in {budget} steps"
-            say(f"{module.id}: {why}; rebuilding the expansion at the posterior mean")
-        # recentre the expansion on this run's posterior and start the next
-        # run from its walkers (already in the typical set)
-        half = run.chain[len(run.chain) // 2:].reshape(-1, space.ndim)
-        x_map = half[:, :p].mean(axis=0)
-        cov = np.cov(half[:, :p].T)
-        # the next run also proposes independently from this one's posterior
-        proposal = {"mean": half.mean(axis=0).tolist(), "cov": np.cov(half.T).tolist()}
-        state = {**state, "x_lin": x_map.tolist(), "stage": stage + 1, "x_map": x_map.tolist(),
-                 "cov": cov.tolist(), "walkers": run.chain[-1].tolist(), "psis": psis, "proposal": proposal}
+        resumed = resumed or st.run.resumed
+        if st.early and st.early["k_hat"] > EARLY_REBUILD_K:
+            psis.append(PsisCheck(**st.early))
+            say(
+                f"{prob.module_id}: expansion off after {st.early['early_steps']} steps "
+                f"(k_hat {st.early['k_hat']:.2f}); rebuilding it at the posterior mean"
+            )
+        elif stage > 0:
+            k, ess_frac, maxdev = psis_check(
+                exact_like, st.like, st.run.chain.reshape(-1, prob.space.ndim), st.rng, prob.options.psis_draws
+            )
+            psis.append(PsisCheck(stage, k, ess_frac, maxdev))
+            if (k < PSIS_K_MAX and st.run.converged) or stage >= prob.options.max_relinearise:
+                return st, psis, resumed, state
+            why = f"expansion off (k_hat {k:.2f})" if k >= PSIS_K_MAX else f"not converged in {st.budget} steps"
+            say(f"{prob.module_id}: {why}; rebuilding the expansion at the posterior mean")
+        state = _next_state(state, st.run, psis, prob.model_space.ndim)
         if state_file:
             atomic_write_text(state_file, json.dumps(state))
-    if not (run.converged and psis[-1]["k_hat"] < 0.7):
+
+
+def _calibrate_module(
+    module,
+    datasheet,
+    *,
+    rig_config=None,
+    seed=0,
+    options=None,
+    checkpoint=None,
+    resume=False,
+    progress=None,
+    progress_bar=False,
+    effects=(),
+    start=None,
+):
+    opt = options or CalibrationOptions()
+    say = progress or (lambda msg: None)
+    t_start = time.perf_counter()
+    prob = _problem(module, datasheet, rig_config, opt, effects, seed)
+    state_file = None if checkpoint is None else f"{checkpoint}.json"
+    state = _start_state(prob, state_file, resume, start, say)
+    timings = {"map_s": time.perf_counter() - t_start}
+    # the hold currents' errors: their effect on the channels, once, at the
+    # mode (linear in the ~0.02 mA errors; the posterior is ~0.1 % wide)
+    G = prob.model.level_jacobian(prob.model_space.params(np.array(state.get("x_level", state["x_map"]))[None]))
+    levels = LevelErrors(G, prob.data.level_sd, prob.data.window_starts, prob.data.noise)
+    exact_like = StepLikelihood(prob.data, prob.model, prob.space, levels)
+    st, psis, resumed, state = _sample_stages(
+        prob,
+        state,
+        levels,
+        exact_like,
+        state_file=state_file,
+        timings=timings,
+        say=say,
+        checkpoint=checkpoint,
+        resume=resume,
+        progress_bar=progress_bar,
+    )
+    diag = _diagnostics(st.run, prob.space.names, psis, resumed, state.get("map_nfev"), levels, timings)
+    if not diag.converged:
         warnings.warn(
-            f"{module.id}: not converged (sampler converged: {run.converged} after {run.steps} steps, R-hat max "
-            f"{np.nanmax(run.rhat):.3f}, bulk ESS min {np.nanmin(run.ess_bulk):.0f}; expansion PSIS k_hat "
-            f"{psis[-1]['k_hat']:.2f}); results are marked converged: false", RuntimeWarning, stacklevel=3)
-    # keep `keep` draws per walker, evenly spread over the converged chain
-    n = run.chain.shape[0]
-    sel = np.unique(np.linspace(0, n - 1, min(opt.keep, n)).round().astype(int))
-    kept = run.chain[sel].transpose(1, 0, 2)  # (nw, keep, p)
-    nw, nk = kept.shape[:2]
-    flat_kept = kept.reshape(-1, space.ndim)
-    step_ll = like.pointwise(flat_kept)
-    laws = [space.names.index(k) for k in MODULE_PARAMETERS]
-    scatter = window_sandwich(flat_kept, step_ll, laws)  # always: how far the windows disagree
-    fitted = lin.predict(flat_kept[:, :p].mean(axis=0)[None])[0]
-    adequacy = assess(adequacy_numbers(scatter, space.values(flat_kept), data, data.obs - fitted, MODULE_PARAMETERS))
-    widened = spread = None
-    if opt.discrepancy in ("window-sandwich", "robust"):
-        widened = scatter
-        centre = flat_kept[:, laws].mean(axis=0)
-        flat_kept = flat_kept.copy()
-        flat_kept[:, laws] = centre + (flat_kept[:, laws] - centre) @ widened.stretch.T
-    if opt.discrepancy == "robust":
-        law_sd = flat_kept[:, laws].std(axis=0)
-        held = {q: rig.parameter(q) for q in model_space.fixed
-                if q in rig.parameter_names and rig.parameter(q).high > rig.parameter(q).low}
-        spread = held_nuisance_spread(model, model_space, flat_kept[:, :p].mean(axis=0), lin.J, data.noise, held)
-        flat_kept = spread.apply(flat_kept, rng)
-        spread_json = spread.to_json(space.names, laws, law_sd)
-    if widened is not None:
-        step_ll = like.pointwise(flat_kept)
-    vals = space.values(flat_kept)
-    draws = {k: v.reshape(nw, nk) for k, v in vals.items()}
-    step_ll = step_ll.reshape(nw, nk, -1)
-    # the junction mean temperature at every step (exact model, at the centre)
-    sim = model.simulate(model_space.params(x_map[None]))
-    tavg = 0.5 * (sim["t_hot"][0] + sim["t_cold"][0])
-    at_step = np.array([tavg[np.flatnonzero(data.step == k)[np.argmin(np.abs(data.since[data.step == k]))]]
-                        for k in range(data.n_steps)])
-    full_mean = flat.mean(axis=0)
-    hyst = hysteresis(lin, like, full_mean, data, space, G)
-    mon = list(range(len(MODULE_PARAMETERS)))
-    diag = {
-        "rhat": dict(zip(space.names, map(float, run.rhat))),
-        "ess_bulk": dict(zip(space.names, map(float, run.ess_bulk))),
-        "ess_tail": dict(zip(space.names, map(float, run.ess_tail))),
-        "tau_steps": dict(zip(space.names, map(float, run.tau))),
-        "rhat_max": float(np.max(run.rhat[mon])),
-        "rhat_walkers_max": float(np.max(run.rhat_walkers[mon])),
-        "ess_bulk_min": float(np.min(run.ess_bulk[mon])),
-        "tau_max_steps": float(np.max(run.tau[:len(MODULE_PARAMETERS)])),
-        "tau_max_all_steps": float(np.max(run.tau)),
-        "chain_over_tau": float(run.chain.shape[0] * run.thin_by / np.max(run.tau[:len(MODULE_PARAMETERS)])),
-        "steps": run.steps,
-        "burn_in_steps": run.burn * run.thin_by,
-        "nwalkers": nw,
-        "acceptance_mean": float(np.mean(run.acceptance)),
-        "acceptance_min": float(np.min(run.acceptance)),
-        "converged": bool(run.converged and psis[-1]["k_hat"] < 0.7),
-        "sampler_converged": bool(run.converged),
-        "psis": psis,
-        "resumed": bool(resumed),
-        "map_nfev": state.get("map_nfev"),
-        # largest response to a hold level outside the two windows kept, in
-        # noise sds per level sd (the tridiagonal approximation's neglect)
-        "level_band_neglected": levels.neglected,
-        "discrepancy": ({"method": "none"} if widened is None else
-                        {**widened.to_json(MODULE_PARAMETERS), "method": opt.discrepancy,
-                         **({"held_sd_over_posterior_sd": spread_json} if spread is not None else {})}),
-        "adequacy": adequacy.to_json(),
-    }
+            f"{module.id}: not converged (sampler converged: {st.run.converged} after {st.run.steps} steps, R-hat "
+            f"max {np.nanmax(st.run.rhat):.3f}, bulk ESS min {np.nanmin(st.run.ess_bulk):.0f}; expansion PSIS k_hat "
+            f"{diag.psis_k:.2f}); results are marked converged: false",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+    post = _posterior(prob, st, levels)
+    diag = replace(diag, discrepancy=post.discrepancy, adequacy=post.adequacy)
     timings["total_s"] = time.perf_counter() - t_start
-    diag["timings"] = timings
+    data = prob.data
+    x_centre = np.array(state["x_map"])
     return ModuleCalibration(
         module_id=module.id,
-        names=space.names,
-        draws=draws,
-        log_prob=run.log_prob[sel].T.copy(),
-        step_loglike=step_ll,
-        priors={pr.name: pr.to_dict() for pr in space.priors},
-        map=dict(zip(model_space.names, (float(v[0]) for v in model_space.values(x_map[None]).values()))),
+        names=prob.space.names,
+        draws=post.draws,
+        log_prob=st.run.log_prob[post.sel].T.copy(),
+        step_loglike=post.step_loglike,
+        priors={pr.name: pr.to_dict() for pr in prob.space.priors},
+        map=_mode_values(prob.model_space, x_centre),
         diagnostics=diag,
-        steps={"t_s": data.step_time, "dI_A": data.dI, "direction": data.direction, "Tavg_K": at_step},
-        observed={"time_s": data.time, "step": data.step, "since_s": data.since, "obs": data.obs,
-                  "noise": data.noise},
-        hysteresis=hyst,
-        seed={"run": int(seed), "emcee": emcee_seed},
-        rig=rig.name,
+        steps={
+            "t_s": data.step_time,
+            "dI_A": data.dI,
+            "direction": data.direction,
+            "Tavg_K": _step_tavg(prob, x_centre),
+        },
+        observed={"time_s": data.time, "step": data.step, "since_s": data.since, "obs": data.obs, "noise": data.noise},
+        hysteresis=hysteresis(
+            st.lin, st.like, st.run.chain.reshape(-1, prob.space.ndim).mean(axis=0), data, prob.space, G
+        ),
+        seed={"run": int(seed), "emcee": prob.emcee_seed},
+        rig=prob.rig.name,
         options=dict(opt.__dict__),
     )
 
 
-def sample_prior_only(module, datasheet, *, rig_config=None, seed=0, options=None):
+@dataclass(frozen=True)
+class _Posterior:
+    """The kept draws, widened by the discrepancy model, and what the fit's adequacy checks found."""
+
+    draws: dict
+    step_loglike: np.ndarray
+    sel: np.ndarray
+    discrepancy: dict
+    adequacy: dict
+
+
+def _posterior(prob, st, levels) -> _Posterior:
+    """Keep ``keep`` draws per walker, check the fit's adequacy, widen the laws by the discrepancy model."""
+    opt, space, p = prob.options, prob.space, prob.model_space.ndim
+    run = st.run
+    sel = even_indices(run.chain.shape[0], opt.keep)
+    kept = run.chain[sel].transpose(1, 0, 2)  # (nw, keep, p)
+    nw, nk = kept.shape[:2]
+    flat = kept.reshape(-1, space.ndim)
+    step_ll = st.like.pointwise(flat)
+    laws = [space.names.index(k) for k in MODULE_PARAMETERS]
+    scatter = window_sandwich(flat, step_ll, laws)  # always: how far the windows disagree
+    fitted = st.lin.predict(flat[:, :p].mean(axis=0)[None])[0]
+    adequacy = assess(
+        adequacy_numbers(scatter, space.values(flat), prob.data, prob.data.obs - fitted, MODULE_PARAMETERS)
+    )
+    discrepancy = {"method": "none"}
+    if opt.discrepancy in ("window-sandwich", "robust"):
+        centre = flat[:, laws].mean(axis=0)
+        flat = flat.copy()
+        flat[:, laws] = centre + (flat[:, laws] - centre) @ scatter.stretch.T
+        discrepancy = {**scatter.to_json(MODULE_PARAMETERS), "method": opt.discrepancy}
+    if opt.discrepancy == "robust":
+        law_sd = flat[:, laws].std(axis=0)
+        rig = prob.rig
+        held = {
+            q: rig.parameter(q)
+            for q in prob.model_space.fixed
+            if q in rig.parameter_names and rig.parameter(q).high > rig.parameter(q).low
+        }
+        spread = held_nuisance_spread(
+            prob.model, prob.model_space, flat[:, :p].mean(axis=0), st.lin.J, prob.data.noise, held
+        )
+        flat = spread.apply(flat, st.rng)
+        discrepancy["held_sd_over_posterior_sd"] = spread.to_json(space.names, laws, law_sd)
+    if opt.discrepancy != "none":
+        step_ll = st.like.pointwise(flat)
+    draws = {k: v.reshape(nw, nk) for k, v in space.values(flat).items()}
+    return _Posterior(draws, step_ll.reshape(nw, nk, -1), sel, discrepancy, adequacy.to_json())
+
+
+def _diagnostics(run, names, psis, resumed, map_nfev, levels, timings) -> ModuleDiagnostics:
+    """The sampling record of the final run (the discrepancy and adequacy are filled in later)."""
+    n_laws = len(MODULE_PARAMETERS)
+    return ModuleDiagnostics(
+        rhat=dict(zip(names, map(float, run.rhat))),
+        ess_bulk=dict(zip(names, map(float, run.ess_bulk))),
+        ess_tail=dict(zip(names, map(float, run.ess_tail))),
+        tau_steps=dict(zip(names, map(float, run.tau))),
+        rhat_max=float(np.max(run.rhat[:n_laws])),
+        rhat_walkers_max=float(np.max(run.rhat_walkers[:n_laws])),
+        ess_bulk_min=float(np.min(run.ess_bulk[:n_laws])),
+        tau_max_steps=float(np.max(run.tau[:n_laws])),
+        tau_max_all_steps=float(np.max(run.tau)),
+        chain_over_tau=float(run.chain.shape[0] * run.thin_by / np.max(run.tau[:n_laws])),
+        steps=run.steps,
+        burn_in_steps=run.burn * run.thin_by,
+        nwalkers=run.chain.shape[1],
+        acceptance_mean=float(np.mean(run.acceptance)),
+        acceptance_min=float(np.min(run.acceptance)),
+        sampler_converged=bool(run.converged),
+        psis=tuple(psis),
+        resumed=bool(resumed),
+        map_nfev=map_nfev,
+        # largest response to a hold level outside the two windows kept, in
+        # noise sds per level sd (the tridiagonal approximation's neglect)
+        level_band_neglected=levels.neglected,
+        discrepancy={"method": "none"},
+        adequacy={},
+        timings=timings,
+    )
+
+
+def _mode_values(model_space, x):
+    """``name -> value`` (SI) of the model coordinates ``x``."""
+    return dict(zip(model_space.names, (float(v[0]) for v in model_space.values(x[None]).values())))
+
+
+def _step_tavg(prob, x):
+    """The junction mean temperature [K] at every step (exact model at ``x``)."""
+    data = prob.data
+    sim = prob.model.simulate(prob.model_space.params(x[None]))
+    tavg = 0.5 * (sim["t_hot"][0] + sim["t_cold"][0])
+    return np.array(
+        [
+            tavg[np.flatnonzero(data.step == k)[np.argmin(np.abs(data.since[data.step == k]))]]
+            for k in range(data.n_steps)
+        ]
+    )
+
+
+def sample_prior_only(
+    module: Module | LazyModule,
+    datasheet: Datasheet,
+    *,
+    rig_config: Mapping | None = None,
+    seed: int = 0,
+    options: CalibrationOptions | None = None,
+) -> tuple[dict[str, np.ndarray], ParameterSpace, smp.SamplerRun]:
     """Negative control: the same sampler on the prior alone (no likelihood).
 
     Everything but the data is the calibration's own path (parameter space,
@@ -704,6 +918,7 @@ def sample_prior_only(module, datasheet, *, rig_config=None, seed=0, options=Non
     _, space = parameter_space(rig, datasheet, data, model.shift_bound, form=opt.model)
     nwalkers = 2 * space.ndim + 2 if opt.nwalkers is None else int(opt.nwalkers)
     p0 = space.sample_prior(rng, nwalkers)
-    run = smp.sample(space.log_prior, p0, seed=emcee_seed, monitor=range(space.ndim), thin_by=opt.thin_by,
-                     max_steps=opt.max_steps)
+    run = smp.sample(
+        space.log_prior, p0, seed=emcee_seed, monitor=range(space.ndim), thin_by=opt.thin_by, max_steps=opt.max_steps
+    )
     return space.values(run.chain.reshape(-1, space.ndim)), space, run

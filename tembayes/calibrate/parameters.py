@@ -12,10 +12,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from tembayes.calibrate.priors import ParameterPrior
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping, Sequence
 
 
 @dataclass(frozen=True)
@@ -34,26 +38,29 @@ class ParameterSpace:
     fixed: dict = field(default_factory=dict)
 
     @property
-    def names(self):
+    def names(self) -> tuple[str, ...]:
+        """Names of the sampled parameters, in coordinate order."""
         return tuple(p.name for p in self.priors)
 
     @property
-    def ndim(self):
+    def ndim(self) -> int:
+        """Number of sampled coordinates."""
         return len(self.priors)
 
-    def index(self, name):
+    def index(self, name: str) -> int:
+        """Coordinate index of the parameter ``name``."""
         return self.names.index(name)
 
-    def to_x(self, values):
+    def to_x(self, values: Mapping[str, float]) -> np.ndarray:
         """Coordinate vector of a mapping ``name -> value`` (SI)."""
         return np.array([p.to_unconstrained(values[p.name]) for p in self.priors], dtype=float)
 
-    def values(self, X):
+    def values(self, X: np.ndarray) -> dict[str, np.ndarray]:
         """``name -> ndarray (nw,)`` of every coordinate, in SI."""
         X = np.atleast_2d(X)
         return {p.name: p.from_unconstrained(X[:, j]) for j, p in enumerate(self.priors)}
 
-    def params(self, X, names=None):
+    def params(self, X: np.ndarray, names: Sequence[str] | None = None) -> dict:
         """Model parameter mapping for coordinate vectors ``X`` ``(nw, p)``.
 
         ``names`` restricts the sampled parameters passed on (e.g. to leave
@@ -70,7 +77,7 @@ class ParameterSpace:
         centre = np.array([np.log(p.center) if p.kind == "lognormal" else p.center for p in self.priors])
         return gauss, centre, np.array([p.scale for p in self.priors])
 
-    def log_prior(self, X):
+    def log_prior(self, X: np.ndarray) -> np.ndarray:
         """Log prior density of coordinate vectors ``(nw, p)`` -> ``(nw,)``."""
         X = np.atleast_2d(X)
         gauss, centre, scale = self._prior_arrays
@@ -81,7 +88,7 @@ class ParameterSpace:
             out = np.where(inside, out - np.sum(np.log(2.0 * scale[~gauss])), -np.inf)
         return out
 
-    def clip(self, X):
+    def clip(self, X: np.ndarray) -> np.ndarray:
         """Pull coordinates of bounded (uniform) parameters inside their bounds."""
         X = np.array(X, dtype=float)
         for j, p in enumerate(self.priors):
@@ -90,10 +97,10 @@ class ParameterSpace:
                 X[..., j] = np.clip(X[..., j], p.center - lim, p.center + lim)
         return X
 
-    def sample_prior(self, rng, n):
+    def sample_prior(self, rng: np.random.Generator, n: int) -> np.ndarray:
         """``(n, p)`` coordinate draws from the prior."""
         return np.column_stack([p.to_unconstrained(p.sample(rng, n)) for p in self.priors])
 
-    def with_prior(self, prior: ParameterPrior):
+    def with_prior(self, prior: ParameterPrior) -> ParameterSpace:
         """A copy with one coordinate's prior replaced (same name)."""
         return ParameterSpace(tuple(prior if p.name == prior.name else p for p in self.priors), dict(self.fixed))

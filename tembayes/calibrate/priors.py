@@ -22,10 +22,19 @@ Rig nuisance parameters: log-normal around the rig's nominal value whose
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from tembayes.constants import MODULE_PARAMETERS
+
+if TYPE_CHECKING:
+    from collections.abc import Callable, Sequence
+
+    from numpy.typing import ArrayLike
+
+    from tembayes.data.batch import Datasheet
+    from tembayes.physics.rig import RigParameter
 
 #: Log-sd of the log-normal priors of R0, S0 and K around the datasheet values.
 LEVEL_LOG_SD = 0.3
@@ -53,16 +62,17 @@ class ParameterPrior:
     center: float
     scale: float
 
-    def to_unconstrained(self, x):
+    def to_unconstrained(self, x: ArrayLike) -> np.ndarray:
         """Map a value to the sampler's coordinate (log for log-normal)."""
         x = np.asarray(x, dtype=float)
         return np.log(x) if self.kind == "lognormal" else x
 
-    def from_unconstrained(self, u):
+    def from_unconstrained(self, u: ArrayLike) -> np.ndarray:
+        """Map a sampler's coordinate back to the value (SI; exp for log-normal)."""
         u = np.asarray(u, dtype=float)
         return np.exp(u) if self.kind == "lognormal" else u
 
-    def logpdf_unconstrained(self, u):
+    def logpdf_unconstrained(self, u: ArrayLike) -> np.ndarray:
         """Log density in the sampler's coordinate (Jacobian included)."""
         u = np.asarray(u, dtype=float)
         if self.kind == "uniform":
@@ -72,7 +82,7 @@ class ParameterPrior:
         z = (u - m) / self.scale
         return -0.5 * z * z - np.log(self.scale) - 0.5 * np.log(2.0 * np.pi)
 
-    def logpdf(self, x):
+    def logpdf(self, x: ArrayLike) -> np.ndarray:
         """Log density of the value ``x`` (SI)."""
         x = np.asarray(x, dtype=float)
         if self.kind == "lognormal":
@@ -81,17 +91,19 @@ class ParameterPrior:
             return np.where(x > 0, out, -np.inf)
         return self.logpdf_unconstrained(x)
 
-    def sample(self, rng, n):
+    def sample(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        """Draw ``n`` values (SI) from the prior with the generator ``rng``."""
         if self.kind == "uniform":
             return self.center + self.scale * rng.uniform(-1.0, 1.0, n)
         m = np.log(self.center) if self.kind == "lognormal" else self.center
         return self.from_unconstrained(m + self.scale * rng.standard_normal(n))
 
-    def to_dict(self):
+    def to_dict(self) -> dict[str, str | float]:
+        """JSON-ready dict of the prior's kind, center and scale."""
         return {"kind": self.kind, "center": self.center, "scale": self.scale}
 
 
-def law_priors(datasheet):
+def law_priors(datasheet: Datasheet) -> tuple[ParameterPrior, ...]:
     """Priors of ``R0, R1, S0, S1, K`` (contract order) from a datasheet.
 
     Parameters
@@ -112,9 +124,12 @@ def law_priors(datasheet):
     )
 
 
-def law_log_prior(datasheet):
-    """Callable ``f(theta) -> log prior`` for ``theta`` of shape ``(n, 5)`` in
-    :data:`~tembayes.constants.MODULE_PARAMETERS` order (SI)."""
+def law_log_prior(datasheet: Datasheet) -> Callable[[ArrayLike], np.ndarray]:
+    """Callable ``f(theta) -> log prior`` of the law parameters from a datasheet.
+
+    ``theta`` has shape ``(n, 5)``, in
+    :data:`~tembayes.constants.MODULE_PARAMETERS` order (SI).
+    """
     priors = law_priors(datasheet)
     assert tuple(p.name for p in priors) == MODULE_PARAMETERS
 
@@ -125,14 +140,15 @@ def law_log_prior(datasheet):
     return log_prior
 
 
-def rig_prior(parameter):
-    """Log-normal prior of a :class:`~tembayes.physics.rig.RigParameter`:
-    centred on the nominal value, its documented range spanning +-2 sd."""
-    return ParameterPrior(parameter.name, "lognormal", parameter.nominal,
-                          np.log(parameter.high / parameter.low) / 4.0)
+def rig_prior(parameter: RigParameter) -> ParameterPrior:
+    """Log-normal prior of a :class:`~tembayes.physics.rig.RigParameter`.
+
+    Centred on the nominal value, its documented range spanning +-2 sd.
+    """
+    return ParameterPrior(parameter.name, "lognormal", parameter.nominal, np.log(parameter.high / parameter.low) / 4.0)
 
 
-def effect_priors(names):
+def effect_priors(names: Sequence[str]) -> tuple[ParameterPrior, ...]:
     """Priors of the parameters of catalogue effects added to a calibration.
 
     Zero is the base model.  A signed parameter gets ``N(0, scale)``; one that

@@ -45,15 +45,24 @@ import re
 import tempfile
 import warnings
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import arviz as az
 import numpy as np
 import xarray as xr
 
+from tembayes.calibrate.diagnostics import ModuleDiagnostics
 from tembayes.calibrate.module import ModuleCalibration
 from tembayes.calibrate.stepdata import CHANNELS
+from tembayes.common.arvizlib import az
 from tembayes.constants import KELVIN, MODULE_PARAMETERS, T_REF
 from tembayes.data.write import to_jsonable
+
+if TYPE_CHECKING:
+    from collections.abc import Callable, Mapping, Sequence
+
+    from numpy.typing import ArrayLike
+
+    from tembayes.calibrate.population import PopulationResult
 
 
 def _pad(arrays, fill=np.nan):
@@ -68,11 +77,25 @@ def _pad(arrays, fill=np.nan):
 # -- units -------------------------------------------------------------------
 #: Name tokens that are a unit: the parameter names end in their unit
 #: (``R0_ohm``, ``K_W_per_K``, ``step_shift_s``, ``offset_sd_dT_K``).
-_UNIT_TOKENS = {"ohm": "ohm", "V": "V", "K": "K", "W": "W", "A": "A", "J": "J", "s": "s", "m": "m",
-                "C": "degC", "rel": "1", "fraction": "1"}
+_UNIT_TOKENS = {
+    "ohm": "ohm",
+    "V": "V",
+    "K": "K",
+    "W": "W",
+    "A": "A",
+    "J": "J",
+    "s": "s",
+    "m": "m",
+    "C": "degC",
+    "rel": "1",
+    "fraction": "1",
+}
 #: Variables whose name does not end in a unit.
 _FIXED_UNITS = {
-    "step_response": "nat", "lp": "nat", "obs_step": "1", "step_direction": "1",
+    "step_response": "nat",
+    "lp": "nat",
+    "obs_step": "1",
+    "step_direction": "1",
     "noise_sd": "per channel: " + ", ".join(_UNIT_TOKENS[c.rsplit("_", 1)[1]] for c in CHANNELS),
 }
 
@@ -102,7 +125,7 @@ def _suffix_unit(name):
     return _UNIT_TOKENS.get(tok[-1]) if len(tok) >= 2 else None
 
 
-def variable_unit(name):
+def variable_unit(name: str) -> str | None:
     """SI unit of a ``posterior.nc`` variable (its ``units`` attribute), or None if unknown.
 
     From, in turn: the log-likelihoods (``"nat"``) and indices (``"1"``); the
@@ -122,7 +145,7 @@ def variable_unit(name):
         return "1"
     for prefix in ("hyper_", "mu_", "tau_"):
         if name.startswith(prefix):
-            return variable_unit(name[len(prefix):])
+            return variable_unit(name[len(prefix) :])
     return _suffix_unit(name)
 
 
@@ -136,14 +159,30 @@ def _set_units(ds):
 
 
 def _meta(r: ModuleCalibration):
-    return json.dumps(to_jsonable({
-        "module_id": r.module_id, "names": list(r.names), "priors": r.priors, "map": r.map,
-        "diagnostics": r.diagnostics, "hysteresis": r.hysteresis, "seed": r.seed, "rig": r.rig,
-        "options": r.options,
-    }))
+    return json.dumps(
+        to_jsonable(
+            {
+                "module_id": r.module_id,
+                "names": list(r.names),
+                "priors": r.priors,
+                "map": r.map,
+                "diagnostics": r.diagnostics.to_json(),
+                "hysteresis": r.hysteresis,
+                "seed": r.seed,
+                "rig": r.rig,
+                "options": r.options,
+            }
+        )
+    )
 
 
-def to_inference_data(results, *, population=None, prior_draws=None, attrs=None):
+def to_inference_data(
+    results: Sequence[ModuleCalibration],
+    *,
+    population: PopulationResult | None = None,
+    prior_draws: Mapping[str, ArrayLike] | None = None,
+    attrs: Mapping | None = None,
+) -> az.InferenceData:
     """InferenceData of one or more :class:`ModuleCalibration` (same parameters).
 
     Parameters
@@ -193,8 +232,13 @@ def to_inference_data(results, *, population=None, prior_draws=None, attrs=None)
         },
         coords={**oc, "step": np.arange(ns), "channel": list(CHANNELS)},
     )
-    groups = {"posterior": post, "log_likelihood": loglik, "sample_stats": stats, "observed_data": observed,
-              "constant_data": const}
+    groups = {
+        "posterior": post,
+        "log_likelihood": loglik,
+        "sample_stats": stats,
+        "observed_data": observed,
+        "constant_data": const,
+    }
     if prior_draws is not None:
         groups["prior"] = prior_dataset(prior_draws, mods)
     if population is not None:
@@ -208,22 +252,27 @@ def to_inference_data(results, *, population=None, prior_draws=None, attrs=None)
     for g in idata.groups():
         getattr(idata, g).attrs.update({"tembayes_tref_C": T_REF - KELVIN})
     idata.posterior.attrs.update(meta)
-    idata.posterior.attrs.update({k: json.dumps(to_jsonable(v)) if not isinstance(v, str) else v
-                                  for k, v in (attrs or {}).items()})
+    idata.posterior.attrs.update(
+        {k: json.dumps(to_jsonable(v)) if not isinstance(v, str) else v for k, v in (attrs or {}).items()}
+    )
     return idata
 
 
-def prior_dataset(prior_draws, modules):
-    """The ``prior`` group: ``name -> (n,)`` draws as one chain, the same for every module
-    (they share the datasheet prior) [chain, draw, module], with units."""
+def prior_dataset(prior_draws: Mapping[str, ArrayLike], modules: Sequence[str]) -> xr.Dataset:
+    """The ``prior`` group: ``name -> (n,)`` draws as one chain, with units.
+
+    The same draws for every module (they share the datasheet prior), on
+    the dimensions [chain, draw, module].
+    """
     n = len(next(iter(prior_draws.values())))
-    data = {k: (("chain", "draw", "module"),
-                np.repeat(np.asarray(v, dtype=float)[None, :, None], len(modules), axis=2))
-            for k, v in prior_draws.items()}
+    data = {
+        k: (("chain", "draw", "module"), np.repeat(np.asarray(v, dtype=float)[None, :, None], len(modules), axis=2))
+        for k, v in prior_draws.items()
+    }
     return _set_units(xr.Dataset(data, coords={"chain": [0], "draw": np.arange(n), "module": list(modules)}))
 
 
-def population_dataset(pop):
+def population_dataset(pop: PopulationResult) -> xr.Dataset:
     """The ``population`` group: predictive draws [chain, draw] and hyperparameters."""
     pred = np.asarray(pop.predictive)
     first = next(iter(pop.hyper.values())) if pop.hyper else None
@@ -262,7 +311,7 @@ def _atomic(path):
             os.unlink(tmp)
 
 
-def write_netcdf(idata, path):
+def write_netcdf(idata: az.InferenceData, path: Path | str) -> Path:
     """Write an InferenceData atomically (temporary file, then rename)."""
     with _atomic(path) as tmp, warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -270,7 +319,7 @@ def write_netcdf(idata, path):
     return Path(path)
 
 
-def read_module(path):
+def read_module(path: Path | str) -> ModuleCalibration:
     """Restore a :class:`ModuleCalibration` from a per-module ``.nc`` file."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -297,23 +346,37 @@ def read_module(path):
     time_s = const["obs_time_s"].sel(module=mid).values[:nobs]
     step = const["obs_step"].sel(module=mid).values[:nobs].astype(int)
     return ModuleCalibration(
-        module_id=mid, names=names, draws=draws, log_prob=idata.sample_stats["lp"].sel(module=mid).values,
-        step_loglike=ll[:, :, :ns], priors=meta["priors"], map=meta["map"], diagnostics=meta["diagnostics"],
+        module_id=mid,
+        names=names,
+        draws=draws,
+        log_prob=idata.sample_stats["lp"].sel(module=mid).values,
+        step_loglike=ll[:, :, :ns],
+        priors=meta["priors"],
+        map=meta["map"],
+        diagnostics=ModuleDiagnostics.from_json(meta["diagnostics"]),
         steps=steps,
-        observed={"time_s": time_s, "step": step, "since_s": time_s - steps["t_s"][step], "obs": obs,
-                  "noise": const["noise_sd"].sel(module=mid).values},
-        hysteresis=meta["hysteresis"], seed=meta["seed"], rig=meta["rig"], options=meta.get("options", {}),
+        observed={
+            "time_s": time_s,
+            "step": step,
+            "since_s": time_s - steps["t_s"][step],
+            "obs": obs,
+            "noise": const["noise_sd"].sel(module=mid).values,
+        },
+        hysteresis=meta["hysteresis"],
+        seed=meta["seed"],
+        rig=meta["rig"],
+        options=meta.get("options", {}),
     )
 
 
-def stats(x):
+def stats(x: ArrayLike) -> dict[str, float]:
     """``{"mean", "sd", "q05", "q95"}`` of draws."""
     x = np.asarray(x, dtype=float).ravel()
     q05, q95 = np.quantile(x, [0.05, 0.95])
     return {"mean": float(np.mean(x)), "sd": float(np.std(x, ddof=1)), "q05": float(q05), "q95": float(q95)}
 
 
-def module_entry(r, outlier_prob=None):
+def module_entry(r: ModuleCalibration, outlier_prob: float | None = None) -> dict:
     """One module's ``summary.json`` entry (docs/outputs.md, 'summary.json (calibrate)').
 
     The five parameters, ``outlier_prob`` (null without a population fit or
@@ -326,20 +389,31 @@ def module_entry(r, outlier_prob=None):
     entry = {k: stats(r.draws[k]) for k in MODULE_PARAMETERS}
     entry["outlier_prob"] = None if outlier_prob is None else float(outlier_prob)
     entry["diagnostics"] = {
-        "rhat_max": d["rhat_max"], "ess_bulk_min": d["ess_bulk_min"], "converged": bool(d["converged"]),
-        "tau_max_steps": d["tau_max_steps"], "chain_over_tau": d["chain_over_tau"], "steps": d["steps"],
-        "psis_k": d["psis"][-1]["k_hat"], "sampler_converged": d["sampler_converged"],
-        "seconds": d["timings"]["total_s"],
+        "rhat_max": d.rhat_max,
+        "ess_bulk_min": d.ess_bulk_min,
+        "converged": d.converged,
+        "tau_max_steps": d.tau_max_steps,
+        "chain_over_tau": d.chain_over_tau,
+        "steps": d.steps,
+        "psis_k": d.psis_k,
+        "sampler_converged": d.sampler_converged,
+        "seconds": d.timings["total_s"],
     }
     for k in ("rhat_walkers_max", "discrepancy", "adequacy"):  # runs that predate them have none
-        if k in d:
-            entry["diagnostics"][k] = d[k]
+        if getattr(d, k) is not None:
+            entry["diagnostics"][k] = getattr(d, k)
     entry["hysteresis"] = r.hysteresis
     entry["nuisance"] = {k: stats(r.draws[k]) for k in r.names if k not in MODULE_PARAMETERS}
     return entry
 
 
-def summary(results, population=None, *, extra=None, entries=None):
+def summary(
+    results: Sequence[ModuleCalibration],
+    population: PopulationResult | None = None,
+    *,
+    extra: Mapping | None = None,
+    entries: Mapping[str, dict] | None = None,
+) -> dict:
     """``summary.json`` content (docs/outputs.md, 'summary.json (calibrate)').
 
     Parameters
@@ -366,8 +440,10 @@ def summary(results, population=None, *, extra=None, entries=None):
         out["population_diagnostics"] = population.diagnostics
     else:
         out["population"] = None
-    out["converged"] = bool(all(m["diagnostics"]["converged"] for m in mods.values()) and
-                            (population is None or bool(population.diagnostics.get("converged", True))))
+    out["converged"] = bool(
+        all(m["diagnostics"]["converged"] for m in mods.values())
+        and (population is None or bool(population.diagnostics.get("converged", True)))
+    )
     if extra:
         out.update(extra)
     return to_jsonable(out)
@@ -389,11 +465,25 @@ def _module_layout(path):
         ns = int(np.sum(np.isfinite(f["constant_data"]["step_time_s"][0, :])))
         nobs = int(np.sum(np.isfinite(f["observed_data"][CHANNELS[0]][0, :])))
         mid = post["module"][0]
-        return {"names": names, "nw": post.dimensions["chain"].size, "nk": post.dimensions["draw"].size,
-                "ns": ns, "nobs": nobs, "module": mid.decode() if isinstance(mid, bytes) else str(mid)}
+        return {
+            "names": names,
+            "nw": post.dimensions["chain"].size,
+            "nk": post.dimensions["draw"].size,
+            "ns": ns,
+            "nobs": nobs,
+            "module": mid.decode() if isinstance(mid, bytes) else str(mid),
+        }
 
 
-def write_run_posterior(path, module_files, *, population=None, prior_draws=None, attrs=None, progress=None):
+def write_run_posterior(
+    path: Path | str,
+    module_files: Sequence[Path],
+    *,
+    population: PopulationResult | None = None,
+    prior_draws: Mapping[str, ArrayLike] | None = None,
+    attrs: Mapping | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> Path:
     """Write ``posterior.nc`` of a batch from its per-module files, one module at a time.
 
     The result is the file :func:`to_inference_data` of all the modules would
@@ -426,25 +516,38 @@ def write_run_posterior(path, module_files, *, population=None, prior_draws=None
     names, nw, nk = lay[0]["names"], lay[0]["nw"], lay[0]["nk"]
     for p, m in zip(module_files, lay):
         if m["names"] != names or (m["nw"], m["nk"]) != (nw, nk):
-            raise ValueError(f"{p}: parameters {m['names']} and draws {(m['nw'], m['nk'])} differ from "
-                             f"the first module's {names}, {(nw, nk)}")
+            raise ValueError(
+                f"{p}: parameters {m['names']} and draws {(m['nw'], m['nk'])} differ from "
+                f"the first module's {names}, {(nw, nk)}"
+            )
     mods = [m["module"] for m in lay]
     n, ns, nobs = len(mods), max(m["ns"] for m in lay), max(m["nobs"] for m in lay)
     tref = T_REF - KELVIN
     with _atomic(path) as tmp:
         with h5netcdf.File(tmp, "w") as f:
             sizes = {"chain": nw, "draw": nk, "module": n, "step": ns, "obs": nobs, "channel": len(CHANNELS)}
-            coord = {"chain": np.arange(nw), "draw": np.arange(nk), "module": mods, "step": np.arange(ns),
-                     "obs": np.arange(nobs), "channel": list(CHANNELS)}
+            coord = {
+                "chain": np.arange(nw),
+                "draw": np.arange(nk),
+                "module": mods,
+                "step": np.arange(ns),
+                "obs": np.arange(nobs),
+                "channel": list(CHANNELS),
+            }
             layout = {  # group -> variable -> dims (the to_inference_data layout)
                 "posterior": {k: ("chain", "draw", "module") for k in names},
                 "log_likelihood": {"step_response": ("chain", "draw", "module", "step")},
                 "sample_stats": {"lp": ("chain", "draw", "module")},
                 "observed_data": {c: ("module", "obs") for c in CHANNELS},
-                "constant_data": {"obs_time_s": ("module", "obs"), "obs_step": ("module", "obs"),
-                                  "step_time_s": ("module", "step"), "step_dI_A": ("module", "step"),
-                                  "step_direction": ("module", "step"), "step_Tavg_C": ("module", "step"),
-                                  "noise_sd": ("module", "channel")},
+                "constant_data": {
+                    "obs_time_s": ("module", "obs"),
+                    "obs_step": ("module", "obs"),
+                    "step_time_s": ("module", "step"),
+                    "step_dI_A": ("module", "step"),
+                    "step_direction": ("module", "step"),
+                    "step_Tavg_C": ("module", "step"),
+                    "noise_sd": ("module", "channel"),
+                },
             }
             groups = {}
             for g, variables in layout.items():
@@ -474,8 +577,9 @@ def write_run_posterior(path, module_files, *, population=None, prior_draws=None
                 grp.create_variable("draw", ("draw",), data=np.arange(nd, dtype=np.int64))
                 grp.create_variable("module", ("module",), dtype=_vlen_str(), data=np.array(mods, dtype=object))
                 for k in prior:
-                    v = grp.create_variable(k, ("chain", "draw", "module"), dtype="f8", chunks=(1, nd, 1),
-                                            fillvalue=np.nan)
+                    v = grp.create_variable(
+                        k, ("chain", "draw", "module"), dtype="f8", chunks=(1, nd, 1), fillvalue=np.nan
+                    )
                     v.attrs["_FillValue"] = np.nan
                     if variable_unit(k) is not None:
                         v.attrs["units"] = variable_unit(k)

@@ -11,11 +11,19 @@ import json
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from tembayes.constants import KELVIN, MODULE_PARAMETERS, T_REF
 from tembayes.errors import DataError
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from tembayes.calibrate.module import CalibrationOptions
+    from tembayes.data import Batch
+    from tembayes.physics.rig import RigDescription
 
 
 @dataclass
@@ -53,32 +61,33 @@ class CalibrationRun:
 
     def _check(self, module_id):
         if module_id not in self.module_ids:
-            raise ValueError(f"module {module_id!r} is not in the run {self.path}; "
-                             f"modules: {', '.join(self.module_ids)}")
+            raise ValueError(
+                f"module {module_id!r} is not in the run {self.path}; modules: {', '.join(self.module_ids)}"
+            )
 
     # -- per-module summary facts -----------------------------------------
-    def module_summary(self, module_id) -> dict:
+    def module_summary(self, module_id: str) -> dict:
         """The module's entry of ``summary.json``."""
         self._check(module_id)
         return self.summary["modules"][module_id]
 
-    def outlier_prob(self, module_id):
+    def outlier_prob(self, module_id: str) -> float | None:
         """Posterior probability that the module is off the population, or None without a population fit."""
         p = self.module_summary(module_id).get("outlier_prob")
         if p is None and self.has_population:
             p = _json_attr(self.idata.population.attrs, "outlier_prob", {}).get(module_id)
         return None if p is None or not np.isfinite(float(p)) else float(p)
 
-    def diagnostics(self, module_id) -> dict:
+    def diagnostics(self, module_id: str) -> dict:
         """The module's ``diagnostics`` (``rhat_max``, ``ess_bulk_min``, ``converged``, ...)."""
         return self.module_summary(module_id).get("diagnostics") or {}
 
-    def converged(self, module_id):
+    def converged(self, module_id: str) -> bool | None:
         """True/False as recorded, None if the run did not record it."""
         c = self.diagnostics(module_id).get("converged")
         return None if c is None else bool(c)
 
-    def status(self, module_id) -> str:
+    def status(self, module_id: str) -> str:
         """``"converged (R̂ 1.004, ESS 1200)"`` or ``"NOT CONVERGED (...)"``."""
         d = self.diagnostics(module_id)
         bits = []
@@ -92,7 +101,7 @@ class CalibrationRun:
             return "convergence not recorded" + extra
         return ("converged" if c else "NOT CONVERGED") + extra
 
-    def hysteresis(self, module_id) -> dict:
+    def hysteresis(self, module_id: str) -> dict:
         """``{"R_ohm": {"estimate", "sd", "z"}, "S_V_per_K": {...}}`` (up - down, SI), or {}."""
         return self.module_summary(module_id).get("hysteresis") or {}
 
@@ -100,7 +109,7 @@ class CalibrationRun:
         """The calibration options recorded in ``summary.json`` (``model`` is ``"paper"`` for runs that predate it)."""
         return {"model": "paper", **((self.summary.get("calibration") or {}).get("options") or {})}
 
-    def rig_for(self, batch):
+    def rig_for(self, batch: Batch) -> RigDescription:
         """The calibration rig of this run on ``batch``, after checking the batch holds every module.
 
         Raises
@@ -112,11 +121,14 @@ class CalibrationRun:
 
         missing = [m for m in self.module_ids if m not in batch.modules]
         if missing:
-            raise DataError(batch.path, f"has no module folder(s) {missing} of the run",
-                            "Give the batch folder the run was calibrated on.")
+            raise DataError(
+                batch.path,
+                f"has no module folder(s) {missing} of the run",
+                "Give the batch folder the run was calibrated on.",
+            )
         return calibration_rig(batch.rig_config, self.calibration_options())
 
-    def calibration_options(self):
+    def calibration_options(self) -> CalibrationOptions:
         """The run's :class:`~tembayes.calibrate.module.CalibrationOptions` (options it does not know at their defaults)."""
         import dataclasses
 
@@ -125,7 +137,7 @@ class CalibrationRun:
         known = {f.name for f in dataclasses.fields(CalibrationOptions)}
         return CalibrationOptions(**{k: v for k, v in self.options().items() if k in known})
 
-    def priors(self, module_id) -> dict:
+    def priors(self, module_id: str) -> dict:
         """``name -> {"kind", "center", "scale"}`` of the module's priors (from ``posterior.nc``)."""
         self._check(module_id)
         return self._meta.get(module_id, {}).get("priors") or {}
@@ -135,7 +147,9 @@ class CalibrationRun:
         """Names of the sampled parameters in ``posterior.nc``."""
         return tuple(self.idata.posterior.data_vars)
 
-    def draws(self, module_id, params=MODULE_PARAMETERS, *, max_draws=None) -> np.ndarray:
+    def draws(
+        self, module_id: str, params: Sequence[str] = MODULE_PARAMETERS, *, max_draws: int | None = None
+    ) -> np.ndarray:
         """Posterior draws of one module, shape ``(n, len(params))``, SI.
 
         Parameters
@@ -155,12 +169,15 @@ class CalibrationRun:
         post = self.idata.posterior
         missing = [p for p in params if p not in post]
         if missing:
-            raise ValueError(f"{self.path / 'posterior.nc'} has no parameter(s) {missing}; "
-                             f"it has {list(post.data_vars)}")
+            raise ValueError(
+                f"{self.path / 'posterior.nc'} has no parameter(s) {missing}; it has {list(post.data_vars)}"
+            )
         cols = [np.asarray(post[p].sel(module=module_id).values, dtype=float) for p in params]
         return _rows(cols, max_draws)
 
-    def population_draws(self, params=MODULE_PARAMETERS, *, max_draws=None):
+    def population_draws(
+        self, params: Sequence[str] = MODULE_PARAMETERS, *, max_draws: int | None = None
+    ) -> np.ndarray | None:
         """Population-predictive draws (a new module), ``(n, len(params))`` SI, or None.
 
         None when the run has no population fit or it lacks one of ``params``.
@@ -174,7 +191,7 @@ class CalibrationRun:
         out = _rows(cols, max_draws)
         return out if len(out) else None
 
-    def prior_draws(self, params=MODULE_PARAMETERS, module_id=None):
+    def prior_draws(self, params: Sequence[str] = MODULE_PARAMETERS, module_id: str | None = None) -> np.ndarray | None:
         """Draws of the datasheet prior, ``(n, len(params))`` SI, or None.
 
         ``module_id``: the module's (default the first; a batch's modules share
@@ -190,7 +207,7 @@ class CalibrationRun:
         return _rows([np.asarray(pr[p].values, dtype=float) for p in params], None)
 
     # -- steps ----------------------------------------------------------------
-    def steps(self, module_id) -> dict:
+    def steps(self, module_id: str) -> dict:
         """The module's step windows, padding removed.
 
         Returns
@@ -217,7 +234,7 @@ class CalibrationRun:
         out["n_samples"] = np.bincount(valid[valid < n], minlength=n)[:n] if n else np.zeros(0, int)
         return out
 
-    def step_loglike(self, module_id) -> np.ndarray:
+    def step_loglike(self, module_id: str) -> np.ndarray:
         """Log-likelihood of each step window per draw, shape ``(chain, draw, n_steps)`` [nats]."""
         n = len(self.steps(module_id)["t_s"])
         ll = np.asarray(self.idata.log_likelihood["step_response"].sel(module=module_id).values, dtype=float)
@@ -245,7 +262,7 @@ def _rows(cols, max_draws):
     return X
 
 
-def load_run(run_dir) -> CalibrationRun:
+def load_run(run_dir: Path | str) -> CalibrationRun:
     """Open a calibration run folder.
 
     Parameters
@@ -264,7 +281,7 @@ def load_run(run_dir) -> CalibrationRun:
         The folder or one of the two files is missing or unreadable, or the
         two files describe different modules.
     """
-    import arviz as az  # heavy; only the loader needs it
+    from tembayes.common.arvizlib import az  # heavy; only the loader needs it
 
     run = Path(run_dir)
     hint = "Give the --out folder of a finished `tembayes calibrate BATCH --out RUN`."
@@ -274,38 +291,47 @@ def load_run(run_dir) -> CalibrationRun:
     summ_path = run / "summary.json"
     for p in (post_path, summ_path):
         if not p.is_file():
-            raise DataError(p, f"missing: the run folder has no {p.name}",
-                            hint + " An interrupted run writes it only at the end; rerun with --resume.")
+            raise DataError(
+                p,
+                f"missing: the run folder has no {p.name}",
+                hint + " An interrupted run writes it only at the end; rerun with --resume.",
+            )
     try:
         summary = json.loads(summ_path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise DataError(summ_path, f"cannot be read as JSON ({exc})", "Rerun the calibration.") from exc
     if not isinstance(summary, dict) or not isinstance(summary.get("modules"), dict):
-        raise DataError(summ_path, "has no 'modules' table", "It is not a tembayes calibrate summary.",
-                        column="modules")
+        raise DataError(
+            summ_path, "has no 'modules' table", "It is not a tembayes calibrate summary.", column="modules"
+        )
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # "population" is not a standard arviz group
             idata = az.from_netcdf(post_path, engine="h5netcdf")
     except Exception as exc:  # h5py/xarray raise many types for a broken file
-        raise DataError(post_path, f"cannot be read as arviz InferenceData ({type(exc).__name__}: {exc})",
-                        "Rerun the calibration.") from exc
+        raise DataError(
+            post_path, f"cannot be read as arviz InferenceData ({type(exc).__name__}: {exc})", "Rerun the calibration."
+        ) from exc
     for g in ("posterior", "log_likelihood", "constant_data"):
         if g not in idata.groups():
             raise DataError(post_path, f"has no '{g}' group", "It is not a tembayes calibrate posterior.")
     if "module" not in idata.posterior.dims:
-        raise DataError(post_path, "the posterior has no 'module' dimension",
-                        "It is not a tembayes calibrate posterior.")
+        raise DataError(
+            post_path, "the posterior has no 'module' dimension", "It is not a tembayes calibrate posterior."
+        )
     mods = tuple(str(m) for m in idata.posterior["module"].values)
     missing = [m for m in mods if m not in summary["modules"]]
     if missing:
-        raise DataError(summ_path, f"has no entry for module(s) {missing} of posterior.nc",
-                        "The two files come from different runs; rerun the calibration.")
+        raise DataError(
+            summ_path,
+            f"has no entry for module(s) {missing} of posterior.nc",
+            "The two files come from different runs; rerun the calibration.",
+        )
     meta = {m: _json_attr(idata.posterior.attrs, f"module_{m}", {}) for m in mods}
     return CalibrationRun(path=run, idata=idata, summary=summary, module_ids=mods, _meta=meta)
 
 
-def load_run_batch(run, path=None) -> tuple:
+def load_run_batch(run: CalibrationRun, path: Path | str | None = None) -> tuple:
     """The batch a run was calibrated on, checked against the digests the run recorded.
 
     Parameters
@@ -336,18 +362,27 @@ def load_run_batch(run, path=None) -> tuple:
     recorded = rec.get("path")
     notes = []
     if path is None:
-        candidates = [Path(recorded)] if recorded and Path(recorded).is_absolute() else \
-            [Path(recorded), run.path.parent / recorded] if recorded else []
+        candidates = (
+            [Path(recorded)]
+            if recorded and Path(recorded).is_absolute()
+            else [Path(recorded), run.path.parent / recorded]
+            if recorded
+            else []
+        )
         path = next((c for c in candidates if (c / "batch.toml").is_file()), None)
         if path is None:
-            raise DataError(run.path / "summary.json", f"names batch folder {recorded!r}, which is not there "
-                            "(moved?)", "Give the batch the run was calibrated on with --batch BATCH.",
-                            column="batch.path")
+            raise DataError(
+                run.path / "summary.json",
+                f"names batch folder {recorded!r}, which is not there (moved?)",
+                "Give the batch the run was calibrated on with --batch BATCH.",
+                column="batch.path",
+            )
     batch = load_batch(path)
     inputs = rec.get("inputs")
     if not inputs:
-        notes.append(f"the run records no digest of its batch (an older run): make sure {path} is the batch it was "
-                     "calibrated on")
+        notes.append(
+            f"the run records no digest of its batch (an older run): make sure {path} is the batch it was calibrated on"
+        )
         return batch, notes
     ids = set(run.module_ids)
     key = lambda k: k == "batch.toml" or (k.endswith("/identification.csv") and k.split("/")[0] in ids)  # noqa: E731
@@ -355,14 +390,21 @@ def load_run_batch(run, path=None) -> tuple:
     diff = compare_inputs(inputs, now, only=key)
     if diff.changed or diff.missing:
         what = ", ".join([*(f"{k} changed" for k in diff.changed), *(f"{k} missing" for k in diff.missing)][:4])
-        raise DataError(path, f"is not the batch the run was calibrated on ({what})",
-                        "Give the original batch with --batch, or calibrate this one")
+        raise DataError(
+            path,
+            f"is not the batch the run was calibrated on ({what})",
+            "Give the original batch with --batch, or calibrate this one",
+        )
     if recorded and Path(recorded).resolve() != Path(path).resolve():
         notes.append(f"the batch moved from {recorded} to {path} (its files are the ones the run was calibrated on)")
     later = compare_inputs(inputs, now, only=lambda k: not key(k))
     if not later.same:
-        notes.append("validation runs " + "; ".join(f"{label} since the calibration: {', '.join(files[:3])}" for
-                                                     label, files in (("changed", later.changed),
-                                                                      ("added", later.added),
-                                                                      ("removed", later.missing)) if files))
+        notes.append(
+            "validation runs "
+            + "; ".join(
+                f"{label} since the calibration: {', '.join(files[:3])}"
+                for label, files in (("changed", later.changed), ("added", later.added), ("removed", later.missing))
+                if files
+            )
+        )
     return batch, notes

@@ -18,6 +18,7 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
+from tembayes.calibrate.moduledigest import digest_matches
 from tembayes.data.digest import batch_inputs, compare_inputs
 from tembayes.data.outputs import MARKER, RunLock, check_output, foreign_entries, marker, output_kind
 from tembayes.data.write import atomic_write_text
@@ -29,7 +30,7 @@ __all__ = ["RunFolder", "partial_path", "module_usable", "bytes_needed"]
 BYTES_PER_MODULE = 40 << 20
 
 
-def partial_path(run) -> Path:
+def partial_path(run: Path | str) -> Path:
     """``RUN.partial``: where a run is built until it is complete."""
     run = Path(run)
     return run.with_name(run.name + ".partial")
@@ -40,10 +41,8 @@ def bytes_needed(n_modules: int, workers: int) -> int:
     return (20 << 20) + BYTES_PER_MODULE * min(n_modules, max(workers, 1)) + (2 << 20) * n_modules
 
 
-def module_usable(nc) -> bool:
+def module_usable(nc: Path | str) -> bool:
     """Whether a module's ``.nc`` file can be read back (a resumed run recalibrates a damaged one)."""
-    from tembayes.calibrate.batch import digest_matches
-
     if digest_matches(nc):
         return True
     try:
@@ -106,9 +105,13 @@ class RunFolder:
 
     def __enter__(self) -> Path:
         say = self.progress or (lambda msg: None)
-        check_output(self.run, kind="calibrate", inputs=[(self.batch.path, "batch folder")],
-                     overwrite=self.overwrite or self.resume,
-                     need_bytes=bytes_needed(len(self.batch.modules), self.workers))
+        check_output(
+            self.run,
+            kind="calibrate",
+            inputs=[(self.batch.path, "batch folder")],
+            overwrite=self.overwrite or self.resume,
+            need_bytes=bytes_needed(len(self.batch.modules), self.workers),
+        )
         self.lock.acquire()
         try:
             if self.lock.stale_note():
@@ -123,15 +126,21 @@ class RunFolder:
     def _prepare(self, say):
         if self.partial.exists():
             if output_kind(self.partial) != "calibrate" or foreign_entries(self.partial, "calibrate"):
-                raise DataError(self.partial, "is in the way of the run and is not an interrupted tembayes run",
-                                "Move it away or choose another --out")
+                raise DataError(
+                    self.partial,
+                    "is in the way of the run and is not an interrupted tembayes run",
+                    "Move it away or choose another --out",
+                )
             if self.resume:
                 self._check_same(self.partial, say)
                 say(f"resuming the interrupted run in {self.partial}")
                 return
             if not self.overwrite:
-                raise DataError(self.partial, "holds an interrupted run of this --out",
-                                "Continue it with --resume, or start afresh with --overwrite")
+                raise DataError(
+                    self.partial,
+                    "holds an interrupted run of this --out",
+                    "Continue it with --resume, or start afresh with --overwrite",
+                )
             shutil.rmtree(self.partial)
         self.partial.mkdir(parents=True)
         if self.resume and self.run.is_dir() and any(self.run.iterdir()):
@@ -143,29 +152,41 @@ class RunFolder:
     def _check_same(self, folder, say):
         state = _state(folder)
         if state.get("seed") is not None and int(state["seed"]) != int(self.seed):
-            raise DataError(folder, f"the run was started with --seed {state['seed']}, not {self.seed}",
-                            f"Resume it with --seed {state['seed']}, or start afresh with --overwrite")
+            raise DataError(
+                folder,
+                f"the run was started with --seed {state['seed']}, not {self.seed}",
+                f"Resume it with --seed {state['seed']}, or start afresh with --overwrite",
+            )
         recorded = (state.get("batch") or {}).get("inputs")
         if recorded is None:
-            say(f"note: {folder} records no digest of its batch: make sure {self.batch.path} is the batch it was "
-                "started on")
+            say(
+                f"note: {folder} records no digest of its batch: make sure {self.batch.path} is the batch it was "
+                "started on"
+            )
             return
         diff = compare_inputs(recorded, self.inputs)
         if not diff.same:
-            what = "; ".join(f"{label}: {', '.join(files[:3])}" for label, files in
-                             (("changed", diff.changed), ("missing", diff.missing), ("new", diff.added)) if files)
-            raise DataError(folder, f"the batch {self.batch.path} differs from the one the run was started on "
-                            f"({what})", "Resume it on the same batch, or start afresh with --overwrite")
+            what = "; ".join(
+                f"{label}: {', '.join(files[:3])}"
+                for label, files in (("changed", diff.changed), ("missing", diff.missing), ("new", diff.added))
+                if files
+            )
+            raise DataError(
+                folder,
+                f"the batch {self.batch.path} differs from the one the run was started on ({what})",
+                "Resume it on the same batch, or start afresh with --overwrite",
+            )
 
     def record(self) -> dict:
         """What ``summary.json`` records of the batch: absolute path, digests of its files."""
         return {"path": str(Path(os.path.abspath(self.batch.path))), "inputs": self.inputs}
 
     def _write_marker(self, *, complete):
-        atomic_write_text(self.partial / MARKER, marker("calibrate", complete=complete, seed=int(self.seed),
-                                                        batch=self.record()))
+        atomic_write_text(
+            self.partial / MARKER, marker("calibrate", complete=complete, seed=int(self.seed), batch=self.record())
+        )
 
-    def commit(self):
+    def commit(self) -> None:
         """Swap the finished ``RUN.partial`` into place as ``RUN`` (the old ``RUN`` is removed after)."""
         self._write_marker(complete=True)
         shutil.rmtree(self.partial / "checkpoints", ignore_errors=True)

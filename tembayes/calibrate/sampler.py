@@ -40,7 +40,9 @@ would):
   reported (``rhat_walkers``).
 
 A budget (``max_steps``) ends a run that does not converge, with a warning
-and ``converged = False``.
+and ``converged = False``.  The targets are those of every run; a caller may
+loosen them for a quick look (:class:`Targets`).  The population stage
+(:mod:`tembayes.calibrate.population`) runs on this driver too.
 
 The chain is checkpointed at every convergence check (``check_every``
 stored iterations, about a second of sampling): the new iterations, the
@@ -63,10 +65,11 @@ import warnings
 import zipfile
 from dataclasses import dataclass
 
-import arviz as az
 import emcee
 import numpy as np
 from threadpoolctl import threadpool_limits
+
+from tembayes.common.arvizlib import az
 
 #: Convergence targets.
 MIN_TAU_MULTIPLE = 50.0
@@ -76,9 +79,33 @@ ESS_MIN = 1000.0
 SUPERCHAINS = 4
 
 
+@dataclass(frozen=True)
+class Targets:
+    """Convergence targets of :func:`sample`, monitored coordinates only.
+
+    Attributes
+    ----------
+    tau_multiple : float
+        Chain after burn-in at least this many integrated autocorrelation times long.
+    rhat_max : float
+        Nested R-hat at most this.
+    ess_min : float
+        Bulk ESS at least this.
+    """
+
+    tau_multiple: float = MIN_TAU_MULTIPLE
+    rhat_max: float = RHAT_MAX
+    ess_min: float = ESS_MIN
+
+
+#: The targets of every run unless a caller loosens them for a quick look.
+TARGETS = Targets()
+
+
 class IndependenceMove(emcee.moves.MHMove):
-    """Independence Metropolis-Hastings: proposals from a fixed multivariate
-    Student-t, ``mean + t_dof(0, scale^2 cov)``, whatever the walker's position.
+    """Independence Metropolis-Hastings from a fixed multivariate Student-t.
+
+    Proposals are ``mean + t_dof(0, scale^2 cov)``, whatever the walker's position.
 
     Exact for any proposal (the Hastings factor ``log q(x) - log q(x')``
     corrects it); fast when the proposal resembles the posterior, because
@@ -92,7 +119,7 @@ class IndependenceMove(emcee.moves.MHMove):
         self.dof = float(dof)
         cov = np.asarray(cov, dtype=float)
         # a whisker of diagonal keeps a near-singular fit (a pinned coordinate) factorable
-        self.chol = np.linalg.cholesky((cov + 1e-12 * np.diag(np.diag(cov))) * scale ** 2)
+        self.chol = np.linalg.cholesky((cov + 1e-12 * np.diag(np.diag(cov))) * scale**2)
         self.chol_inv = np.linalg.inv(self.chol)
         super().__init__(self._propose, ndim=len(self.mean))
 
@@ -185,16 +212,27 @@ class ChunkCheckpoint:
         st = backend.random_state
         tmp = f"{self._path(k)}.tmp{os.getpid()}"
         with open(tmp, "wb") as f:
-            np.savez(f, start=start, chain=backend.chain[start:backend.iteration],
-                     log_prob=backend.log_prob[start:backend.iteration], accepted=backend.accepted,
-                     rs_keys=st[1], rs_pos=st[2], rs_has_gauss=st[3], rs_gauss=st[4])
+            np.savez(
+                f,
+                start=start,
+                chain=backend.chain[start : backend.iteration],
+                log_prob=backend.log_prob[start : backend.iteration],
+                accepted=backend.accepted,
+                rs_keys=st[1],
+                rs_pos=st[2],
+                rs_has_gauss=st[3],
+                rs_gauss=st[4],
+            )
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, self._path(k))
 
     def _readable(self, files):
-        """The chunks before the first damaged one; that one and the rest are set aside (renamed
-        ``*.damaged``) with a warning, so the run continues from the last good chunk."""
+        """The chunks before the first damaged one.
+
+        That one and the rest are set aside (renamed ``*.damaged``) with a
+        warning, so the run continues from the last good chunk.
+        """
         for k, path in enumerate(files):
             try:
                 with np.load(path) as z:
@@ -203,15 +241,18 @@ class ChunkCheckpoint:
             except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
                 for bad in files[k:]:
                     os.replace(bad, bad + ".damaged")
-                warnings.warn(f"sampler checkpoint {path} cannot be read ({type(exc).__name__}: {exc}); it and the "
-                              f"{len(files) - k - 1} later chunk(s) were renamed *.damaged and the module continues "
-                              f"from {'chunk ' + str(k - 1) if k else 'the start'}", RuntimeWarning, stacklevel=3)
+                warnings.warn(
+                    f"sampler checkpoint {path} cannot be read ({type(exc).__name__}: {exc}); it and the "
+                    f"{len(files) - k - 1} later chunk(s) were renamed *.damaged and the module continues "
+                    f"from {'chunk ' + str(k - 1) if k else 'the start'}",
+                    RuntimeWarning,
+                    stacklevel=3,
+                )
                 return files[:k]
         return files
 
     def load(self, nwalkers, ndim):
-        """An in-memory :class:`emcee.backends.Backend` holding the stored
-        run, or None if there is none.
+        """An in-memory :class:`emcee.backends.Backend` holding the stored run, or None if there is none.
 
         Raises
         ------
@@ -225,9 +266,11 @@ class ChunkCheckpoint:
         for path in files:
             with np.load(path) as z:
                 if int(z["start"]) != n or z["chain"].shape[1:] != (nwalkers, ndim):
-                    raise ValueError(f"checkpoint {path} does not continue the run "
-                                     f"(start {int(z['start'])}, shape {z['chain'].shape[1:]}; expected {n}, "
-                                     f"{(nwalkers, ndim)}); delete the run's checkpoints/ folder to start afresh")
+                    raise ValueError(
+                        f"checkpoint {path} does not continue the run "
+                        f"(start {int(z['start'])}, shape {z['chain'].shape[1:]}; expected {n}, "
+                        f"{(nwalkers, ndim)}); delete the run's checkpoints/ folder to start afresh"
+                    )
                 chains.append(z["chain"])
                 lps.append(z["log_prob"])
                 n += len(z["chain"])
@@ -245,7 +288,7 @@ class ChunkCheckpoint:
 
 def random_state(seed):
     """A legacy ``RandomState`` state tuple for emcee from an integer seed."""
-    return np.random.RandomState(int(seed) % (2 ** 32)).get_state()
+    return np.random.RandomState(int(seed) % (2**32)).get_state()
 
 
 def nested_rhat(x, superchains=SUPERCHAINS):
@@ -261,7 +304,7 @@ def nested_rhat(x, superchains=SUPERCHAINS):
     n, nw = x.shape
     h = n // 2
     groups = np.array_split(np.arange(nw), superchains)
-    pooled = [half[:, g].ravel() for half in (x[:h], x[h:2 * h]) for g in groups]
+    pooled = [half[:, g].ravel() for half in (x[:h], x[h : 2 * h]) for g in groups]
     means = np.array([c.mean() for c in pooled])
     within = np.mean([c.var(ddof=1) for c in pooled])
     if within == 0:
@@ -291,8 +334,24 @@ def _burn(n):
     return n // 5
 
 
-def sample(log_prob, p0, *, seed, monitor, checkpoint=None, resume=False, thin_by=10, check_every=100,
-           max_steps=60000, progress=False, label="", proposal=None, stop=None):
+def sample(
+    log_prob,
+    p0,
+    *,
+    seed,
+    monitor,
+    checkpoint=None,
+    resume=False,
+    thin_by=10,
+    check_every=100,
+    max_steps=60000,
+    progress=False,
+    label="",
+    proposal=None,
+    stop=None,
+    targets=TARGETS,
+    warning=RuntimeWarning,
+):
     """Run emcee until the convergence targets are met or the budget runs out.
 
     Parameters
@@ -330,6 +389,10 @@ def sample(log_prob, p0, *, seed, monitor, checkpoint=None, resume=False, thin_b
         the chain after burn-in ``(n, nw, p)`` and the steps so far; True ends
         the run there (not converged).  Asked at the same step counts in a
         resumed run, so a resumed run stops where a straight one does.
+    targets : Targets
+        Convergence targets (default :data:`TARGETS`).
+    warning : type
+        Category of the warning issued when the run ends unconverged.
 
     Returns
     -------
@@ -377,13 +440,16 @@ def sample(log_prob, p0, *, seed, monitor, checkpoint=None, resume=False, thin_b
             mon = list(monitor)
             # the run length serves the monitored (law) parameters; a weakly
             # identified nuisance ridge may mix slower without biasing them
-            long_enough = thin_by * len(post) >= MIN_TAU_MULTIPLE * np.max(tau[mon])
+            long_enough = thin_by * len(post) >= targets.tau_multiple * np.max(tau[mon])
             # arviz's diagnostics cost as much as ~1000 steps: only on a chain that may end here
             if long_enough:
                 rhat, rhat_w, ess_b, ess_t = diagnostics(post, monitor)
-                converged = bool(np.all(rhat[mon] <= RHAT_MAX) and np.all(ess_b[mon] >= ESS_MIN))
-            if converged or sampler.iteration >= max_iter or (stop is not None
-                                                              and stop(post, int(sampler.iteration * thin_by))):
+                converged = bool(np.all(rhat[mon] <= targets.rhat_max) and np.all(ess_b[mon] >= targets.ess_min))
+            if (
+                converged
+                or sampler.iteration >= max_iter
+                or (stop is not None and stop(post, int(sampler.iteration * thin_by)))
+            ):
                 if not long_enough:
                     rhat, rhat_w, ess_b, ess_t = diagnostics(post, monitor)
                 break
@@ -394,12 +460,25 @@ def sample(log_prob, p0, *, seed, monitor, checkpoint=None, resume=False, thin_b
             ckpt.save(be, done)
     if not converged:
         warnings.warn(
-            f"{label or 'sampler'}: not converged within {max_steps} steps "
+            f"{label or 'sampler'}: not converged in {int(sampler.iteration * thin_by)} steps (budget {max_steps}) "
             f"(max tau {np.max(tau):.0f} steps, R-hat max {np.nanmax(rhat):.3f}, bulk ESS min {np.nanmin(ess_b):.0f}); "
-            "results are marked converged: false", RuntimeWarning, stacklevel=2)
+            "results are marked converged: false",
+            warning,
+            stacklevel=2,
+        )
     lp = sampler.get_log_prob()[b:]
     return SamplerRun(
-        chain=post, log_prob=lp, acceptance=sampler.acceptance_fraction.copy(), tau=tau, rhat=rhat,
-        rhat_walkers=rhat_w, ess_bulk=ess_b, ess_tail=ess_t, steps=int(sampler.iteration * thin_by), burn=b, thin_by=thin_by,
-        converged=converged, resumed=resumed,
+        chain=post,
+        log_prob=lp,
+        acceptance=sampler.acceptance_fraction.copy(),
+        tau=tau,
+        rhat=rhat,
+        rhat_walkers=rhat_w,
+        ess_bulk=ess_b,
+        ess_tail=ess_t,
+        steps=int(sampler.iteration * thin_by),
+        burn=b,
+        thin_by=thin_by,
+        converged=converged,
+        resumed=resumed,
     )

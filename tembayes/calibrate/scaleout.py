@@ -15,16 +15,16 @@ Executors:
   (``scheduler="tcp://host:8786"``).  Only a window of ``2 x workers``
   modules is in flight: the client loads a module's CSVs just before it
   submits it and drops the result once written, so memory does not grow with
-  the batch.  The module's data travel with the task and its result comes
-  back to the client, so workers need tembayes installed but no access to the
-  batch or run folders (for resuming a module mid-way they do: the sampler
+  the batch.  The module's data are scattered to a worker (not put in the
+  task graph) and its result comes back to the client, so workers need
+  tembayes installed but no access to the batch or run folders (for resuming a module mid-way they do: the sampler
   checkpoints are written where ``RUN/checkpoints`` is, when a worker can see it).
 
 A module that raises is an outcome with an ``error``, not the end of the
-batch; a worker that dies is replaced by Dask and its module rerun (from its
-checkpoint, when the worker shares the run folder), and a module that kills
-workers repeatedly (``distributed.scheduler.allowed-failures``) is reported
-like one that raised.
+batch; a worker that dies is replaced by Dask and its modules sent again
+(from their checkpoints, when the worker shares the run folder), and a module
+that kills workers repeatedly (more than ``distributed.scheduler.allowed-failures``
+times) is reported like one that raised.
 """
 
 from __future__ import annotations
@@ -64,8 +64,9 @@ class ModuleOutcome:
     warnings: list = field(default_factory=list)
 
 
-def calibrate_one(module, datasheet, rig_config, seed, options, checkpoint, resume, *, progress=None,
-                  progress_bar=False, threads=None):
+def calibrate_one(
+    module, datasheet, rig_config, seed, options, checkpoint, resume, *, progress=None, progress_bar=False, threads=None
+):
     """Calibrate one module; an exception becomes the outcome's ``error``.
 
     Parameters
@@ -92,14 +93,27 @@ def calibrate_one(module, datasheet, rig_config, seed, options, checkpoint, resu
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", RuntimeWarning)
         try:
-            r = calibrate_module(module, datasheet, rig_config=rig_config, seed=seed, options=options,
-                                 checkpoint=checkpoint, resume=resume, progress=progress,
-                                 progress_bar=progress_bar)
+            r = calibrate_module(
+                module,
+                datasheet,
+                rig_config=rig_config,
+                seed=seed,
+                options=options,
+                checkpoint=checkpoint,
+                resume=resume,
+                progress=progress,
+                progress_bar=progress_bar,
+            )
         except Exception as exc:  # noqa: BLE001 -- one module's failure must not end the batch
-            return ModuleOutcome(module.id, error=f"{type(exc).__name__}: {exc}", detail=traceback.format_exc(),
-                                 warnings=[str(w.message) for w in caught])
-    return ModuleOutcome(module.id, result=r,
-                         warnings=[str(w.message) for w in caught if issubclass(w.category, RuntimeWarning)])
+            return ModuleOutcome(
+                module.id,
+                error=f"{type(exc).__name__}: {exc}",
+                detail=traceback.format_exc(),
+                warnings=[str(w.message) for w in caught],
+            )
+    return ModuleOutcome(
+        module.id, result=r, warnings=[str(w.message) for w in caught if issubclass(w.category, RuntimeWarning)]
+    )
 
 
 def _materialise(module):
@@ -134,13 +148,34 @@ def dask_client(workers=None, scheduler=None):
         return
     # processes (the sampler holds the GIL), spawned (the compiled kernels'
     # OpenMP runtime is not fork-safe), quiet, no dashboard
-    with LocalCluster(n_workers=int(workers or 1), threads_per_worker=1, processes=True, dashboard_address=":0",
-                      silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
+    with (
+        LocalCluster(
+            n_workers=int(workers or 1),
+            threads_per_worker=1,
+            processes=True,
+            dashboard_address=":0",
+            silence_logs=logging.ERROR,
+        ) as cluster,
+        Client(cluster) as client,
+    ):
         yield client
 
 
-def calibrate_modules(todo, datasheet, rig_config, *, seed, options, checkpoints, resume, workers=1,
-                      scheduler=None, client=None, progress=None, progress_bar=False):
+def calibrate_modules(
+    todo,
+    datasheet,
+    rig_config,
+    *,
+    seed,
+    options,
+    checkpoints,
+    resume,
+    workers=1,
+    scheduler=None,
+    client=None,
+    progress=None,
+    progress_bar=False,
+):
     """Calibrate modules and yield each :class:`ModuleOutcome` as it finishes.
 
     Parameters
@@ -174,8 +209,17 @@ def calibrate_modules(todo, datasheet, rig_config, *, seed, options, checkpoints
     if client is None and scheduler is None and (workers <= 1 or len(todo) <= 1):
         # a single module gains nothing from a cluster, and here it has every core
         for module in todo:
-            yield calibrate_one(_materialise(module), datasheet, rig_config, seed, options,
-                                checkpoints / module.id, resume, progress=progress, progress_bar=progress_bar)
+            yield calibrate_one(
+                _materialise(module),
+                datasheet,
+                rig_config,
+                seed,
+                options,
+                checkpoints / module.id,
+                resume,
+                progress=progress,
+                progress_bar=progress_bar,
+            )
         return
     with contextlib.ExitStack() as stack:
         if client is None:
@@ -184,7 +228,8 @@ def calibrate_modules(todo, datasheet, rig_config, *, seed, options, checkpoints
 
 
 def _on_dask(client, todo, datasheet, rig_config, seed, options, checkpoints, resume):
-    from distributed import as_completed
+    import dask
+    from distributed import CancelledError, as_completed
 
     n_slots = max(1, sum(client.nthreads().values()))
     window = 2 * n_slots  # in flight: every worker busy, one more queued each
@@ -194,29 +239,45 @@ def _on_dask(client, todo, datasheet, rig_config, seed, options, checkpoints, re
     threads = 1 if len(todo) >= 4 * n_slots else None
     # the shared inputs go to the workers once, not with every task
     shared = client.scatter([datasheet, rig_config, options], broadcast=True)
+    # a module's data go to a worker directly (scatter), not inside the task: a task
+    # graph of megabytes passes through the scheduler, and Dask warns about it
+    retries = int(dask.config.get("distributed.scheduler.allowed-failures"))
     pending = iter(todo)
-    ids = {}
+    inflight = {}  # task key -> (module, its scattered data, resubmissions so far)
 
-    def submit():
-        module = next(pending, None)
+    def submit(module, tries=0):
         if module is None:
             return None
-        fut = client.submit(calibrate_one, _materialise(module), *shared[:2], seed, shared[2],
-                            checkpoints / module.id, resume, threads=threads,
-                            key=f"calibrate-{module.id}-{uuid.uuid4().hex}")  # unique on a shared scheduler
-        ids[fut.key] = module.id
+        data = client.scatter(_materialise(module), hash=False)
+        key = f"calibrate-{module.id}-{uuid.uuid4().hex}"  # unique on a shared scheduler
+        fut = client.submit(
+            calibrate_one, data, *shared[:2], seed, shared[2], checkpoints / module.id, resume, threads=threads, key=key
+        )
+        inflight[fut.key] = (module, data, tries)
         return fut
 
-    first = [f for f in (submit() for _ in range(window)) if f is not None]
+    first = [f for f in (submit(next(pending, None)) for _ in range(window)) if f is not None]
     running = as_completed(first)
     for fut in running:
-        mid = ids.pop(fut.key)
+        module, data, tries = inflight.pop(fut.key)
         try:
             outcome = fut.result()
+        except CancelledError as exc:
+            # scattered data have no recipe: a worker that dies takes its modules' data along,
+            # and the module is sent again (from its checkpoint, as Dask would rerun a task)
+            if tries < retries:
+                running.add(submit(module, tries + 1))
+                continue
+            outcome = ModuleOutcome(
+                module.id,
+                error=f"{type(exc).__name__}: its worker died {tries + 1} times",
+                detail=traceback.format_exc(),
+            )
         except Exception as exc:  # noqa: BLE001 -- e.g. KilledWorker: the module, not the batch
-            outcome = ModuleOutcome(mid, error=f"{type(exc).__name__}: {exc}", detail=traceback.format_exc())
+            outcome = ModuleOutcome(module.id, error=f"{type(exc).__name__}: {exc}", detail=traceback.format_exc())
         fut.release()
-        nxt = submit()
+        data.release()
+        nxt = submit(next(pending, None))
         if nxt is not None:
             running.add(nxt)
         yield outcome

@@ -21,12 +21,20 @@ The channels compared are the voltage, the sensor temperature difference
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from tembayes.data.quality import noise_estimate
-from tembayes.errors import DataError
 from tembayes.data.steps import current_noise, detect_steps
+from tembayes.errors import DataError
+
+if TYPE_CHECKING:
+    from collections.abc import Iterable
+
+    from numpy.typing import ArrayLike
+
+    from tembayes.data.experiment import Experiment
 
 #: Channels of the step likelihood, in the order of every channel axis.
 CHANNELS = ("voltage_V", "dT_K", "Tmean_K")
@@ -41,9 +49,12 @@ NOISE_FLOOR = {"temperature_K": 1e-4, "voltage_V": 1e-5, "current_A": 1e-6}
 
 
 def _noise_sd(estimate, floor, *channels):
-    """A noise sd no smaller than ``floor`` nor the channels' rounding error ``q / sqrt(12)``, ``q`` the smallest
-    change any of them shows: a quiet signal logged at a coarse resolution repeats its values, and the
-    noise estimate from differences is then zero however large the rounding error is."""
+    """A noise sd no smaller than ``floor`` nor the channels' rounding error.
+
+    The rounding error is ``q / sqrt(12)``, ``q`` the smallest change any of the channels shows: a quiet
+    signal logged at a coarse resolution repeats its values, and the noise estimate from differences is
+    then zero however large the rounding error is.
+    """
     steps = np.concatenate([np.abs(np.diff(np.asarray(c, dtype=float))) for c in channels])
     steps = steps[steps > 0]
     rounding = float(steps.min()) / np.sqrt(12.0) if steps.size else 0.0
@@ -113,45 +124,51 @@ class StepData:
     boundary_amb: np.ndarray
 
     @property
-    def n_steps(self):
+    def n_steps(self) -> int:
+        """Number of current steps."""
         return len(self.step_time)
 
     @property
-    def window_starts(self):
+    def window_starts(self) -> np.ndarray:
         """First selected sample of every step window, ``(ns,)``."""
         return np.flatnonzero(np.diff(np.concatenate([[-1], self.step])))
 
     @property
-    def dI(self):
+    def dI(self) -> np.ndarray:
         """Current change of every step [A]."""
         return np.diff(self.levels)
 
     @property
-    def direction(self):
+    def direction(self) -> np.ndarray:
         """+1 for an up-step, -1 for a down-step."""
         return np.sign(self.dI).astype(int)
 
-    def boundaries(self, t):
+    def boundaries(self, t: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """Smoothed water and ambient temperatures [K] at times ``t`` [s]."""
-        return (np.interp(t, self.boundary_time, self.boundary_water),
-                np.interp(t, self.boundary_time, self.boundary_amb))
+        return (
+            np.interp(t, self.boundary_time, self.boundary_water),
+            np.interp(t, self.boundary_time, self.boundary_amb),
+        )
 
 
-def hold_levels(current, holds):
-    """Current of each hold ``(start, stop)`` [A]: the mean (the efficient estimate for the
-    amplifier's white noise) leaving out two samples at either end, the median of a short hold."""
-    return np.array([np.mean(current[a + 2:b - 2]) if b - a > 8 else np.median(current[a:b]) for a, b in holds])
+def hold_levels(current: np.ndarray, holds: Iterable[tuple[int, int]]) -> np.ndarray:
+    """Current of each hold ``(start, stop)`` [A].
+
+    The mean (the efficient estimate for the amplifier's white noise) leaving out two samples at
+    either end, the median of a short hold.
+    """
+    return np.array([np.mean(current[a + 2 : b - 2]) if b - a > 8 else np.median(current[a:b]) for a, b in holds])
 
 
 @dataclass(frozen=True)
 class StepGrid:
-    """A time grid with two points per current step (old level, new level), whose instants each
-    draw moves within the step's sampling interval.
+    """A time grid with two points per current step (old level, new level).
 
-    The step may fall anywhere in its sampling interval: one common shift ranges over the widest
-    interval and each step's instant is clipped into its own (the intervals differ by the DAQ's
-    jitter).  A bound at the narrowest one excluded the true instant of ~5 % of the bench's runs
-    and pulled R, S and K with the shift.
+    Each draw moves the step instants within their sampling intervals.  The step may fall anywhere
+    in its sampling interval: one common shift ranges over the widest interval and each step's
+    instant is clipped into its own (the intervals differ by the DAQ's jitter).  A bound at the
+    narrowest one excluded the true instant of ~5 % of the bench's runs and pulled R, S and K with
+    the shift.
 
     Attributes
     ----------
@@ -175,24 +192,24 @@ class StepGrid:
     shift_bound: float
 
     @property
-    def is_step(self):
+    def is_step(self) -> np.ndarray:
+        """Boolean mask ``(n,)`` of the grid's step points (old and new level)."""
         out = np.zeros(len(self.grid), bool)
         out[self.pos_step] = True
         out[self.pos_step + 1] = True
         return out
 
-    def shifted(self, shift):
+    def shifted(self, shift: ArrayLike) -> np.ndarray:
         """Per-draw grids ``(nd, n)`` for common step shifts ``shift`` [s]."""
         shift = np.atleast_1d(np.asarray(shift, dtype=float))
         G = np.repeat(self.grid[None, :], len(shift), axis=0)
         if len(self.step_time):
-            G[:, self.pos_step] = self.step_time[None, :] + np.clip(shift[:, None], self.lo[None, :],
-                                                                    self.hi[None, :])
+            G[:, self.pos_step] = self.step_time[None, :] + np.clip(shift[:, None], self.lo[None, :], self.hi[None, :])
             G[:, self.pos_step + 1] = G[:, self.pos_step] + RAMP
         return G
 
 
-def step_grid(points, step_time, step_window, eps=1e-4):
+def step_grid(points: np.ndarray, step_time: ArrayLike, step_window: ArrayLike, eps: float = 1e-4) -> StepGrid:
     """Insert a step pair before the first of the sorted ``points`` after each nominal step.
 
     Returns
@@ -209,8 +226,9 @@ def step_grid(points, step_time, step_window, eps=1e-4):
     grid[pos_step] = step_time
     grid[pos_step + 1] = step_time + RAMP
     w = np.asarray(step_window, float)
-    return StepGrid(grid, pos_step, np.asarray(step_time, float), -w + eps, w - RAMP - eps,
-                    float(np.max(w)) - eps if ns else 0.0)
+    return StepGrid(
+        grid, pos_step, np.asarray(step_time, float), -w + eps, w - RAMP - eps, float(np.max(w)) - eps if ns else 0.0
+    )
 
 
 def _smooth(time, x, width):
@@ -224,7 +242,16 @@ def _smooth(time, x, width):
     return np.convolve(pad, k, mode="valid")
 
 
-def step_data(exp, *, dense=2.0, per_decade=16, pre=1.0, lead=30.0, min_steps=4, smooth=10.0):
+def step_data(
+    exp: Experiment,
+    *,
+    dense: float = 2.0,
+    per_decade: int = 16,
+    pre: float = 1.0,
+    lead: float = 30.0,
+    min_steps: int = 4,
+    smooth: float = 10.0,
+) -> StepData:
     """Cut an identification experiment into step-response windows.
 
     Parameters
@@ -259,12 +286,19 @@ def step_data(exp, *, dense=2.0, per_decade=16, pre=1.0, lead=30.0, min_steps=4,
     steps = detect_steps(t, exp.current)
     src = str(exp.path)
     if len(steps) < min_steps:
-        raise DataError(src, f"found {len(steps)} current step(s); the calibration needs at least {min_steps}",
-                        "run the identification staircase (steps held until the temperatures settle)")
+        raise DataError(
+            src,
+            f"found {len(steps)} current step(s); the calibration needs at least {min_steps}",
+            "run the identification staircase (steps held until the temperatures settle)",
+        )
     first = steps[0]
     if t[first.index] - t[0] < lead:
-        raise DataError(src, f"the first current step comes {t[first.index] - t[0]:.1f} s after the start",
-                        f"record at least {lead:.0f} s at rest before the first step", line=first.index + 2)
+        raise DataError(
+            src,
+            f"the first current step comes {t[first.index] - t[0]:.1f} s after the start",
+            f"record at least {lead:.0f} s at rest before the first step",
+            line=first.index + 2,
+        )
     holds = [(steps[0].prev_start, steps[0].index)] + [(s.hold_start, s.hold_end) for s in steps]
     cur = exp.current
     levels = hold_levels(cur, holds)

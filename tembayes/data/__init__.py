@@ -15,9 +15,9 @@ from .batch import (
     Datasheet,
     LazyModule,
     Module,
+    file_stem,
     load_batch,
     load_batch_toml,
-    file_stem,
     load_population_table,
     natural_key,
 )

@@ -36,8 +36,7 @@ DEFAULT_RIG_CONFIG = {"preset": "reference"}
 
 #: ``[population]`` keys: the unit-to-unit spread of each law parameter
 #: (levels relative, slopes in SI), as known for the module type.
-POPULATION_SPREAD_KEYS = ("spread_R0_rel", "spread_R1_ohm_per_K", "spread_S0_rel", "spread_S1_V_per_K2",
-                          "spread_K_rel")
+POPULATION_SPREAD_KEYS = ("spread_R0_rel", "spread_R1_ohm_per_K", "spread_S0_rel", "spread_S1_V_per_K2", "spread_K_rel")
 #: Log-sd of a stated spread when ``spread_log_sd`` is not given.
 DEFAULT_SPREAD_LOG_SD = 0.3
 
@@ -59,7 +58,7 @@ _DATASHEET_KEYS = {
 }
 
 
-def natural_key(name: str):
+def natural_key(name: str) -> tuple[tuple[int | str, ...], str]:
     """Sort key that orders embedded numbers by value (TEM2 before TEM10).
 
     Parameters
@@ -137,7 +136,7 @@ class Datasheet:
         }
 
     @classmethod
-    def from_table(cls, table: dict, path) -> "Datasheet":
+    def from_table(cls, table: dict, path: Path | str) -> "Datasheet":
         """Build from a ``[module_type]`` table, validating it.
 
         Parameters
@@ -160,37 +159,56 @@ class Datasheet:
         """
         path = Path(path)
         if not isinstance(table, dict):
-            raise DataError(path, "'module_type' must be a table",
-                            "Write it as a [module_type] section", column="module_type")
+            raise DataError(
+                path, "'module_type' must be a table", "Write it as a [module_type] section", column="module_type"
+            )
         _refuse_unknown(path, table, ("name", *_DATASHEET_KEYS), "module_type.")
         name = table.get("name", "")
         if not isinstance(name, str):
-            raise DataError(path, f"module_type.name must be text, found {name!r}",
-                            'Quote it, e.g. name = "TEC1-12706"', column="name")
+            raise DataError(
+                path,
+                f"module_type.name must be text, found {name!r}",
+                'Quote it, e.g. name = "TEC1-12706"',
+                column="name",
+            )
         values = {}
         for key, (attr, unit) in _DATASHEET_KEYS.items():
             if key not in table:
-                raise DataError(path, f"[module_type] has no {key!r}",
-                                f"Add {key} = <datasheet value in {unit}>", column=key)
+                raise DataError(
+                    path, f"[module_type] has no {key!r}", f"Add {key} = <datasheet value in {unit}>", column=key
+                )
             v = table[key]
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                raise DataError(path, f"{key} = {v!r} is not a finite number",
-                                f"Give the datasheet value as a plain number in {unit}", column=key)
+                raise DataError(
+                    path,
+                    f"{key} = {v!r} is not a finite number",
+                    f"Give the datasheet value as a plain number in {unit}",
+                    column=key,
+                )
             if key != "th_C" and v <= 0:
-                raise DataError(path, f"{key} = {v!r} must be positive",
-                                f"Give the datasheet value in {unit}", column=key)
+                raise DataError(
+                    path, f"{key} = {v!r} must be positive", f"Give the datasheet value in {unit}", column=key
+                )
             values[attr] = float(v)
         if not TH_MIN_C <= values["th"] <= TH_MAX_C:
             kelvin = TH_MIN_C + KELVIN <= values["th"] <= TH_MAX_C + KELVIN
-            raise DataError(path, f"th_C = {table['th_C']!r} is not a plausible datasheet hot-side temperature in "
-                            f"degC ({TH_MIN_C:g}..{TH_MAX_C:g})" + (": it looks like kelvin" if kelvin else ""),
-                            f"Give it in degC (e.g. {values['th'] - KELVIN:.4g})" if kelvin else
-                            "Give the datasheet's hot-side temperature in degC (usually 25 or 50)", column="th_C")
+            raise DataError(
+                path,
+                f"th_C = {table['th_C']!r} is not a plausible datasheet hot-side temperature in "
+                f"degC ({TH_MIN_C:g}..{TH_MAX_C:g})" + (": it looks like kelvin" if kelvin else ""),
+                f"Give it in degC (e.g. {values['th'] - KELVIN:.4g})"
+                if kelvin
+                else "Give the datasheet's hot-side temperature in degC (usually 25 or 50)",
+                column="th_C",
+            )
         values["th"] += KELVIN
         if values["dtmax"] >= values["th"]:
-            raise DataError(path, f"dtmax_K = {table['dtmax_K']!r} is not below Th = {values['th']:.2f} K",
-                            "Check dtmax_K (kelvin) and th_C (degC) against the datasheet",
-                            column="dtmax_K")
+            raise DataError(
+                path,
+                f"dtmax_K = {table['dtmax_K']!r} is not below Th = {values['th']:.2f} K",
+                "Check dtmax_K (kelvin) and th_C (degC) against the datasheet",
+                column="dtmax_K",
+            )
         sheet = cls(name=name, **values)
         sheet._check_consistency(path)
         return sheet
@@ -205,15 +223,26 @@ class Datasheet:
         if 1.0 / QMAX_RATIO_MAX <= ratio <= QMAX_RATIO_MAX:
             return
         if ratio > 1:  # a figure in Vmax x Imax too large, or Qmax too small
-            suspects = [(k, u) for k, u, off in (("imax_A", "mA", self.imax > 100), ("vmax_V", "mV", self.vmax > 1000),
-                                                 ("qmax_W", "kW", self.qmax < 1)) if off]
+            suspects = [
+                (k, u)
+                for k, u, off in (
+                    ("imax_A", "mA", self.imax > 100),
+                    ("vmax_V", "mV", self.vmax > 1000),
+                    ("qmax_W", "kW", self.qmax < 1),
+                )
+                if off
+            ]
         else:
             suspects = [("qmax_W", "mW")] if self.qmax > 1e4 else []
         keys = [k for k, _ in suspects] or ["imax_A", "vmax_V", "qmax_W"]
-        raise DataError(path, f"the datasheet figures disagree by a factor {ratio:.3g}: Vmax x Imax (with Th, "
-                        f"dTmax) implies Qmax = {self.qmax_expected():.4g} W, the table says {self.qmax:g} W",
-                        "Check the unit of " + (", ".join(f"{k} ({u}?)" for k, u in suspects) if suspects else
-                                                "imax_A [A], vmax_V [V] and qmax_W [W]"), column=keys[0])
+        raise DataError(
+            path,
+            f"the datasheet figures disagree by a factor {ratio:.3g}: Vmax x Imax (with Th, "
+            f"dTmax) implies Qmax = {self.qmax_expected():.4g} W, the table says {self.qmax:g} W",
+            "Check the unit of "
+            + (", ".join(f"{k} ({u}?)" for k, u in suspects) if suspects else "imax_A [A], vmax_V [V] and qmax_W [W]"),
+            column=keys[0],
+        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -265,16 +294,17 @@ class LazyModule:
 
     @property
     def identification(self) -> Experiment:
+        """The identification experiment, read from disk on each access."""
         return load_experiment(self.path / IDENTIFICATION_CSV, datasheet=self.datasheet)
 
     @property
     def validations(self) -> tuple:
+        """The validation experiments, read from disk on each access."""
         return tuple(load_experiment(p, datasheet=self.datasheet) for p in self.validation_files)
 
     def load(self) -> Module:
         """The module with its experiments in memory."""
-        return Module(id=self.id, path=self.path, identification=self.identification,
-                      validations=self.validations)
+        return Module(id=self.id, path=self.path, identification=self.identification, validations=self.validations)
 
 
 @dataclass(frozen=True, eq=False)
@@ -308,7 +338,7 @@ class Batch:
     findings: tuple = ()
 
 
-def load_batch_toml(path) -> tuple[Datasheet, dict]:
+def load_batch_toml(path: Path | str) -> tuple[Datasheet, dict]:
     """Read and validate ``batch.toml``.
 
     Parameters
@@ -331,28 +361,32 @@ def load_batch_toml(path) -> tuple[Datasheet, dict]:
 
 
 def _read_batch_toml(path):
-    """``(path, parsed document)`` of a batch.toml (or its folder), refusing
-    a missing, unreadable, non-UTF-8 or malformed file."""
+    """``(path, parsed document)`` of a batch.toml (or its folder).
+
+    Refuses a missing, unreadable, non-UTF-8 or malformed file.
+    """
     path = Path(path)
     if path.is_dir():
         path = path / BATCH_TOML
     if not path.is_file():
-        raise DataError(path, "batch.toml does not exist",
-                        "Every batch folder needs a batch.toml with a [module_type] table "
-                        "(see docs/data-format.md, 'batch.toml')")
+        raise DataError(
+            path,
+            "batch.toml does not exist",
+            "Every batch folder needs a batch.toml with a [module_type] table (see docs/data-format.md, 'batch.toml')",
+        )
     try:
         raw = path.read_bytes()
     except OSError as e:
-        raise DataError(path, f"the file cannot be read ({e.strerror or e})",
-                        "Check the file's permissions") from None
+        raise DataError(path, f"the file cannot be read ({e.strerror or e})", "Check the file's permissions") from None
     try:
         doc = tomllib.loads(raw.decode("utf-8-sig"))
     except UnicodeDecodeError:
         raise DataError(path, "the file is not UTF-8 text", "Save batch.toml as UTF-8") from None
     except tomllib.TOMLDecodeError as e:
         m = re.search(r"line (\d+)", str(e))
-        raise DataError(path, f"TOML syntax error ({e})", "Fix the TOML syntax",
-                        line=int(m.group(1)) if m else None) from None
+        raise DataError(
+            path, f"TOML syntax error ({e})", "Fix the TOML syntax", line=int(m.group(1)) if m else None
+        ) from None
     return path, doc
 
 
@@ -366,20 +400,31 @@ def _refuse_unknown(path, table, known, prefix=""):
     """Refuse the first key of ``table`` not in ``known``, naming the nearest known one."""
     for key in table:
         if key not in known:
-            raise DataError(path, f"unknown key '{prefix}{key}'{_nearest(key, known)}",
-                            f"Use one of {', '.join(known)}, or delete it", column=key)
+            raise DataError(
+                path,
+                f"unknown key '{prefix}{key}'{_nearest(key, known)}",
+                f"Use one of {', '.join(known)}, or delete it",
+                column=key,
+            )
 
 
 def _tables(path, doc):
     """``[module_type]`` and ``[rig]`` of a parsed batch.toml, validated."""
     for key in doc:
         if key not in BATCH_TABLES:
-            raise DataError(path, f"unknown table '[{key}]'{_nearest(key, BATCH_TABLES)}",
-                            f"batch.toml holds the tables {', '.join(BATCH_TABLES)}; rename or delete it", column=key)
+            raise DataError(
+                path,
+                f"unknown table '[{key}]'{_nearest(key, BATCH_TABLES)}",
+                f"batch.toml holds the tables {', '.join(BATCH_TABLES)}; rename or delete it",
+                column=key,
+            )
     if "module_type" not in doc:
-        raise DataError(path, "there is no [module_type] table",
-                        "Add [module_type] with name, th_C, imax_A, vmax_V, dtmax_K, qmax_W "
-                        "from the module's datasheet", column="module_type")
+        raise DataError(
+            path,
+            "there is no [module_type] table",
+            "Add [module_type] with name, th_C, imax_A, vmax_V, dtmax_K, qmax_W from the module's datasheet",
+            column="module_type",
+        )
     datasheet = Datasheet.from_table(doc["module_type"], path)
 
     rig = doc.get("rig", None)
@@ -387,18 +432,26 @@ def _tables(path, doc):
         rig_config = dict(DEFAULT_RIG_CONFIG)
     else:
         if not isinstance(rig, dict):
-            raise DataError(path, "'rig' must be a table",
-                            'Write it as a [rig] section, e.g. [rig] preset = "reference"', column="rig")
+            raise DataError(
+                path,
+                "'rig' must be a table",
+                'Write it as a [rig] section, e.g. [rig] preset = "reference"',
+                column="rig",
+            )
         rig_config = dict(rig)
         rig_config.setdefault("preset", DEFAULT_RIG_CONFIG["preset"])
         if not isinstance(rig_config["preset"], str):
-            raise DataError(path, f"rig.preset must be text, found {rig_config['preset']!r}",
-                            'Quote it, e.g. preset = "reference"', column="preset")
+            raise DataError(
+                path,
+                f"rig.preset must be text, found {rig_config['preset']!r}",
+                'Quote it, e.g. preset = "reference"',
+                column="preset",
+            )
     _check_rig(path, rig_config)
     return datasheet, rig_config
 
 
-def load_population_table(path) -> dict:
+def load_population_table(path: Path | str) -> dict:
     """The optional ``[population]`` table of ``batch.toml``: spreads known for the type.
 
     With few modules the unit-to-unit spreads cannot be learned from the
@@ -431,15 +484,18 @@ def _population(path, doc):
     if table is None:
         return {}
     if not isinstance(table, dict):
-        raise DataError(path, "'population' must be a table", "Write it as a [population] section",
-                        column="population")
+        raise DataError(path, "'population' must be a table", "Write it as a [population] section", column="population")
     allowed = POPULATION_SPREAD_KEYS + ("spread_log_sd",)
     _refuse_unknown(path, table, allowed, "population.")
     values = {}
     for key, v in table.items():
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
-            raise DataError(path, f"population.{key} must be a positive number, found {v!r}",
-                            "Give the spread as a number, e.g. 0.01 for 1 %", column=key)
+            raise DataError(
+                path,
+                f"population.{key} must be a positive number, found {v!r}",
+                "Give the spread as a number, e.g. 0.01 for 1 %",
+                column=key,
+            )
         values[key] = float(v)
     log_sd = values.pop("spread_log_sd", DEFAULT_SPREAD_LOG_SD)
     return {k: (v, log_sd) for k, v in values.items()}
@@ -451,9 +507,9 @@ def _check_rig(path: Path, rig_config: dict) -> None:
     try:
         rig_from_config(rig_config)
     except ModelError as e:
-        raise DataError(path, str(e),
-                        "Fix the [rig] table (or remove it to use the reference rig)",
-                        column="rig") from None
+        raise DataError(
+            path, str(e), "Fix the [rig] table (or remove it to use the reference rig)", column="rig"
+        ) from None
 
 
 def file_stem(module_id: str) -> str:
@@ -467,12 +523,15 @@ def _refuse_colliding_ids(path, ids):
     for mid in ids:
         key = file_stem(mid).casefold()
         if key in seen:
-            raise DataError(path, f"the module folders '{seen[key]}' and '{mid}' would share output file names "
-                            f"('{file_stem(mid)}')", "Rename one of them (letters, digits and '_' keep ids apart)")
+            raise DataError(
+                path,
+                f"the module folders '{seen[key]}' and '{mid}' would share output file names ('{file_stem(mid)}')",
+                "Rename one of them (letters, digits and '_' keep ids apart)",
+            )
         seen[key] = mid
 
 
-def load_batch(path, *, lazy=False, strict=True) -> Batch:
+def load_batch(path: Path | str, *, lazy: bool = False, strict: bool = True) -> Batch:
     """Load and validate a batch folder (``docs/data-format.md``, 'The batch folder').
 
     Parameters
@@ -505,33 +564,39 @@ def load_batch(path, *, lazy=False, strict=True) -> Batch:
     if not path.exists():
         raise DataError(path, "the batch folder does not exist", "Check the path")
     if not path.is_dir():
-        raise DataError(path, "this is not a folder",
-                        "Pass the batch folder (the one holding batch.toml and the module folders)")
+        raise DataError(
+            path, "this is not a folder", "Pass the batch folder (the one holding batch.toml and the module folders)"
+        )
     toml = _read_batch_toml(path / BATCH_TOML)
     datasheet, rig_config = _tables(*toml)
     population = _population(*toml)
 
     folders = sorted(
-        (p for p in path.iterdir()
-         if p.is_dir() and not p.name.startswith(".") and p.name != "__pycache__"),
+        (p for p in path.iterdir() if p.is_dir() and not p.name.startswith(".") and p.name != "__pycache__"),
         key=lambda p: natural_key(p.name),
     )
     if not folders:
-        raise DataError(path, "the batch folder has no module folders",
-                        "Put each module's experiments in its own sub-folder "
-                        "(e.g. TEM1/identification.csv)")
+        raise DataError(
+            path,
+            "the batch folder has no module folders",
+            "Put each module's experiments in its own sub-folder (e.g. TEM1/identification.csv)",
+        )
     _refuse_colliding_ids(path, [f.name for f in folders])
     modules, findings = {}, []
     for folder in folders:
         ident = folder / IDENTIFICATION_CSV
         if not ident.is_file():
-            raise DataError(folder, "the module folder has no identification.csv",
-                            "Each module folder needs identification.csv "
-                            "(move other folders out of the batch folder)")
-        validation_files = tuple(sorted(
-            (p for p in folder.glob("validation*.csv") if p.is_file()),
-            key=lambda p: natural_key(p.stem),
-        ))
+            raise DataError(
+                folder,
+                "the module folder has no identification.csv",
+                "Each module folder needs identification.csv (move other folders out of the batch folder)",
+            )
+        validation_files = tuple(
+            sorted(
+                (p for p in folder.glob("validation*.csv") if p.is_file()),
+                key=lambda p: natural_key(p.stem),
+            )
+        )
         module = Module(
             id=folder.name,
             path=folder,
@@ -544,7 +609,16 @@ def load_batch(path, *, lazy=False, strict=True) -> Batch:
                 raise next(f for f in found if f.severity == ERROR).error()
             findings += found
         # lazy: the files were read (validated) above, and are dropped here
-        modules[folder.name] = (LazyModule(id=folder.name, path=folder, datasheet=datasheet,
-                                           validation_files=validation_files) if lazy else module)
-    return Batch(path=path, datasheet=datasheet, rig_config=rig_config, modules=modules,
-                 population=population, findings=tuple(findings))
+        modules[folder.name] = (
+            LazyModule(id=folder.name, path=folder, datasheet=datasheet, validation_files=validation_files)
+            if lazy
+            else module
+        )
+    return Batch(
+        path=path,
+        datasheet=datasheet,
+        rig_config=rig_config,
+        modules=modules,
+        population=population,
+        findings=tuple(findings),
+    )

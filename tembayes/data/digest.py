@@ -11,15 +11,21 @@ from __future__ import annotations
 import hashlib
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from .batch import BATCH_TOML, IDENTIFICATION_CSV
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from .batch import Batch
 
 __all__ = ["file_sha256", "batch_inputs", "InputsCheck", "compare_inputs"]
 
 _BLOCK = 1 << 20
 
 
-def file_sha256(path) -> str:
+def file_sha256(path: Path | str) -> str:
     """SHA-256 of a file's bytes (hex), read in blocks."""
     h = hashlib.sha256()
     with open(path, "rb") as f:
@@ -28,7 +34,7 @@ def file_sha256(path) -> str:
     return h.hexdigest()
 
 
-def batch_inputs(batch) -> dict:
+def batch_inputs(batch: Batch) -> dict:
     """``{relative path: sha256}`` of ``batch.toml`` and every experiment file of a loaded batch.
 
     Parameters
@@ -76,10 +82,11 @@ class InputsCheck:
 
     @property
     def same(self) -> bool:
+        """Whether no file changed, went missing or was added."""
         return not (self.changed or self.missing or self.added)
 
 
-def compare_inputs(recorded: dict, now: dict, *, only=None) -> InputsCheck:
+def compare_inputs(recorded: dict, now: dict, *, only: Callable[[str], bool] | None = None) -> InputsCheck:
     """Compare two ``batch_inputs`` maps.
 
     Parameters

@@ -12,11 +12,15 @@ import csv
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..constants import CSV_COLUMNS, KELVIN, SENSOR_CHANNELS, TEMPERATURE_COLUMNS
 from ..errors import DataError
+
+if TYPE_CHECKING:  # batch.py imports this module
+    from .batch import Datasheet
 
 __all__ = ["Experiment", "load_experiment", "TEMP_MIN_C", "TEMP_MAX_C"]
 
@@ -93,9 +97,7 @@ class Experiment:
             if n is None:
                 n = arr.shape[0]
             elif arr.shape[0] != n:
-                raise ValueError(
-                    f"Experiment.{name}: expected shape ({n},) like time, found {arr.shape}"
-                )
+                raise ValueError(f"Experiment.{name}: expected shape ({n},) like time, found {arr.shape}")
             set_(self, name, arr)
         sensors = _frozen(self.sensors)
         if sensors.shape != (4, n):
@@ -175,14 +177,19 @@ class Experiment:
 
     def __repr__(self):
         return (
-            f"Experiment(path={str(self.path)!r}, n={self.n}, duration={self.duration:.6g} s, "
-            f"extra={list(self.extra)})"
+            f"Experiment(path={str(self.path)!r}, n={self.n}, duration={self.duration:.6g} s, extra={list(self.extra)})"
         )
 
 
 def _frozen(values) -> np.ndarray:
-    if isinstance(values, np.ndarray) and values.dtype == np.float64 and values.base is None \
-            and values.flags.c_contiguous and values.flags.owndata and not values.flags.writeable:
+    if (
+        isinstance(values, np.ndarray)
+        and values.dtype == np.float64
+        and values.base is None
+        and values.flags.c_contiguous
+        and values.flags.owndata
+        and not values.flags.writeable
+    ):
         return values  # already private and read-only (the loader's own arrays): no second copy
     arr = np.array(values, dtype=np.float64)  # a private copy
     arr.setflags(write=False)
@@ -196,7 +203,7 @@ def _frozen(values) -> np.ndarray:
 _CHUNK_BYTES = 8 << 20
 
 
-def load_experiment(path, *, datasheet=None) -> Experiment:
+def load_experiment(path: Path | str, *, datasheet: Datasheet | None = None) -> Experiment:
     """Load and validate one experiment CSV (``docs/data-format.md``, 'CSV columns').
 
     Parameters
@@ -232,12 +239,17 @@ def load_experiment(path, *, datasheet=None) -> Experiment:
     with path.open("rb") as f:
         first = f.readline()
         if b"\x00" in first:
-            raise DataError(path, "the file is binary, not a text CSV",
-                            "Export the experiment as plain CSV text", line=1)
+            raise DataError(
+                path, "the file is binary, not a text CSV", "Export the experiment as plain CSV text", line=1
+            )
         header = _decode(first).rstrip("\r\n")
         if not header.strip():
-            raise DataError(path, "line 1 is empty, but the header row must be line 1",
-                            f"Put the column names {', '.join(CSV_COLUMNS)} on line 1", line=1)
+            raise DataError(
+                path,
+                "line 1 is empty, but the header row must be line 1",
+                f"Put the column names {', '.join(CSV_COLUMNS)} on line 1",
+                line=1,
+            )
         table = _Table(path, _check_header(path, next(csv.reader([header]))))
         line_no = 1
         while block := f.readlines(_CHUNK_BYTES):
@@ -277,19 +289,24 @@ def _check_file(path: Path) -> None:
         with path.open("rb") as f:
             head = f.read(1 << 16)
             if b"\x00" in head:  # the rest is checked block by block while parsing
-                raise DataError(path, "the file is binary, not a text CSV", "Export the experiment as plain CSV "
-                                "text", line=head[: head.index(b"\x00")].count(b"\n") + 1)
+                raise DataError(
+                    path,
+                    "the file is binary, not a text CSV",
+                    "Export the experiment as plain CSV text",
+                    line=head[: head.index(b"\x00")].count(b"\n") + 1,
+                )
             piece = head
             while piece:
                 if piece.strip():
                     return
                 piece = f.read(1 << 16)
     except OSError as e:
-        raise DataError(path, f"the file cannot be read ({e.strerror or e})",
-                        "Check the file's permissions") from None
-    raise DataError(path, "the file is empty",
-                    "Export the experiment again: a CSV needs a header row and data rows "
-                    "(docs/data-format.md, 'CSV columns')")
+        raise DataError(path, f"the file cannot be read ({e.strerror or e})", "Check the file's permissions") from None
+    raise DataError(
+        path,
+        "the file is empty",
+        "Export the experiment again: a CSV needs a header row and data rows (docs/data-format.md, 'CSV columns')",
+    )
 
 
 def _decode(raw: bytes) -> str:
@@ -323,8 +340,12 @@ class _Table:
         lines, numbers = [], []
         for k, raw in enumerate(block):
             if b"\x00" in raw:
-                raise DataError(self.path, "the file is binary, not a text CSV",
-                                "Export the experiment as plain CSV text", line=first_line + k)
+                raise DataError(
+                    self.path,
+                    "the file is binary, not a text CSV",
+                    "Export the experiment as plain CSV text",
+                    line=first_line + k,
+                )
             text = raw.decode("utf-8", errors="replace").rstrip("\r\n")
             if text.strip():  # blank lines carry nothing; tolerate them
                 lines.append(text)
@@ -355,11 +376,11 @@ class _Table:
         rows = list(csv.reader(lines))
         for k, row in enumerate(rows):
             if len(row) != self.ncol:
-                _refuse_field_count(self.path, row, self.ncol, int(numbers[k]), lines[k],
-                                    trailing=last and k == len(rows) - 1)
+                _refuse_field_count(
+                    self.path, row, self.ncol, int(numbers[k]), lines[k], trailing=last and k == len(rows) - 1
+                )
         cols = list(zip(*rows))
-        return np.column_stack([_to_float(self.path, cols[j], c, numbers)
-                                for j, c in zip(self.contract, CSV_COLUMNS)])
+        return np.column_stack([_to_float(self.path, cols[j], c, numbers) for j, c in zip(self.contract, CSV_COLUMNS)])
 
     @staticmethod
     def _extra_column(lines, j):
@@ -375,21 +396,33 @@ class _Table:
         if bad.size:
             k, c = (int(x) for x in bad[0])
             field = next(csv.reader([lines[k]]))[self.contract[c]].strip()
-            raise DataError(self.path, f"{field!r} is not a finite number",
-                            "Every field of the required columns (docs/data-format.md, 'CSV columns') needs a "
-                            "finite number: fill the gap or delete the row",
-                            line=int(numbers[k]), column=CSV_COLUMNS[c])
+            raise DataError(
+                self.path,
+                f"{field!r} is not a finite number",
+                "Every field of the required columns (docs/data-format.md, 'CSV columns') needs a "
+                "finite number: fill the gap or delete the row",
+                line=int(numbers[k]),
+                column=CSV_COLUMNS[c],
+            )
 
     def result(self):
         """``(contract columns, numeric extra columns, line of each row)``; refuses fewer than 2 rows."""
         n = sum(len(p) for p in self.parts)
         if n == 0:
-            raise DataError(self.path, "the file has a header but no data rows",
-                            "Export the experiment again with its samples", line=1)
+            raise DataError(
+                self.path,
+                "the file has a header but no data rows",
+                "Export the experiment again with its samples",
+                line=1,
+            )
         row_lines = np.concatenate(self.line_parts)
         if n < 2:
-            raise DataError(self.path, "the file has only 1 data row; at least 2 are needed",
-                            "Export the whole experiment", line=int(row_lines[0]))
+            raise DataError(
+                self.path,
+                "the file has only 1 data row; at least 2 are needed",
+                "Export the whole experiment",
+                line=int(row_lines[0]),
+            )
         values = np.concatenate(self.parts)
         self.parts = []
         data = {c: np.ascontiguousarray(values[:, k]) for k, c in enumerate(CSV_COLUMNS)}
@@ -400,19 +433,27 @@ class _Table:
 def _check_header(path: Path, header: list) -> list:
     names = [h.strip() for h in header]
     if not any(names):
-        raise DataError(path, "line 1 is empty, but the header row must be line 1",
-                        f"Put the column names {', '.join(CSV_COLUMNS)} on line 1", line=1)
+        raise DataError(
+            path,
+            "line 1 is empty, but the header row must be line 1",
+            f"Put the column names {', '.join(CSV_COLUMNS)} on line 1",
+            line=1,
+        )
     if len(names) == 1:
         for sep, label in ((";", "semicolon"), ("\t", "tab")):
             if sep in names[0]:
-                raise DataError(path, f"the header uses {label} separators",
-                                "Use comma separators and '.' as the decimal point "
-                                "(e.g. re-export as 'CSV (comma delimited)')", line=1)
+                raise DataError(
+                    path,
+                    f"the header uses {label} separators",
+                    "Use comma separators and '.' as the decimal point (e.g. re-export as 'CSV (comma delimited)')",
+                    line=1,
+                )
     seen = {}
     for name in names:
         if name and name in seen:
-            raise DataError(path, f"column {name!r} appears twice in the header",
-                            "Keep one column per name", line=1, column=name)
+            raise DataError(
+                path, f"column {name!r} appears twice in the header", "Keep one column per name", line=1, column=name
+            )
         seen[name] = True
     missing = [c for c in CSV_COLUMNS if c not in seen]
     if missing:
@@ -420,13 +461,22 @@ def _check_header(path: Path, header: list) -> list:
         guess = _did_you_mean(c, names)
         if guess is not None:
             other, why = guess
-            raise DataError(path, f"required column {c!r} is missing, but there is {other!r} ({why})",
-                            _rename_hint(c, other, why), line=1, column=c)
+            raise DataError(
+                path,
+                f"required column {c!r} is missing, but there is {other!r} ({why})",
+                _rename_hint(c, other, why),
+                line=1,
+                column=c,
+            )
         found = ", ".join(repr(n) for n in names)
-        raise DataError(path, f"required column{'s' if len(missing) > 1 else ''} "
-                              f"{', '.join(repr(m) for m in missing)} missing; found {found}",
-                        f"The header must name all of {', '.join(CSV_COLUMNS)} (units in the name)",
-                        line=1, column=c)
+        raise DataError(
+            path,
+            f"required column{'s' if len(missing) > 1 else ''} "
+            f"{', '.join(repr(m) for m in missing)} missing; found {found}",
+            f"The header must name all of {', '.join(CSV_COLUMNS)} (units in the name)",
+            line=1,
+            column=c,
+        )
     return names
 
 
@@ -461,8 +511,10 @@ def _refuse_field_count(path, row, ncol, line_no, text, *, trailing):
     if n == 1 and ";" in text:
         hint = "Use comma separators and '.' as the decimal point"
     elif n > ncol:
-        hint = ("A decimal comma splits numbers in two: use '.' as the decimal point; "
-                "otherwise fix the row so it matches the header")
+        hint = (
+            "A decimal comma splits numbers in two: use '.' as the decimal point; "
+            "otherwise fix the row so it matches the header"
+        )
     elif trailing:
         hint = "The last line looks truncated (file cut off while being written?): delete it"
     else:
@@ -482,15 +534,17 @@ def _to_float(path, strings, column, row_lines) -> np.ndarray:
         except ValueError:
             t = s.strip()
             if not t:
-                raise DataError(path, "empty field", "Fill in a number or delete the row",
-                                line=row_lines[i], column=column) from None
+                raise DataError(
+                    path, "empty field", "Fill in a number or delete the row", line=row_lines[i], column=column
+                ) from None
             if re.fullmatch(r"[+-]?\d+,\d*", t):
                 hint = "Use '.' as the decimal point (and commas only between fields)"
             else:
-                hint = ("Every field of the required columns must be a plain number ('.' decimal point; "
-                        "docs/data-format.md, 'CSV columns')")
-            raise DataError(path, f"{t!r} is not a number", hint,
-                            line=row_lines[i], column=column) from None
+                hint = (
+                    "Every field of the required columns must be a plain number ('.' decimal point; "
+                    "docs/data-format.md, 'CSV columns')"
+                )
+            raise DataError(path, f"{t!r} is not a number", hint, line=row_lines[i], column=column) from None
     raise AssertionError("unreachable: numpy refused a column that float() accepts")
 
 
@@ -504,14 +558,20 @@ def _check_time(path, data, row_lines):
     same_time = np.flatnonzero(t[:i] == t[i])
     for k in same_time[::-1]:
         if all(data[c][k] == data[c][i] for c in CSV_COLUMNS):
-            raise DataError(path, f"duplicate row (same as line {row_lines[k]})",
-                            "Delete the repeated row", line=row_lines[i], column="time_s")
+            raise DataError(
+                path,
+                f"duplicate row (same as line {row_lines[k]})",
+                "Delete the repeated row",
+                line=row_lines[i],
+                column="time_s",
+            )
     raise DataError(
         path,
         f"time is not strictly increasing: {t[i]:.10g} s on line {row_lines[i]} "
         f"after {t[i - 1]:.10g} s on line {row_lines[i - 1]}",
         "Sort the rows by time and remove repeated samples",
-        line=row_lines[i], column="time_s",
+        line=row_lines[i],
+        column="time_s",
     )
 
 
@@ -519,18 +579,22 @@ def _check_units(path, data, row_lines, datasheet):
     for c in TEMPERATURE_COLUMNS:
         med = float(np.median(data[c]))
         if med > _KELVIN_MEDIAN_C:
-            raise DataError(path, f"values around {med:.2f} look like kelvin",
-                            "Convert to degC (subtract 273.15)", column=c)
+            raise DataError(
+                path, f"values around {med:.2f} look like kelvin", "Convert to degC (subtract 273.15)", column=c
+            )
     for c in TEMPERATURE_COLUMNS:
         v = data[c]
         bad = np.flatnonzero((v < TEMP_MIN_C) | (v > TEMP_MAX_C))
         if bad.size:
             _refuse_degf(path, data, datasheet)
             i = int(bad[0])
-            raise DataError(path, f"{v[i]:.6g} degC is outside the plausible range "
-                                  f"[{TEMP_MIN_C:g}, {TEMP_MAX_C:g}] degC",
-                            "Check the sensor and the column (temperatures must be in degC, not degF); "
-                            "fix or delete the row", line=row_lines[i], column=c)
+            raise DataError(
+                path,
+                f"{v[i]:.6g} degC is outside the plausible range [{TEMP_MIN_C:g}, {TEMP_MAX_C:g}] degC",
+                "Check the sensor and the column (temperatures must be in degC, not degF); fix or delete the row",
+                line=row_lines[i],
+                column=c,
+            )
 
     cur = np.abs(data["current_A"])
     i = int(np.argmax(cur))
@@ -542,14 +606,24 @@ def _check_units(path, data, row_lines, datasheet):
     else:
         limit, why = _MAX_CURRENT_A, f"more than {_MAX_CURRENT_A:g} A"
     if cur[i] > limit:
-        raise DataError(path, f"|current| up to {cur[i]:.6g} ({why}) looks like mA",
-                        "Convert to A (divide by 1000)", line=row_lines[i], column="current_A")
+        raise DataError(
+            path,
+            f"|current| up to {cur[i]:.6g} ({why}) looks like mA",
+            "Convert to A (divide by 1000)",
+            line=row_lines[i],
+            column="current_A",
+        )
 
     volt = np.abs(data["voltage_V"])
     i = int(np.argmax(volt))
     if volt[i] > _MAX_VOLTAGE_V:
-        raise DataError(path, f"|voltage| up to {volt[i]:.6g} (more than {_MAX_VOLTAGE_V:g} V) looks like mV",
-                        "Convert to V (divide by 1000)", line=row_lines[i], column="voltage_V")
+        raise DataError(
+            path,
+            f"|voltage| up to {volt[i]:.6g} (more than {_MAX_VOLTAGE_V:g} V) looks like mV",
+            "Convert to V (divide by 1000)",
+            line=row_lines[i],
+            column="voltage_V",
+        )
     if datasheet is not None:
         _refuse_degf(path, data, datasheet)
 
@@ -558,8 +632,15 @@ def _refuse_degf(path, data, datasheet):
     """Refuse a file in degF when its physics says so (see :func:`tembayes.data.preflight.degf_evidence`)."""
     from .preflight import degf_evidence  # the physics of the data lives there
 
-    why = None if datasheet is None else degf_evidence(data["current_A"], data["voltage_V"],
-                                                           {c: data[c] for c in TEMPERATURE_COLUMNS}, datasheet)
+    why = (
+        None
+        if datasheet is None
+        else degf_evidence(data["current_A"], data["voltage_V"], {c: data[c] for c in TEMPERATURE_COLUMNS}, datasheet)
+    )
     if why:
-        raise DataError(path, f"the temperatures look like degF: {why}",
-                        "Convert every temperature column to degC ((F - 32) / 1.8)", column=TEMPERATURE_COLUMNS[0])
+        raise DataError(
+            path,
+            f"the temperatures look like degF: {why}",
+            "Convert every temperature column to degC ((F - 32) / 1.8)",
+            column=TEMPERATURE_COLUMNS[0],
+        )

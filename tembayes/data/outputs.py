@@ -27,11 +27,25 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ..errors import DataError, TembayesError
 
-__all__ = ["MARKER", "KINDS", "OutputKind", "output_kind", "check_output", "refuse_existing", "foreign_entries",
-           "marker", "RunLock", "LockHeld"]
+if TYPE_CHECKING:
+    from collections.abc import Iterable
+
+__all__ = [
+    "MARKER",
+    "KINDS",
+    "OutputKind",
+    "output_kind",
+    "check_output",
+    "refuse_existing",
+    "foreign_entries",
+    "marker",
+    "RunLock",
+    "LockHeld",
+]
 
 #: The marker file every tembayes output folder holds: ``{"kind": ..., "complete": ...}``.
 MARKER = ".tembayes-output.json"
@@ -60,16 +74,22 @@ class OutputKind:
     is_file: bool = False
 
 
-KINDS = {k.name: k for k in (
-    OutputKind("calibrate", (("summary.json",), ("modules/*.nc",)),
-               ("summary.json", "posterior.nc", "modules", "checkpoints", "figures")),
-    OutputKind("identify", (("identify.json",),), ("identify.json", "*.png")),
-    OutputKind("predict", (("metrics.json",),), ("metrics.json", "*.png")),
-    OutputKind("gap", (("gap.json",),), ("gap.json", "*.png", "run")),
-    OutputKind("report", (("report.html",),), ("report.html", "report.json")),
-    OutputKind("simulate", (("truth.json", "batch.toml"),), ("truth.json", "batch.toml", "*/")),
-    OutputKind("export", (), (), is_file=True),
-)}
+KINDS = {
+    k.name: k
+    for k in (
+        OutputKind(
+            "calibrate",
+            (("summary.json",), ("modules/*.nc",)),
+            ("summary.json", "posterior.nc", "modules", "checkpoints", "figures"),
+        ),
+        OutputKind("identify", (("identify.json",),), ("identify.json", "*.png")),
+        OutputKind("predict", (("metrics.json",),), ("metrics.json", "*.png")),
+        OutputKind("gap", (("gap.json",),), ("gap.json", "*.png", "run")),
+        OutputKind("report", (("report.html",),), ("report.html", "report.json")),
+        OutputKind("simulate", (("truth.json", "batch.toml"),), ("truth.json", "batch.toml", "*/")),
+        OutputKind("export", (), (), is_file=True),
+    )
+}
 
 #: Bytes of free space a command needs at least, before any work.
 MIN_FREE_BYTES = 20 << 20
@@ -82,7 +102,7 @@ def marker(kind: str, **info) -> str:
     return json.dumps({"kind": kind, "tembayes_version": tembayes.__version__, **info}, indent=2) + "\n"
 
 
-def output_kind(path) -> str | None:
+def output_kind(path: Path | str) -> str | None:
     """The kind of tembayes output ``path`` is (a command name), or None.
 
     A folder with a marker says its kind; an older folder is recognised by
@@ -105,7 +125,7 @@ def output_kind(path) -> str | None:
     return None
 
 
-def foreign_entries(path, kind: str) -> list:
+def foreign_entries(path: Path | str, kind: str) -> list:
     """Top-level entries of an output folder that its kind does not write (a user's files)."""
     k = KINDS[kind]
     out = []
@@ -116,9 +136,12 @@ def foreign_entries(path, kind: str) -> list:
         if not any(fnmatch.fnmatchcase(name, pat) or fnmatch.fnmatchcase(p.name, pat) for pat in k.entries):
             out.append(p.name)
         elif kind == "simulate" and p.is_dir():
-            out += [f"{p.name}/{q.name}" for q in sorted(p.iterdir())
-                    if not fnmatch.fnmatchcase(q.name, "identification.csv")
-                    and not fnmatch.fnmatchcase(q.name, "validation*.csv")]
+            out += [
+                f"{p.name}/{q.name}"
+                for q in sorted(p.iterdir())
+                if not fnmatch.fnmatchcase(q.name, "identification.csv")
+                and not fnmatch.fnmatchcase(q.name, "validation*.csv")
+            ]
     return out
 
 
@@ -131,17 +154,22 @@ def _refuse_overlap(out, inputs):
     for path, role in inputs:
         i = _resolved(path)
         if o == i:
-            raise DataError(out, f"the output is the {role} itself", "Choose another --out: inputs are never "
-                            "replaced")
+            raise DataError(out, f"the output is the {role} itself", "Choose another --out: inputs are never replaced")
         if o in i.parents:
-            raise DataError(out, f"the output holds the {role} ({path})", "Choose an --out outside the inputs: "
-                            "replacing it would delete them")
+            raise DataError(
+                out,
+                f"the output holds the {role} ({path})",
+                "Choose an --out outside the inputs: replacing it would delete them",
+            )
         if role == "batch folder" and i in o.parents:
-            raise DataError(out, f"the output lies inside the batch folder {path}", "Choose an --out outside the "
-                            "batch folder (a batch folder holds only batch.toml and module folders)")
+            raise DataError(
+                out,
+                f"the output lies inside the batch folder {path}",
+                "Choose an --out outside the batch folder (a batch folder holds only batch.toml and module folders)",
+            )
 
 
-def refuse_existing(out, kind, overwrite):
+def refuse_existing(out: Path | str, kind: str, overwrite: bool) -> None:
     """Refuse replacing ``out`` unless allowed, of the same ``kind`` and holding only that kind's files."""
     out = Path(out)
     k = KINDS[kind]
@@ -151,12 +179,18 @@ def refuse_existing(out, kind, overwrite):
         return
     if k.is_file:
         if out.is_dir():
-            raise DataError(out, "the output is a folder, but this command writes a file",
-                            "Give a file name with --out, e.g. --out runs/x.mat")
+            raise DataError(
+                out,
+                "the output is a folder, but this command writes a file",
+                "Give a file name with --out, e.g. --out runs/x.mat",
+            )
     else:
         if not out.is_dir():
-            raise DataError(out, "the output is a file, but this command writes a folder",
-                            "Choose another --out (a folder that does not exist yet)")
+            raise DataError(
+                out,
+                "the output is a file, but this command writes a folder",
+                "Choose another --out (a folder that does not exist yet)",
+            )
         if not any(out.iterdir()):
             return  # an empty folder: nothing to lose
     if not overwrite:
@@ -164,14 +198,20 @@ def refuse_existing(out, kind, overwrite):
     found = output_kind(out)
     if found != kind:
         what = f"a tembayes {found} output" if found else "not a tembayes output"
-        raise DataError(out, f"--overwrite replaces only a tembayes {kind} output, and this is {what}",
-                        "Choose another --out; tembayes does not delete what it did not write")
+        raise DataError(
+            out,
+            f"--overwrite replaces only a tembayes {kind} output, and this is {what}",
+            "Choose another --out; tembayes does not delete what it did not write",
+        )
     if not k.is_file:
         foreign = foreign_entries(out, kind)
         if foreign:
             shown = ", ".join(foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
-            raise DataError(out, f"holds files tembayes did not write there ({shown})",
-                            "Move them out first, or choose another --out; --overwrite replaces only its own files")
+            raise DataError(
+                out,
+                f"holds files tembayes did not write there ({shown})",
+                "Move them out first, or choose another --out; --overwrite replaces only its own files",
+            )
 
 
 def _writable_folder(out, is_file):
@@ -185,12 +225,20 @@ def _writable_folder(out, is_file):
     try:
         os.rmdir(tempfile.mkdtemp(prefix=".tembayes-probe-", dir=probe))
     except OSError as e:
-        raise DataError(out, f"cannot write in {probe} ({e.strerror or e})",
-                        "Choose an --out in a folder you can write to") from None
+        raise DataError(
+            out, f"cannot write in {probe} ({e.strerror or e})", "Choose an --out in a folder you can write to"
+        ) from None
     return probe
 
 
-def check_output(out, *, kind, inputs=(), overwrite=False, need_bytes=MIN_FREE_BYTES) -> None:
+def check_output(
+    out: Path | str,
+    *,
+    kind: str,
+    inputs: Iterable[tuple[Path | str, str]] = (),
+    overwrite: bool = False,
+    need_bytes: int = MIN_FREE_BYTES,
+) -> None:
     """Refuse an output that would lose data or fail, before any work.
 
     Parameters
@@ -218,8 +266,11 @@ def check_output(out, *, kind, inputs=(), overwrite=False, need_bytes=MIN_FREE_B
     folder = _writable_folder(out, KINDS[kind].is_file)
     free = shutil.disk_usage(folder).free
     if free < need_bytes:
-        raise DataError(out, f"only {free / 2**20:.0f} MB are free in {folder}, and this needs about "
-                        f"{need_bytes / 2**20:.0f} MB", "Free some space or choose an --out on another disk")
+        raise DataError(
+            out,
+            f"only {free / 2**20:.0f} MB are free in {folder}, and this needs about {need_bytes / 2**20:.0f} MB",
+            "Free some space or choose an --out on another disk",
+        )
 
 
 class LockHeld(TembayesError):
@@ -246,7 +297,7 @@ class RunLock:
         self.fd = None
         self.stale = None
 
-    def acquire(self):
+    def acquire(self) -> RunLock:
         """Take the lock or raise :class:`LockHeld` naming the holder; returns self."""
         import fcntl
 
@@ -258,8 +309,10 @@ class RunLock:
             except BlockingIOError:
                 holder = _read_holder(fd)
                 os.close(fd)
-                raise LockHeld(f"{self.run}: the run is being written by {_describe(holder)}. Wait for it to "
-                               "finish, or stop that process first") from None
+                raise LockHeld(
+                    f"{self.run}: the run is being written by {_describe(holder)}. Wait for it to "
+                    "finish, or stop that process first"
+                ) from None
             # the file may have been removed by a finishing holder between open and flock: try again
             with contextlib.suppress(FileNotFoundError):
                 if os.stat(self.path).st_ino == os.fstat(fd).st_ino:
@@ -268,14 +321,22 @@ class RunLock:
         holder = _read_holder(fd)
         self.stale = holder or None
         os.ftruncate(fd, 0)
-        os.write(fd, json.dumps({"pid": os.getpid(), "host": socket.gethostname(),
-                                 "started": time.strftime("%Y-%m-%d %H:%M:%S"),
-                                 "command": " ".join(sys.argv)}).encode())
+        os.write(
+            fd,
+            json.dumps(
+                {
+                    "pid": os.getpid(),
+                    "host": socket.gethostname(),
+                    "started": time.strftime("%Y-%m-%d %H:%M:%S"),
+                    "command": " ".join(sys.argv),
+                }
+            ).encode(),
+        )
         os.fsync(fd)
         self.fd = fd
         return self
 
-    def release(self):
+    def release(self) -> None:
         """Remove the lock file and release the lock."""
         if self.fd is None:
             return
@@ -308,5 +369,6 @@ def _read_holder(fd) -> dict:
 def _describe(holder: dict) -> str:
     if not holder:
         return "another process"
-    return (f"pid {holder.get('pid')} on {holder.get('host')} since {holder.get('started')}"
-            + (f" ({holder['command']})" if holder.get("command") else ""))
+    return f"pid {holder.get('pid')} on {holder.get('host')} since {holder.get('started')}" + (
+        f" ({holder['command']})" if holder.get("command") else ""
+    )

@@ -28,6 +28,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -35,6 +36,12 @@ from ..constants import KELVIN, SENSOR_CHANNELS
 from ..errors import DataError
 from .quality import noise_estimate
 from .steps import current_noise, detect_steps
+
+if TYPE_CHECKING:  # batch.py and experiment.py import this module
+    from collections.abc import Iterable, Mapping
+
+    from .batch import Datasheet
+    from .experiment import Experiment
 
 __all__ = ["Finding", "check_experiment", "degf_evidence", "raise_first_error", "ERROR", "WARNING"]
 
@@ -131,18 +138,25 @@ class Finding:
         return str(self.error())
 
     def to_json(self) -> dict:
-        return {"severity": self.severity, "path": str(self.path), "line": self.line, "column": self.column,
-                "problem": self.problem, "hint": self.hint}
+        """JSON-ready dict of the finding (severity, path, line, column, problem, hint)."""
+        return {
+            "severity": self.severity,
+            "path": str(self.path),
+            "line": self.line,
+            "column": self.column,
+            "problem": self.problem,
+            "hint": self.hint,
+        }
 
 
-def raise_first_error(findings) -> None:
+def raise_first_error(findings: Iterable[Finding]) -> None:
     """Raise the first error-level finding as a DataError (nothing to do without one)."""
     for f in findings:
         if f.severity == ERROR:
             raise f.error()
 
 
-def check_experiment(exp, *, datasheet=None, identification=False) -> list:
+def check_experiment(exp: Experiment, *, datasheet: Datasheet | None = None, identification: bool = False) -> list:
     """Every preflight check of one experiment.
 
     Parameters
@@ -189,25 +203,34 @@ def _gaps(exp):
     sigma = max(current_noise(exp.current), 1e-4)
     out = []
     for k in gaps:
-        before = float(np.median(exp.current[max(0, k - 4):k + 1]))
-        after = float(np.median(exp.current[k + 1:k + 6]))
+        before = float(np.median(exp.current[max(0, k - 4) : k + 1]))
+        after = float(np.median(exp.current[k + 1 : k + 6]))
         stepped = abs(after - before) > GAP_STEP_SIGMAS * sigma
         refuse = stepped or dt[k] > max(GAP_REFUSE_S, GAP_REFUSE_FACTOR * med)
-        what = (f"a {dt[k]:.4g} s gap in the time stamps after {exp.where(k)} (the sampling interval is "
-                f"{med:.3g} s)")
+        what = f"a {dt[k]:.4g} s gap in the time stamps after {exp.where(k)} (the sampling interval is {med:.3g} s)"
         if stepped:
             what += f", and the current changed inside it from {before:+.3f} to {after:+.3f} A at an unknown instant"
-        out.append(_finding(ERROR if refuse else WARNING, exp, what,
-                            "Split the experiment at the gap into two files, or record it again" if refuse else
-                            "The gap is short and the current held: the model interpolates across it",
-                            k + 1, "time_s"))
+        out.append(
+            _finding(
+                ERROR if refuse else WARNING,
+                exp,
+                what,
+                "Split the experiment at the gap into two files, or record it again"
+                if refuse
+                else "The gap is short and the current held: the model interpolates across it",
+                k + 1,
+                "time_s",
+            )
+        )
     errors = [f for f in out if f.severity == ERROR]
     return errors[:1] + [f for f in out if f.severity == WARNING][:1]
 
 
 def _settling_time(exp, steps):
-    """Median time [s] for the sensors next to the module to cover 63 % of their move after a
-    current step (NaN without a clear response)."""
+    """Median time [s] for the sensors next to the module to cover 63 % of their move after a current step.
+
+    NaN without a clear response.
+    """
     times = []
     noise = {c: noise_estimate(exp.channel(c)) for c in FACE_SENSORS}
     for s in steps:
@@ -226,13 +249,28 @@ def _time_unit(exp, settle):
     if not math.isfinite(settle):
         return []
     if settle > SETTLE_MAX_S:
-        return [_finding(ERROR, exp, f"the sensors take {settle / 3600:.3g} h (in the file's time unit) to settle "
-                         "after a current step, but a rig's blocks settle in minutes: time_s looks like "
-                         "milliseconds", "Convert the time column to seconds (divide by 1000)", column="time_s")]
+        return [
+            _finding(
+                ERROR,
+                exp,
+                f"the sensors take {settle / 3600:.3g} h (in the file's time unit) to settle "
+                "after a current step, but a rig's blocks settle in minutes: time_s looks like "
+                "milliseconds",
+                "Convert the time column to seconds (divide by 1000)",
+                column="time_s",
+            )
+        ]
     if settle < SETTLE_MIN_S:
-        return [_finding(ERROR, exp, f"the sensors settle {settle:.3g} time units after a current step, but a "
-                         "rig's blocks take minutes: time_s looks like minutes or hours",
-                         "Convert the time column to seconds", column="time_s")]
+        return [
+            _finding(
+                ERROR,
+                exp,
+                f"the sensors settle {settle:.3g} time units after a current step, but a "
+                "rig's blocks take minutes: time_s looks like minutes or hours",
+                "Convert the time column to seconds",
+                column="time_s",
+            )
+        ]
     return []
 
 
@@ -271,12 +309,20 @@ def _stuck(exp):
             others = [(exp.channel(o)[a:b].max() - exp.channel(o)[a:b].min(), o) for o in SENSOR_CHANNELS if o != c]
             moved, other = max(others)
             if moved > STUCK_OTHERS_K:
-                out.append(_finding(
-                    ERROR, exp, f"{c} reads exactly {x[a] - KELVIN:.6g} degC from {exp.where(a)} to "
-                    f"{exp.where(b - 1)} ({length[k] / 60:.3g} min) while {other} moves by {moved:.3g} K: the "
-                    "sensor or its logger channel is stuck",
-                    f"Repair the channel and record again, or cut the run before line {exp.line(a)}"
-                    if exp.lines is not None else "Repair the channel and record again", a, c))
+                out.append(
+                    _finding(
+                        ERROR,
+                        exp,
+                        f"{c} reads exactly {x[a] - KELVIN:.6g} degC from {exp.where(a)} to "
+                        f"{exp.where(b - 1)} ({length[k] / 60:.3g} min) while {other} moves by {moved:.3g} K: the "
+                        "sensor or its logger channel is stuck",
+                        f"Repair the channel and record again, or cut the run before line {exp.line(a)}"
+                        if exp.lines is not None
+                        else "Repair the channel and record again",
+                        a,
+                        c,
+                    )
+                )
                 break
     return out
 
@@ -289,10 +335,18 @@ def _jumps(exp):
         bad = np.flatnonzero(d > limit)
         if bad.size:
             k = int(bad[0])
-            return [_finding(ERROR, exp, f"{c} jumps from {exp.sensors[j][k] - KELVIN:.4g} to "
-                             f"{exp.sensors[j][k + 1] - KELVIN:.4g} degC in {dt[k]:.3g} s at {exp.where(k + 1)}, "
-                             "faster than any block of the rig can change", "Check the sensor and its wiring; "
-                             "delete the glitched rows or cut the run there", k + 1, c)]
+            return [
+                _finding(
+                    ERROR,
+                    exp,
+                    f"{c} jumps from {exp.sensors[j][k] - KELVIN:.4g} to "
+                    f"{exp.sensors[j][k + 1] - KELVIN:.4g} degC in {dt[k]:.3g} s at {exp.where(k + 1)}, "
+                    "faster than any block of the rig can change",
+                    "Check the sensor and its wiring; delete the glitched rows or cut the run there",
+                    k + 1,
+                    c,
+                )
+            ]
     return []
 
 
@@ -302,10 +356,18 @@ def _below_pumping(exp, datasheet):
     for j, c in enumerate(SENSOR_CHANNELS):
         k = int(np.argmin(exp.sensors[j]))
         if exp.sensors[j][k] < floor:
-            return [_finding(ERROR, exp, f"{c} reads {exp.sensors[j][k] - KELVIN:.4g} degC at {exp.where(k)}, "
-                             f"{coldest - exp.sensors[j][k]:.3g} K below the coldest boundary; the module pumps at "
-                             f"most dTmax = {datasheet.dtmax:g} K", "Check the sensor (a broken or shorted "
-                             "thermistor reads at its limit) and its column", k, c)]
+            return [
+                _finding(
+                    ERROR,
+                    exp,
+                    f"{c} reads {exp.sensors[j][k] - KELVIN:.4g} degC at {exp.where(k)}, "
+                    f"{coldest - exp.sensors[j][k]:.3g} K below the coldest boundary; the module pumps at "
+                    f"most dTmax = {datasheet.dtmax:g} K",
+                    "Check the sensor (a broken or shorted thermistor reads at its limit) and its column",
+                    k,
+                    c,
+                )
+            ]
     return []
 
 
@@ -334,23 +396,57 @@ def _polarity(exp):
     cools = None if abs(thermal) * span < 1.0 else thermal < 0
     follows = volt > 0
     if cools is None or (cools and follows):
-        return [] if follows else [_finding(
-            ERROR, exp, f"the voltage falls as the current rises ({volt:+.3g} V per A)", "The voltage has the "
-            "current's sign (V = R I + S dT): negate voltage_V (or current_A, if positive current warms the "
-            "bottom block)", column="voltage_V")]
-    side = (f"positive current warms the cold side: {FACE_SENSORS[1]} - {FACE_SENSORS[0]} rises by "
-            f"{thermal:.3g} K per A" if not cools else "")
+        return (
+            []
+            if follows
+            else [
+                _finding(
+                    ERROR,
+                    exp,
+                    f"the voltage falls as the current rises ({volt:+.3g} V per A)",
+                    "The voltage has the "
+                    "current's sign (V = R I + S dT): negate voltage_V (or current_A, if positive current warms the "
+                    "bottom block)",
+                    column="voltage_V",
+                )
+            ]
+        )
+    side = (
+        f"positive current warms the cold side: {FACE_SENSORS[1]} - {FACE_SENSORS[0]} rises by {thermal:.3g} K per A"
+        if not cools
+        else ""
+    )
     if not cools and follows:
-        return [_finding(ERROR, exp, side + "; the voltage follows the current, so both are reversed",
-                         "Negate current_A and voltage_V (positive current must cool the bottom, cold-side "
-                         "block); if the module is mounted the right way, check that T1, T2 are the top block's",
-                         column="current_A")]
+        return [
+            _finding(
+                ERROR,
+                exp,
+                side + "; the voltage follows the current, so both are reversed",
+                "Negate current_A and voltage_V (positive current must cool the bottom, cold-side "
+                "block); if the module is mounted the right way, check that T1, T2 are the top block's",
+                column="current_A",
+            )
+        ]
     if not cools:
-        return [_finding(ERROR, exp, side + f"; the voltage falls as the current rises ({volt:+.3g} V per A)",
-                         "Negate current_A (positive current must cool the bottom, cold-side block)",
-                         column="current_A")]
-    return [_finding(ERROR, exp, f"the voltage falls as the current rises ({volt:+.3g} V per A) while positive "
-                     "current cools the cold side as it should", "Negate voltage_V", column="voltage_V")]
+        return [
+            _finding(
+                ERROR,
+                exp,
+                side + f"; the voltage falls as the current rises ({volt:+.3g} V per A)",
+                "Negate current_A (positive current must cool the bottom, cold-side block)",
+                column="current_A",
+            )
+        ]
+    return [
+        _finding(
+            ERROR,
+            exp,
+            f"the voltage falls as the current rises ({volt:+.3g} V per A) while positive "
+            "current cools the cold side as it should",
+            "Negate voltage_V",
+            column="voltage_V",
+        )
+    ]
 
 
 # -- temperature units --------------------------------------------------------
@@ -380,15 +476,25 @@ def _zero_current_range(exp, steps, settle):
             level = float(np.median(x[tail]))
             margin = ZERO_MARGIN_K + ZERO_MARGIN_FRACTION * abs(level - float(x[a]))
             if not lo - margin <= level <= hi + margin:
-                return [_finding(
-                    ERROR, exp, f"at zero current {c} settles at {level - KELVIN:.4g} degC ({exp.where(b - 1)}), "
-                    f"outside the boundaries' {lo - KELVIN:.4g}..{hi - KELVIN:.4g} degC: with no heat source no "
-                    "part of the rig can stay there", f"Check {c}'s unit (all temperatures in degC: degF? an "
-                    "offset?) and that the columns are not swapped", b - 1, c)]
+                return [
+                    _finding(
+                        ERROR,
+                        exp,
+                        f"at zero current {c} settles at {level - KELVIN:.4g} degC ({exp.where(b - 1)}), "
+                        f"outside the boundaries' {lo - KELVIN:.4g}..{hi - KELVIN:.4g} degC: with no heat source no "
+                        "part of the rig can stay there",
+                        f"Check {c}'s unit (all temperatures in degC: degF? an "
+                        "offset?) and that the columns are not swapped",
+                        b - 1,
+                        c,
+                    )
+                ]
     return []
 
 
-def degf_evidence(current, voltage, temps, datasheet):
+def degf_evidence(
+    current: np.ndarray, voltage: np.ndarray, temps: Mapping[str, np.ndarray], datasheet: Datasheet
+) -> str | None:
     """Why a file's temperatures read degF, or None.
 
     At zero current the terminal voltage is the Seebeck voltage of the
@@ -420,9 +526,11 @@ def degf_evidence(current, voltage, temps, datasheet):
     r2 = np.corrcoef(x, y)[0, 1] ** 2
     ratio = s / datasheet.seebeck()
     if r2 >= SEEBECK_MIN_R2 and SEEBECK_RATIO_DEGF_LOW <= ratio < SEEBECK_RATIO_DEGF:
-        return (f"at zero current the voltage is {1e3 * s:.3g} mV per degree of {FACE_SENSORS[0]} - "
-                f"{FACE_SENSORS[1]}, {ratio:.2f} of the datasheet's Seebeck coefficient ({1e3 * datasheet.seebeck():.3g} "
-                "mV/K), as when a kelvin reads 1.8 degrees, and no column reads below 32")
+        return (
+            f"at zero current the voltage is {1e3 * s:.3g} mV per degree of {FACE_SENSORS[0]} - "
+            f"{FACE_SENSORS[1]}, {ratio:.2f} of the datasheet's Seebeck coefficient ({1e3 * datasheet.seebeck():.3g} "
+            "mV/K), as when a kelvin reads 1.8 degrees, and no column reads below 32"
+        )
     return None
 
 
@@ -432,24 +540,52 @@ def degf_evidence(current, voltage, temps, datasheet):
 def _identifiability(exp, steps, settle):
     hint = "The reference staircase: 0 -> +0.8 -> -1.6 -> 0 A in 0.2 A steps, each held about 600 s"
     if not steps:
-        return [_finding(WARNING, exp, "the current has no steps: R and S cannot be identified from this run",
-                         hint, column="current_A")]
+        return [
+            _finding(
+                WARNING,
+                exp,
+                "the current has no steps: R and S cannot be identified from this run",
+                hint,
+                column="current_A",
+            )
+        ]
     out = []
     directions = {s.direction for s in steps}
     if directions != {"up", "down"}:
         missing = ({"up", "down"} - directions).pop()
-        out.append(_finding(WARNING, exp, f"the current never steps {missing}: the hysteresis check (every mean "
-                            "temperature visited by an up- and a down-step) is impossible", hint, column="current_A"))
+        out.append(
+            _finding(
+                WARNING,
+                exp,
+                f"the current never steps {missing}: the hysteresis check (every mean "
+                "temperature visited by an up- and a down-step) is impossible",
+                hint,
+                column="current_A",
+            )
+        )
     holds = np.array([exp.time[s.hold_end - 1] - exp.time[s.hold_start] for s in steps])
     if math.isfinite(settle) and np.median(holds) < HOLD_SETTLINGS * settle:
-        out.append(_finding(WARNING, exp, f"the holds ({np.median(holds):.0f} s) are short against the sensors' "
-                            f"settling (63 % in {settle:.0f} s): the steady states the step method reads are not "
-                            "reached (calibrate reads the transients and is not affected)", hint,
-                            column="current_A"))
+        out.append(
+            _finding(
+                WARNING,
+                exp,
+                f"the holds ({np.median(holds):.0f} s) are short against the sensors' "
+                f"settling (63 % in {settle:.0f} s): the steady states the step method reads are not "
+                "reached (calibrate reads the transients and is not affected)",
+                hint,
+                column="current_A",
+            )
+        )
     tavg = 0.5 * (exp.channel(FACE_SENSORS[0]) + exp.channel(FACE_SENSORS[1]))
     span = float(np.percentile(tavg, 99) - np.percentile(tavg, 1))
     if span < TAVG_SPAN_MIN_K:
-        out.append(_finding(WARNING, exp, f"the mean temperature spans only {span:.3g} K: the slopes R1 and S1 of "
-                            "the laws are poorly determined", "Use larger currents in both directions (" + hint
-                            + ")", column="current_A"))
+        out.append(
+            _finding(
+                WARNING,
+                exp,
+                f"the mean temperature spans only {span:.3g} K: the slopes R1 and S1 of the laws are poorly determined",
+                "Use larger currents in both directions (" + hint + ")",
+                column="current_A",
+            )
+        )
     return out

@@ -3,11 +3,16 @@
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..constants import CSV_COLUMNS, KELVIN, TEMPERATURE_COLUMNS
-from .experiment import Experiment
+
+if TYPE_CHECKING:  # the experiment's checks use this module's noise estimate
+    from numpy.typing import ArrayLike
+
+    from .experiment import Experiment
 
 __all__ = ["summarize_experiment", "noise_estimate", "CURRENT_LEVEL_STEP_A"]
 
@@ -17,7 +22,7 @@ CURRENT_LEVEL_STEP_A = 0.05
 _MAD_TO_SD = 1.4826
 
 
-def noise_estimate(values) -> float:
+def noise_estimate(values: ArrayLike) -> float:
     """Robust white-noise level of a slowly varying signal.
 
     Parameters

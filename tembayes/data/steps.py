@@ -48,23 +48,25 @@ class Step:
     prev_start: int
 
     @property
-    def dI(self):
+    def dI(self) -> float:
         """Current change [A]."""
         return self.i_after - self.i_before
 
     @property
-    def direction(self):
+    def direction(self) -> str:
         """``"up"`` for a current increase, ``"down"`` for a decrease."""
         return "up" if self.dI > 0 else "down"
 
 
-def current_noise(current):
+def current_noise(current: np.ndarray) -> float:
     """Robust noise level of a staircase current [A] (MAD of first differences)."""
     d = np.diff(np.asarray(current, dtype=float))
     return float(_MAD_TO_SD * np.median(np.abs(d - np.median(d))) / np.sqrt(2.0))
 
 
-def detect_steps(time, current, *, min_step=None, min_hold=5.0):
+def detect_steps(
+    time: np.ndarray, current: np.ndarray, *, min_step: float | None = None, min_hold: float = 5.0
+) -> list[Step]:
     """Find the steps of a staircase current.
 
     Parameters
@@ -112,17 +114,24 @@ def detect_steps(time, current, *, min_step=None, min_hold=5.0):
     while changed:
         changed = False
         for j in range(1, len(edges) - 1):
-            before = np.median(i[edges[j - 1]:edges[j]])
-            after = np.median(i[edges[j]:edges[j + 1]])
+            before = np.median(i[edges[j - 1] : edges[j]])
+            after = np.median(i[edges[j] : edges[j + 1]])
             if abs(after - before) < thr:
                 del edges[j]
                 changed = True
                 break
     steps = []
     for a, b, c in zip(edges[:-2], edges[1:-1], edges[2:]):
-        steps.append(Step(
-            index=int(b), t=float(0.5 * (t[b - 1] + t[b])), t_window=float(0.5 * (t[b] - t[b - 1])),
-            i_before=float(np.median(i[a:b])), i_after=float(np.median(i[b:c])),
-            hold_start=int(b), hold_end=int(c), prev_start=int(a),
-        ))
+        steps.append(
+            Step(
+                index=int(b),
+                t=float(0.5 * (t[b - 1] + t[b])),
+                t_window=float(0.5 * (t[b] - t[b - 1])),
+                i_before=float(np.median(i[a:b])),
+                i_after=float(np.median(i[b:c])),
+                hold_start=int(b),
+                hold_end=int(c),
+                prev_start=int(a),
+            )
+        )
     return steps

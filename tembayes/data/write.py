@@ -15,6 +15,7 @@ import os
 import shutil
 import tempfile
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -23,6 +24,11 @@ from ..errors import TembayesError
 from .batch import Datasheet
 from .experiment import Experiment
 from .outputs import MARKER, marker, refuse_existing
+
+if TYPE_CHECKING:
+    from collections.abc import Iterator, Mapping
+
+    from numpy.typing import ArrayLike
 
 __all__ = [
     "atomic_write_text",
@@ -47,7 +53,7 @@ def _umask() -> int:
     return mask
 
 
-def atomic_write_bytes(path, data: bytes) -> Path:
+def atomic_write_bytes(path: Path | str, data: bytes) -> Path:
     """Write bytes to ``path`` atomically (temp file in the same folder, then rename).
 
     Parameters
@@ -80,7 +86,7 @@ def atomic_write_bytes(path, data: bytes) -> Path:
     return path
 
 
-def atomic_write_text(path, text: str, encoding: str = "utf-8") -> Path:
+def atomic_write_text(path: Path | str, text: str, encoding: str = "utf-8") -> Path:
     """Write text to ``path`` atomically (see :func:`atomic_write_bytes`).
 
     Parameters
@@ -119,7 +125,7 @@ def to_jsonable(obj):
     raise TypeError(f"cannot write {type(obj).__name__} to JSON: {obj!r}")
 
 
-def write_json(path, obj) -> Path:
+def write_json(path: Path | str, obj: dict | list) -> Path:
     """Write ``obj`` as indented JSON, atomically.
 
     Parameters
@@ -137,7 +143,7 @@ def write_json(path, obj) -> Path:
 
 
 @contextlib.contextmanager
-def atomic_directory(path, *, overwrite=False, kind=None):
+def atomic_directory(path: Path | str, *, overwrite: bool = False, kind: str | None = None) -> Iterator[Path]:
     """Build a folder under a temporary name and rename it into place on success.
 
     Parameters
@@ -216,7 +222,9 @@ def _column_data(exp: Experiment):
     return cols
 
 
-def write_experiment_csv(path, exp: Experiment, *, decimals=None, include_extra=True) -> Path:
+def write_experiment_csv(
+    path: Path | str, exp: Experiment, *, decimals: int | Mapping[str, int] | None = None, include_extra: bool = True
+) -> Path:
     """Write an experiment as a contract CSV (degC), atomically.
 
     Parameters
@@ -258,8 +266,7 @@ def write_experiment_csv(path, exp: Experiment, *, decimals=None, include_extra=
             fmts.append("%.17g")
             arrays.append(values)
     buf = io.StringIO()
-    np.savetxt(buf, np.column_stack(arrays), fmt=fmts, delimiter=",",
-               header=",".join(names), comments="")
+    np.savetxt(buf, np.column_stack(arrays), fmt=fmts, delimiter=",", header=",".join(names), comments="")
     return atomic_write_text(path, buf.getvalue())
 
 
@@ -313,7 +320,7 @@ def _toml_table(lines: list, name: str, table: dict) -> None:
         _toml_table(lines, f"{name}.{_toml_key(k)}", v)
 
 
-def write_batch_toml(path, datasheet: Datasheet, rig_config=None) -> Path:
+def write_batch_toml(path: Path | str, datasheet: Datasheet, rig_config: Mapping | None = None) -> Path:
     """Write ``batch.toml`` (``docs/data-format.md``, 'batch.toml'), atomically.
 
     Parameters
@@ -342,8 +349,16 @@ def write_batch_toml(path, datasheet: Datasheet, rig_config=None) -> Path:
     return atomic_write_text(path, "\n".join(lines) + "\n")
 
 
-def experiment_from_arrays(time, current, voltage, sensors_K, t_water_K, t_amb_K,
-                           path=None, extra=None) -> Experiment:
+def experiment_from_arrays(
+    time: ArrayLike,
+    current: ArrayLike,
+    voltage: ArrayLike,
+    sensors_K: ArrayLike,
+    t_water_K: ArrayLike,
+    t_amb_K: ArrayLike,
+    path: Path | str | None = None,
+    extra: Mapping[str, ArrayLike] | None = None,
+) -> Experiment:
     """Build an :class:`Experiment` from SI arrays, checking shapes and values.
 
     Parameters
@@ -380,7 +395,10 @@ def experiment_from_arrays(time, current, voltage, sensors_K, t_water_K, t_amb_K
     if n < 2:
         raise ValueError(f"time: expected at least 2 samples, found {n}")
     arrays = {
-        "current": current, "voltage": voltage, "t_water_K": t_water_K, "t_amb_K": t_amb_K,
+        "current": current,
+        "voltage": voltage,
+        "t_water_K": t_water_K,
+        "t_amb_K": t_amb_K,
     }
     for name, a in arrays.items():
         shape = np.shape(a)
@@ -395,6 +413,12 @@ def experiment_from_arrays(time, current, voltage, sensors_K, t_water_K, t_amb_K
         i = int(np.flatnonzero(np.diff(time) <= 0)[0]) + 1
         raise ValueError(f"time: not strictly increasing at index {i} ({time[i]} s after {time[i - 1]} s)")
     return Experiment(
-        path=path, time=time, current=current, voltage=voltage, sensors=sensors_K,
-        t_water=t_water_K, t_amb=t_amb_K, extra=dict(extra or {}),
+        path=path,
+        time=time,
+        current=current,
+        voltage=voltage,
+        sensors=sensors_K,
+        t_water=t_water_K,
+        t_amb=t_amb_K,
+        extra=dict(extra or {}),
     )

@@ -3,7 +3,10 @@
 The rig is the thermal network of :mod:`tembayes.physics` (node temperatures
 ``x`` [K]) driven by the module current and the water and ambient
 temperatures, ``u = (I [A], T_water [K], T_amb [K])``, and read by the four
-sensors and the module voltage, ``y = (T1..T4 [K], V [V])``:
+sensors and the module voltage, ``y = (T1..T4 [K], V [V])``.  Inputs and
+outputs are named by their CSV columns (``current_A``, ``T_water_C``, ...,
+``T1_C``, ..., ``voltage_V``), the channel names of every output of tembayes;
+their values are SI (:data:`INPUT_UNITS`, :data:`OUTPUT_UNITS`):
 
     dx/dt = f(x, u; theta),   y = h(x, u; theta).
 
@@ -29,15 +32,20 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import brentq
 
-from tembayes.constants import KELVIN
+from tembayes.constants import KELVIN, SENSOR_CHANNELS
 from tembayes.errors import ModelError
 from tembayes.physics import kernel as K
 from tembayes.physics.simulate import build
+from tembayes.predict.runmodel import CHANNELS
 
-#: Inputs of the linear model.
-INPUTS = ("current_A", "t_water_K", "t_amb_K")
-#: Outputs of the linear model (temperatures in K: a deviation in K is one in degC).
-OUTPUTS = ("T1_K", "T2_K", "T3_K", "T4_K", "voltage_V")
+#: Inputs of the linear model, named by their CSV columns.
+INPUTS = ("current_A", "T_water_C", "T_amb_C")
+#: Units of the inputs' values (SI: kelvin, though the names are the degC columns').
+INPUT_UNITS = ("A", "K", "K")
+#: Outputs of the linear model: the predicted channels (sensors, then the voltage).
+OUTPUTS = CHANNELS
+#: Units of the outputs' values (a deviation in K is one in degC).
+OUTPUT_UNITS = ("K",) * len(SENSOR_CHANNELS) + ("V",)
 #: Relative step of the parameter sensitivities.
 REL_STEP = 1e-4
 
@@ -88,7 +96,7 @@ class _Rig:
         self.A, self.Bb, self.Cinv = m["A"][0], m["Bb"][0], m["Cinv"][0]
         self.p, self.tem = m["P"][0], m["tem"]
         self.nodes = tuple(m["network"].nodes)
-        a, b, f = rig.readout(tuple(rig.sensors), {k: float(v) for k, v in params.items()})
+        a, b, f = rig.readout(SENSOR_CHANNELS, {k: float(v) for k, v in params.items()})
         # each sensor reads a blend of two nodes (its depth, RigDescription.readout)
         self.read = np.zeros((len(a), len(self.nodes)))
         self.read[np.arange(len(a)), a] += 1.0 - f[0]
@@ -97,8 +105,7 @@ class _Rig:
 
     def steady(self, current, tw, ta, guess=None):
         y0 = np.full(len(self.nodes), tw) if guess is None else guess
-        y, ok = K.steady_one(y0, K.true_current(current, self.p), tw, ta, self.A, self.Bb, self.Cinv, self.tem,
-                             self.p)
+        y, ok = K.steady_one(y0, K.true_current(current, self.p), tw, ta, self.A, self.Bb, self.Cinv, self.tem, self.p)
         if not ok or not np.all(np.isfinite(y)):
             raise ModelError(f"no steady state at I = {current} A, water {tw - KELVIN:.2f} C")
         return y
@@ -112,6 +119,7 @@ class _Rig:
 
     def point(self, tavg_K, current, ta):
         """Steady state whose mean junction temperature is ``tavg_K``: the water temperature solved."""
+
         def miss(tw):
             y = self.steady(current, tw, ta)
             return 0.5 * (y[self.hot] + y[self.cold]) - tavg_K
@@ -120,8 +128,10 @@ class _Rig:
         try:
             tw = brentq(miss, lo, hi, xtol=1e-9)
         except ValueError as err:
-            raise ModelError(f"no water temperature in {lo - KELVIN:.0f}..{hi - KELVIN:.0f} C gives "
-                             f"T_avg {tavg_K - KELVIN:.2f} C at {current} A") from err
+            raise ModelError(
+                f"no water temperature in {lo - KELVIN:.0f}..{hi - KELVIN:.0f} C gives "
+                f"T_avg {tavg_K - KELVIN:.2f} C at {current} A"
+            ) from err
         return self.steady(current, tw, ta), tw
 
     def matrices(self, x0, u0):
@@ -133,7 +143,7 @@ class _Rig:
         B[:, 0] = (self.rhs(x0, current + h, tw, ta) - self.rhs(x0, current - h, tw, ta)) / (2 * h)
         B[:, 1:] = self.Bb  # the network is linear in the boundary temperatures
         C = np.zeros((len(OUTPUTS), n))
-        C[:len(self.read)] = self.read
+        C[: len(self.read)] = self.read
         hx = 1e-3  # K: the voltage is smooth (quadratic) in the temperatures
         for i in self.tem:
             e = np.zeros(n)

@@ -27,17 +27,61 @@ from pathlib import Path
 
 import numpy as np
 
-from tembayes.constants import MODULE_PARAMETERS
+from tembayes.common.draws import thin
+from tembayes.common.ou import fit_ou, spectral_density
+from tembayes.constants import KELVIN, MODULE_PARAMETERS
 from tembayes.data.quality import noise_estimate
 from tembayes.errors import DataError
-from tembayes.export.linearise import INPUTS, OUTPUTS, linearise
+from tembayes.export.coverage import boundary_warnings, calibrated_range, check_points, default_points
+from tembayes.export.linearise import INPUT_UNITS, INPUTS, OUTPUT_UNITS, OUTPUTS, linearise
 from tembayes.predict.predictive import module_draws, predict
 from tembayes.predict.runmodel import CHANNELS
 
-#: Schema name and version of the export (``schema`` key of every format).
-SCHEMA = "tembayes-observer-export/1"
-#: Default operating points ``(T̄ [degC], I [A])``.
-DEFAULT_POINTS = ((25.0, 0.0), (25.0, 2.0), (40.0, 4.0))
+#: Draws of the held-out posterior predictive whose residuals give the process noise.
+HELDOUT_DRAWS = 100
+#: Units of the five module parameters (the rig's come from the rig description).
+MODULE_UNITS = {
+    "R0_ohm": "ohm",
+    "R1_ohm_per_K": "ohm/K",
+    "S0_V_per_K": "V/K",
+    "S1_V_per_K2": "V/K^2",
+    "K_W_per_K": "W/K",
+}
+
+
+@dataclass(frozen=True)
+class ModuleExport:
+    """The export of one module (or of a new unit of the batch, ``population``); SI.
+
+    Attributes
+    ----------
+    mean : ndarray, shape (p,)
+        Posterior mean over :attr:`ObserverExport.parameters`.
+    cov : ndarray, shape (p, p)
+        Posterior covariance.
+    draws : ndarray, shape (d, p)
+        Evenly thinned posterior draws.
+    n_posterior : int
+        Posterior draws behind ``mean`` and ``cov``.
+    measurement_noise_cov : ndarray, shape (5, 5)
+        White sensor noise over the outputs [K^2, K V, V^2].
+    process_noise : dict
+        One OU disturbance per output (:func:`_ou_noise`), with held-out runs
+        also its structure (:func:`disturbance_structure`).
+    input_noise : dict
+        :func:`input_noise`.
+    linear : list of LinearModel
+        One per operating point.
+    """
+
+    mean: np.ndarray
+    cov: np.ndarray
+    draws: np.ndarray
+    n_posterior: int
+    measurement_noise_cov: np.ndarray
+    process_noise: dict
+    input_noise: dict
+    linear: list
 
 
 @dataclass(frozen=True)
@@ -51,11 +95,15 @@ class ObserverExport:
     units : dict
         Parameter -> unit.
     modules : dict
-        Module id (and ``"population"``) -> ``{"mean", "cov", "draws",
-        "measurement_noise_cov", "process_noise", "linear": [LinearModel]}``.
-    states, inputs, outputs : tuple of str
+        Module id (and ``"population"``) -> :class:`ModuleExport`.
+    states : tuple of str
+        The linear models' states (node names).
+    inputs, outputs : tuple of str
+        The linear models' inputs and outputs, named by their CSV columns.
+    input_units, output_units : tuple of str
+        Units of their values.
     meta : dict
-        Run, seed, command context.
+        Run, batch, seed, points, the calibrated range, the warnings.
     """
 
     parameters: tuple
@@ -64,7 +112,24 @@ class ObserverExport:
     states: tuple
     inputs: tuple = INPUTS
     outputs: tuple = OUTPUTS
+    input_units: tuple = INPUT_UNITS
+    output_units: tuple = OUTPUT_UNITS
     meta: dict = field(default_factory=dict)
+
+    @property
+    def warnings(self):
+        """What the export extrapolates (``meta.warnings``)."""
+        return list(self.meta.get("warnings", []))
+
+
+@dataclass(frozen=True)
+class _Operating:
+    """Where the linear models are taken: the calibration rig, the points ``(T̄ [degC], I [A])``, the ambient [degC]."""
+
+    rig: object
+    points: tuple
+    t_amb_C: float
+    say: object
 
 
 def measurement_noise_cov(exp, step_guard=5):
@@ -83,7 +148,7 @@ def measurement_noise_cov(exp, step_guard=5):
     jumps = np.flatnonzero(di > 20 * max(noise_estimate(exp.current), 1e-6))
     keep = np.ones(d2.shape[1], bool)
     for j in jumps:
-        keep[max(j - step_guard, 0):j + step_guard] = False
+        keep[max(j - step_guard, 0) : j + step_guard] = False
     d2 = d2[:, keep]
     # robust: drop any sample beyond 5 robust sds in any channel, then correlations
     ok = np.all(np.abs(d2) <= 5 * np.sqrt(6) * sd[:, None], axis=0)
@@ -93,51 +158,22 @@ def measurement_noise_cov(exp, step_guard=5):
     return corr * np.outer(sd, sd)
 
 
-def fit_ou_plus_white(t, r, white_sd, *, taus=np.geomspace(1.0, 2e4, 48), n_sd=48):
-    """Maximum-likelihood OU disturbance under known white noise: ``r = d + v``, ``v ~ N(0, white_sd^2)``.
-
-    A scalar Kalman filter, vectorised over a grid of ``(tau, sd)``; a plain
-    OU fit would spend its correlation time on the white noise (taus of a
-    second on a 1 Hz residual).
-
-    Returns
-    -------
-    (sd, tau_s) : float, float
-        Stationary sd of ``d`` (0 when the residual is white) [unit of r], its correlation time [s].
-    """
-    r = np.asarray(r, float)
-    rv = float(white_sd) ** 2
-    top = max(np.std(r), 1e-12)
-    sds = np.concatenate([[0.0], np.geomspace(top * 1e-3, top * 2.0, n_sd - 1)])
-    tau, sd = (a.ravel() for a in np.meshgrid(taus, sds, indexing="ij"))
-    q = sd * sd
-    m, P = np.zeros_like(q), q.copy()
-    ll = np.zeros_like(q)
-    dt = np.diff(t, prepend=t[0])
-    for k in range(len(r)):
-        phi = np.exp(-dt[k] / tau)
-        m = phi * m
-        P = phi * phi * P + q * (1.0 - phi * phi)
-        S = P + rv
-        e = r[k] - m
-        ll -= 0.5 * (np.log(S) + e * e / S)
-        g = P / S
-        m = m + g * e
-        P = (1.0 - g) * P
-    i = int(np.argmax(ll))
-    return float(sd[i]), float(tau[i])
-
-
 def _ou_noise(sd, tau, source):
-    """``process_noise``: an OU disturbance per output, ``q = 2 sd^2 / tau`` the spectral density of its drive."""
+    """``process_noise``: an OU disturbance per output, ``q_continuous`` the spectral density of its drive."""
     sd, tau = np.asarray(sd, float), np.asarray(tau, float)
-    return {"sd": sd, "tau_s": tau, "q_continuous": 2.0 * sd ** 2 / tau, "source": source,
-            "channels": list(CHANNELS)}
+    return {
+        "sd": sd,
+        "tau_s": tau,
+        "q_continuous": spectral_density(sd, tau),
+        "source": source,
+        "channels": list(CHANNELS),
+    }
 
 
 def _process_noise(t, residual, floor, source):
-    fits = [fit_ou_plus_white(t, residual[c], floor[c]) for c in range(len(CHANNELS))]
-    return _ou_noise([f[0] for f in fits], [f[1] for f in fits], source)
+    """OU disturbances fitted to residuals ``(5, n)`` with the sensors' white noise ``floor`` ``(5,)`` modelled."""
+    fits = [fit_ou(t, residual[c], white_sd=floor[c]) for c in range(len(CHANNELS))]
+    return _ou_noise([f.sd for f in fits], [f.tau_s for f in fits], source)
 
 
 #: Lower edges of the bins of time since the last current step [s] (the last bin is open).
@@ -194,8 +230,13 @@ def disturbance_structure(t, residual, current, R):
         if sel.sum() >= 30:
             prof[:, b] = np.sqrt(np.maximum(np.mean(residual[:, sel] ** 2, axis=1) - white, 0.0))
             corr_b[b] = _disturbance_corr(residual[:, sel] @ residual[:, sel].T / sel.sum() - R)
-    return {"sd_by_time_since_step": prof, "corr": _disturbance_corr(np.cov(residual) - R),
-            "corr_by_time_since_step": corr_b, "n_by_time_since_step": counts, "step_bins_s": np.array(STEP_BINS_S)}
+    return {
+        "sd_by_time_since_step": prof,
+        "corr": _disturbance_corr(np.cov(residual) - R),
+        "corr_by_time_since_step": corr_b,
+        "n_by_time_since_step": counts,
+        "step_bins_s": np.array(STEP_BINS_S),
+    }
 
 
 def _disturbance_corr(C):
@@ -222,31 +263,50 @@ def input_noise(exps):
     adds this prior per step need not subtract it from the profile.
     """
     dts = np.concatenate([np.diff(np.asarray(e.time, float)) for e in exps])
-    return {"current_sd_A": float(np.median([noise_estimate(e.current) for e in exps])),
-            "sample_interval_s": float(np.median(dts)),
-            "step_instant": "uniform within the sampling interval, one phase per run (one clock): current "
-                            "variance dI^2/12 over the interval holding a step of dI; the held-out profile "
-                            "already contains that run's realised phase"}
+    return {
+        "current_sd_A": float(np.median([noise_estimate(e.current) for e in exps])),
+        "sample_interval_s": float(np.median(dts)),
+        "step_instant": "uniform within the sampling interval, one phase per run (one clock): current "
+        "variance dI^2/12 over the interval holding a step of dI; the held-out profile "
+        "already contains that run's realised phase",
+    }
 
 
-def observer_inputs(run, batch, *, points=DEFAULT_POINTS, t_amb_C=25.0, n_draws=200, seed=0, modules=None,
-                    heldout=True, progress=None):
+def observer_inputs(
+    run,
+    batch,
+    *,
+    points=None,
+    t_amb_C=None,
+    allow_extrapolation=False,
+    n_draws=200,
+    seed=0,
+    modules=None,
+    heldout=True,
+    progress=None,
+):
     """Posterior moments, noise and linearised models of a calibration run for observer design.
 
     Parameters
     ----------
     run : tembayes.calibrate.run.CalibrationRun
     batch : tembayes.data.Batch
-        The calibrated batch (its identification runs anchor the rig and give
-        the sensor noise; its validation runs, if any, the process noise).
-    points : sequence of (float, float)
-        Operating points ``(T̄ [degC], I [A])`` to linearise at.
-    t_amb_C : float
-        Ambient temperature of the operating points [degC].
+        The calibrated batch (its identification runs anchor the rig, give
+        the sensor noise and the calibrated range; its validation runs, if
+        any, the process noise).
+    points : sequence of (float, float), optional
+        Operating points ``(T̄ [degC], I [A])`` to linearise at; default
+        :func:`~tembayes.export.coverage.default_points` of the calibrated range.
+    t_amb_C : float, optional
+        Ambient temperature of the operating points [degC]; default the
+        median ambient of the modules' identification runs.
+    allow_extrapolation : bool
+        Export points outside the calibrated range (with a warning in
+        ``meta.warnings``) instead of refusing them.
     n_draws : int
         Posterior draws kept per module (evenly thinned).
     seed : int
-        Seeds the held-out predictive (process noise).
+        Seeds the held-out predictive (process noise) and the population's rig draws.
     modules : sequence of str, optional
         Default: every module of the run.
     heldout : bool or sequence of str
@@ -259,6 +319,12 @@ def observer_inputs(run, batch, *, points=DEFAULT_POINTS, t_amb_C=25.0, n_draws=
     Returns
     -------
     ObserverExport
+
+    Raises
+    ------
+    DataError
+        An unknown module or held-out run, or a point outside the calibrated
+        range without ``allow_extrapolation`` (before any work is done).
     """
     t0 = _time.perf_counter()
     say = progress or (lambda msg: None)
@@ -267,71 +333,110 @@ def observer_inputs(run, batch, *, points=DEFAULT_POINTS, t_amb_C=25.0, n_draws=
     bad = [m for m in ids if m not in run.module_ids]
     if bad:
         raise DataError(run.path, f"has no module(s) {bad}", f"Choose from {list(run.module_ids)}.")
-    chosen = {mid: _heldout_runs(batch.modules[mid], heldout) for mid in ids}  # refused before any work
-    names, out, states = None, {}, None
-    per_params = {}
+    chosen = {mid: _heldout_runs(batch.modules[mid], heldout) for mid in ids}
+    covered = calibrated_range(run, batch, modules=ids)
+    points = default_points(covered) if points is None else tuple(tuple(map(float, p)) for p in points)
+    warned = check_points(points, covered=covered, allow_extrapolation=allow_extrapolation)
+    if t_amb_C is None:
+        t_amb_C = float(np.median(np.concatenate([batch.modules[m].identification.t_amb for m in ids]))) - KELVIN
+    ctx = _Operating(rig=rig, points=points, t_amb_C=float(t_amb_C), say=say)
+    out, draws_by_id, names = {}, {}, None
     for mid in ids:
-        module = batch.modules[mid]
         say(f"{mid}: anchoring the rig on the identification run")
-        d = module_draws(run, mid, module.identification, rig)
-        if names is None:
-            names = tuple(MODULE_PARAMETERS) + tuple(k for k in rig.parameter_names if k in d.params)
-        X = np.column_stack([np.asarray(d.params[k], float) for k in names])
-        per_params[mid] = X
-        keep = _thin(X, n_draws)
-        R = measurement_noise_cov(module.identification)
-        floor = np.sqrt(np.diag(R))
-        vals = chosen[mid]
-        if vals:
-            say(f"{mid}: process noise from the held-out run(s)")
-            ts, rs, cs = [], [], []
-            for exp in vals:
-                p = predict(run, exp, mid, batch, n_draws=100, seed=seed, compare_constant=False).linear
-                ts.append(p.time)
-                rs.append(p.residual)
-                cs.append(np.asarray(p.current, float))
-            # runs are joined end to end; the one spurious innovation at a seam is negligible
-            t = np.concatenate([ts[0]] + [ts[i] - ts[i][0] + ts[i - 1][-1] + 1.0 for i in range(1, len(ts))])
-            pn = _process_noise(t, np.concatenate(rs, axis=1), floor,
-                                "held-out posterior-predictive residuals: "
-                                + ", ".join(Path(str(e.path)).name for e in vals))
-            # per run (the time since a step restarts with each run), then pooled by sample count
-            parts = [disturbance_structure(tt, rr, cc, R) for tt, rr, cc in zip(ts, rs, cs)]
-            wts = np.array([len(tt) for tt in ts], float)
-            pn.update(_pool_structure(parts, weights=wts))
-        else:
-            pn = _ou_noise(np.sqrt(np.maximum(d.noise_sd[0] ** 2 - floor ** 2, 0.0)), d.noise_tau[0],
-                           "identification-run residuals (the module has no held-out run)")
-        mean = X.mean(axis=0)
-        lin = _linear_models(dict(zip(names, mean)), rig, points, t_amb_C, names, say, mid)
-        states = lin[0].states
-        out[mid] = {"mean": mean, "cov": np.cov(X, rowvar=False), "draws": keep, "measurement_noise_cov": R,
-                    "process_noise": pn, "input_noise": input_noise(vals or [module.identification]),
-                    "linear": lin, "n_posterior": len(X)}
+        d = module_draws(run, mid, batch.modules[mid].identification, rig)
+        names = names or tuple(MODULE_PARAMETERS) + tuple(k for k in rig.parameter_names if k in d.params)
+        draws_by_id[mid] = np.column_stack([np.asarray(d.params[k], float) for k in names])
+        out[mid] = _module_export(
+            run, batch, mid, d, draws_by_id[mid], names, chosen[mid], n_draws=n_draws, seed=seed, ctx=ctx
+        )
     pop = run.population_draws(MODULE_PARAMETERS)
     if pop is not None:
-        # a new unit: the population's laws, the rig as the calibrated modules' (their pooled draws)
-        rigX = np.vstack([per_params[m][:, len(MODULE_PARAMETERS):] for m in ids])
-        rng = np.random.default_rng(seed)
-        rigX = rigX[rng.integers(0, len(rigX), len(pop))]
-        X = np.hstack([pop, rigX])
-        mean = X.mean(axis=0)
-        say("population: linearising a new module of the batch")
-        out["population"] = {"mean": mean, "cov": np.cov(X, rowvar=False),
-                             "draws": _thin(X, n_draws),
-                             "measurement_noise_cov": np.mean([out[m]["measurement_noise_cov"] for m in ids], axis=0),
-                             "process_noise": _pool_process_noise([out[m]["process_noise"] for m in ids]),
-                             "input_noise": out[ids[0]]["input_noise"],
-                             "linear": _linear_models(dict(zip(names, mean)), rig, points, t_amb_C, names, say,
-                                                      "population"),
-                             "n_posterior": len(X)}
-    units = {p.name: p.unit for p in rig.parameters}
-    units.update({"R0_ohm": "ohm", "R1_ohm_per_K": "ohm/K", "S0_V_per_K": "V/K", "S1_V_per_K2": "V/K^2",
-                  "K_W_per_K": "W/K"})
-    meta = {"run": str(run.path), "batch": str(batch.path), "seed": int(seed), "t_amb_C": float(t_amb_C),
-            "points": [list(map(float, p)) for p in points], "tref_C": run.tref_C,
-            "seconds": _time.perf_counter() - t0}
+        out["population"] = _population_export(pop, out, draws_by_id, names, n_draws=n_draws, seed=seed, ctx=ctx)
+    warned += boundary_warnings([m.linear for m in out.values()], covered=covered, t_amb_C=float(t_amb_C))
+    units = {**{p.name: p.unit for p in rig.parameters}, **MODULE_UNITS}
+    meta = {
+        "run": str(run.path),
+        "batch": str(batch.path),
+        "seed": int(seed),
+        "t_amb_C": float(t_amb_C),
+        "points": [list(p) for p in points],
+        "tref_C": run.tref_C,
+        "calibrated_range": covered.to_dict(),
+        "allow_extrapolation": bool(allow_extrapolation),
+        "warnings": warned,
+        "seconds": _time.perf_counter() - t0,
+    }
+    states = next(iter(out.values())).linear[0].states
     return ObserverExport(names, {k: units.get(k, "") for k in names}, out, states, meta=meta)
+
+
+def _module_export(run, batch, mid, d, X, names, heldout_runs, *, n_draws, seed, ctx):
+    """One calibrated module's :class:`ModuleExport` from its anchored predictive draws ``d`` (``X`` over ``names``)."""
+    module = batch.modules[mid]
+    R = measurement_noise_cov(module.identification)
+    floor = np.sqrt(np.diag(R))
+    if heldout_runs:
+        ctx.say(f"{mid}: process noise from the held-out run(s)")
+        pn = _heldout_process_noise(run, batch, mid, heldout_runs, R, seed=seed)
+    else:
+        pn = _ou_noise(
+            np.sqrt(np.maximum(d.noise_sd[0] ** 2 - floor**2, 0.0)),
+            d.noise_tau[0],
+            "identification-run residuals (the module has no held-out run)",
+        )
+    mean = X.mean(axis=0)
+    return ModuleExport(
+        mean=mean,
+        cov=np.cov(X, rowvar=False),
+        draws=thin(X, n_draws),
+        n_posterior=len(X),
+        measurement_noise_cov=R,
+        process_noise=pn,
+        input_noise=input_noise(heldout_runs or [module.identification]),
+        linear=_linear_models(dict(zip(names, mean)), names, mid, ctx),
+    )
+
+
+def _heldout_process_noise(run, batch, mid, runs, R, *, seed):
+    """Process noise and its structure from the posterior-predictive residuals of held-out runs."""
+    ts, rs, cs = [], [], []
+    for exp in runs:
+        p = predict(run, exp, mid, batch, n_draws=HELDOUT_DRAWS, seed=seed, compare_constant=False).linear
+        ts.append(p.time)
+        rs.append(p.residual)
+        cs.append(np.asarray(p.current, float))
+    # runs are joined end to end; the one spurious innovation at a seam is negligible
+    t = np.concatenate([ts[0]] + [ts[i] - ts[i][0] + ts[i - 1][-1] + 1.0 for i in range(1, len(ts))])
+    pn = _process_noise(
+        t,
+        np.concatenate(rs, axis=1),
+        np.sqrt(np.diag(R)),
+        "held-out posterior-predictive residuals: " + ", ".join(Path(str(e.path)).name for e in runs),
+    )
+    # per run (the time since a step restarts with each run), then pooled by sample count
+    parts = [disturbance_structure(tt, rr, cc, R) for tt, rr, cc in zip(ts, rs, cs)]
+    pn.update(_pool_structure(parts, weights=np.array([len(tt) for tt in ts], float)))
+    return pn
+
+
+def _population_export(pop, out, draws_by_id, names, *, n_draws, seed, ctx):
+    """A new unit of the batch: the population's law draws ``pop``, the rig as the calibrated modules' (pooled)."""
+    ids = list(draws_by_id)
+    rigX = np.vstack([draws_by_id[m][:, len(MODULE_PARAMETERS) :] for m in ids])
+    rigX = rigX[np.random.default_rng(seed).integers(0, len(rigX), len(pop))]
+    X = np.hstack([pop, rigX])
+    mean = X.mean(axis=0)
+    ctx.say("population: linearising a new module of the batch")
+    return ModuleExport(
+        mean=mean,
+        cov=np.cov(X, rowvar=False),
+        draws=thin(X, n_draws),
+        n_posterior=len(X),
+        measurement_noise_cov=np.mean([out[m].measurement_noise_cov for m in ids], axis=0),
+        process_noise=_pool_process_noise([out[m].process_noise for m in ids]),
+        input_noise=out[ids[0]].input_noise,
+        linear=_linear_models(dict(zip(names, mean)), names, "population", ctx),
+    )
 
 
 def _heldout_runs(module, heldout):
@@ -341,27 +446,29 @@ def _heldout_runs(module, heldout):
     names = {Path(str(e.path)).name: e for e in module.validations}
     missing = [n for n in heldout if n not in names]
     if missing:
-        raise DataError(module.path, f"has no validation run(s) {missing}",
-                        f"Choose from {sorted(names)} (file names), or leave out --heldout.")
+        raise DataError(
+            module.path,
+            f"has no validation run(s) {missing}",
+            f"Choose from {sorted(names)} (file names), or leave out --heldout.",
+        )
     return [names[n] for n in heldout]
 
 
-def _thin(X, n):
-    """At most ``n`` rows of ``X``, evenly spaced."""
-    return X[np.linspace(0, len(X) - 1, min(n, len(X))).round().astype(int)]
-
-
-def _linear_models(params, rig, points, t_amb_C, names, say, label):
+def _linear_models(params, names, label, ctx):
+    """The rig of ``params`` linearised at every operating point of ``ctx``, sensitive to ``names``."""
     lin = []
-    for tavg, current in points:
-        say(f"{label}: linearising at T_avg {tavg:g} C, I {current:g} A")
-        lin.append(linearise(params, rig, tavg, current, t_amb_C=t_amb_C, sensitivity=names))
+    for tavg, current in ctx.points:
+        ctx.say(f"{label}: linearising at T_avg {tavg:g} C, I {current:g} A")
+        lin.append(linearise(params, ctx.rig, tavg, current, t_amb_C=ctx.t_amb_C, sensitivity=names))
     return lin
 
 
 def _pool_process_noise(items):
-    pn = _ou_noise(np.sqrt(np.mean([p["sd"] ** 2 for p in items], axis=0)),
-                   np.mean([p["tau_s"] for p in items], axis=0), "mean over the calibrated modules")
+    pn = _ou_noise(
+        np.sqrt(np.mean([p["sd"] ** 2 for p in items], axis=0)),
+        np.mean([p["tau_s"] for p in items], axis=0),
+        "mean over the calibrated modules",
+    )
     if all("corr" in p for p in items):
         pn.update(_pool_structure(items))
     return pn
@@ -369,8 +476,10 @@ def _pool_process_noise(items):
 
 def _pool_structure(parts, weights=None):
     """The :func:`disturbance_structure` keys pooled over runs or modules (``corr`` weighted)."""
-    return {"corr": np.average([q["corr"] for q in parts], axis=0, weights=weights),
-            "sd_by_time_since_step": np.sqrt(np.nanmean([q["sd_by_time_since_step"] ** 2 for q in parts], axis=0)),
-            "corr_by_time_since_step": np.nanmean([q["corr_by_time_since_step"] for q in parts], axis=0),
-            "n_by_time_since_step": np.sum([q["n_by_time_since_step"] for q in parts], axis=0),
-            "step_bins_s": np.array(STEP_BINS_S)}
+    return {
+        "corr": np.average([q["corr"] for q in parts], axis=0, weights=weights),
+        "sd_by_time_since_step": np.sqrt(np.nanmean([q["sd_by_time_since_step"] ** 2 for q in parts], axis=0)),
+        "corr_by_time_since_step": np.nanmean([q["corr_by_time_since_step"] for q in parts], axis=0),
+        "n_by_time_since_step": np.sum([q["n_by_time_since_step"] for q in parts], axis=0),
+        "step_bins_s": np.array(STEP_BINS_S),
+    }

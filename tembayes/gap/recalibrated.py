@@ -14,7 +14,8 @@ import os
 from pathlib import Path
 
 from tembayes.calibrate import results as res
-from tembayes.calibrate.batch import finish_run, write_digest
+from tembayes.calibrate.batch import finish_run
+from tembayes.calibrate.moduledigest import write_digest
 from tembayes.constants import MODULE_PARAMETERS
 from tembayes.data.digest import batch_inputs
 from tembayes.data.outputs import MARKER, marker
@@ -28,7 +29,7 @@ def write_recalibrated_run(diag, run, batch, folder, *, seed=0, progress=None):
 
     Parameters
     ----------
-    diag : tembayes.gap.diagnose.GapDiagnosis
+    diag : tembayes.gap.result.GapDiagnosis
         With a ``best`` effect and its ``recalibration``.
     run : tembayes.calibrate.run.CalibrationRun
         The run the diagnosis started from (its laws are "before").
@@ -52,10 +53,14 @@ def write_recalibrated_run(diag, run, batch, folder, *, seed=0, progress=None):
         write_digest(nc, cal)
     record = {"path": os.path.abspath(batch.path), "inputs": batch_inputs(batch)}
     opt = diag.recalibration_options
-    summ = finish_run(batch, folder, seed=seed, options=opt, progress=progress, figures=False, batch_record=record,
-                      argv=None)
+    summ = finish_run(batch, folder, seed=seed, options=opt, progress=progress, batch_record=record, argv=None)
     atomic_write_text(folder / MARKER, marker("calibrate", complete=True, seed=int(seed), batch=record))
     before = {m: {p: e[p] for p in MODULE_PARAMETERS} for m, e in run.summary["modules"].items()}
     after = {m: {p: e[p] for p in MODULE_PARAMETERS} for m, e in summ["modules"].items()}
-    return {"effects": list(opt.effects), "run": folder.name, "laws_before": before, "laws_after": after,
-            "modules_not_recalibrated": sorted(set(before) - set(after))}
+    return {
+        "effects": list(opt.effects),
+        "run": folder.name,
+        "laws_before": before,
+        "laws_after": after,
+        "modules_not_recalibrated": sorted(set(before) - set(after)),
+    }

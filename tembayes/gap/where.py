@@ -69,17 +69,25 @@ def regimes(pred):
     i = pred.current
     imax = float(np.max(np.abs(i))) or 1.0
     idle = np.abs(i) < 0.05 * imax
-    out += [("mode", "heating (I < 0)", (i < 0) & ~idle), ("mode", "cooling (I > 0)", (i > 0) & ~idle),
-            ("mode", "idle", idle)]
+    out += [
+        ("mode", "heating (I < 0)", (i < 0) & ~idle),
+        ("mode", "cooling (I > 0)", (i > 0) & ~idle),
+        ("mode", "idle", idle),
+    ]
     a = np.abs(i) / imax
-    out += [("current", "|I| small", a < 1 / 3), ("current", "|I| medium", (a >= 1 / 3) & (a < 2 / 3)),
-            ("current", "|I| large", a >= 2 / 3)]
+    out += [
+        ("current", "|I| small", a < 1 / 3),
+        ("current", "|I| medium", (a >= 1 / 3) & (a < 2 / 3)),
+        ("current", "|I| large", a >= 2 / 3),
+    ]
     if pred.since_step is not None:
         s = pred.since_step
         t1, t2 = AFTER_STEP_S
-        out += [("after_step", f"transient (< {t1:.0f} s after a step)", s < t1),
-                ("after_step", f"settling ({t1:.0f}-{t2:.0f} s)", (s >= t1) & (s < t2)),
-                ("after_step", f"steady (> {t2:.0f} s)", s >= t2)]
+        out += [
+            ("after_step", f"transient (< {t1:.0f} s after a step)", s < t1),
+            ("after_step", f"settling ({t1:.0f}-{t2:.0f} s)", (s >= t1) & (s < t2)),
+            ("after_step", f"steady (> {t2:.0f} s)", s >= t2),
+        ]
     return [(f, lab, m) for f, lab, m in out if m.sum() >= MIN_SAMPLES]
 
 
@@ -98,9 +106,12 @@ def ou_paths(rng, t, sd, tau):
 
 
 def _tail_p(t_obs, t_rep):
-    """P(T >= t_obs) under a scaled chi-square fitted to the replicates by their first two moments
-    (Satterthwaite): exact for one dominant Gaussian direction (a run-long parameter error,
-    chi-square 1) and for many independent ones (white noise), and it reaches past 1/M."""
+    """P(T >= t_obs) under a scaled chi-square fitted to the replicates by their first two moments.
+
+    Satterthwaite's fit is exact for one dominant Gaussian direction (a
+    run-long parameter error, chi-square 1) and for many independent ones
+    (white noise), and it reaches past 1/M.
+    """
     m, v = float(np.mean(t_rep)), float(np.var(t_rep, ddof=1))
     if not (np.isfinite(v) and v > 0 and m > 0):
         return float(t_obs <= m)
@@ -195,12 +206,16 @@ def gap_map(pred, rng):
         z_rep = r_rep / sd[None]
         outside = (pred.measured[c] < lo90[c]) | (pred.measured[c] > hi90[c])
 
-        def cell(mask):
+        def cell(mask, z_obs=z_obs, z_rep=z_rep, outside=outside):
             t_obs = float(np.mean(z_obs[mask] ** 2))
             t_rep = np.mean(z_rep[:, mask] ** 2, axis=1)
-            return {"n": int(mask.sum()), "score": float(np.sqrt(t_obs)), "p": _tail_p(t_obs, t_rep),
-                    "p_empirical": float((1 + np.sum(t_rep >= t_obs)) / (M + 1)),
-                    "outside90": float(np.mean(outside[mask]))}
+            return {
+                "n": int(mask.sum()),
+                "score": float(np.sqrt(t_obs)),
+                "p": _tail_p(t_obs, t_rep),
+                "p_empirical": float((1 + np.sum(t_rep >= t_obs)) / (M + 1)),
+                "outside90": float(np.mean(outside[mask])),
+            }
 
         whole = cell(np.ones(n, bool))
         lb_obs = _ljung_box(r_obs[grid], TEST_LAGS)
@@ -247,12 +262,20 @@ def identification_map(refit):
     regs = []
     for k in range(len(st)):
         m = step == k
-        regs.append(("window", f"step {k + 1} at {st[k]:.0f} s ({levels[k]:+.2f} -> {levels[k + 1]:+.2f} A, "
-                               f"T_avg {np.mean(tc[m]):.0f} C)", m))
+        regs.append(
+            (
+                "window",
+                f"step {k + 1} at {st[k]:.0f} s ({levels[k]:+.2f} -> {levels[k + 1]:+.2f} A, "
+                f"T_avg {np.mean(tc[m]):.0f} C)",
+                m,
+            )
+        )
     t1, t2 = ID_PHASES_S
-    regs += [("after_step", f"transient (< {t1:.0f} s after a step)", since < t1),
-             ("after_step", f"settling ({t1:.0f}-{t2:.0f} s)", (since >= t1) & (since < t2)),
-             ("after_step", f"steady (> {t2:.0f} s)", since >= t2)]
+    regs += [
+        ("after_step", f"transient (< {t1:.0f} s after a step)", since < t1),
+        ("after_step", f"settling ({t1:.0f}-{t2:.0f} s)", (since >= t1) & (since < t2)),
+        ("after_step", f"steady (> {t2:.0f} s)", since >= t2),
+    ]
     lo = np.floor(tc.min() / TAVG_BAND_K) * TAVG_BAND_K
     for a in np.arange(lo, tc.max(), TAVG_BAND_K):
         regs.append(("Tavg", f"T_avg {a:.0f}-{a + TAVG_BAND_K:.0f} C", (tc >= a) & (tc < a + TAVG_BAND_K)))
@@ -261,13 +284,21 @@ def identification_map(refit):
     def cell(zc, mask):
         t = float(np.sum(zc[mask] ** 2))
         n = int(mask.sum())
-        return {"n": n, "score": float(np.sqrt(t / n)), "p": float(stats.chi2.sf(t, n)),
-                "outside90": float(np.mean(np.abs(zc[mask]) > 1.645))}
+        return {
+            "n": n,
+            "score": float(np.sqrt(t / n)),
+            "p": float(stats.chi2.sf(t, n)),
+            "outside90": float(np.mean(np.abs(zc[mask]) > 1.645)),
+        }
 
     cells, chans = [], {}
     for c, ch in enumerate(STEP_CHANNELS):
         chans[ch] = cell(z[c], np.ones(z.shape[1], bool))
         for fam, lab, mask in regs:
             cells.append({"channel": ch, "family": fam, "regime": lab, **cell(z[c], mask)})
-    return GapMap(cells=cells, channels=chans, n_replicates=0,
-                  source=f"{w['source']} (each step window predicted from the others)")
+    return GapMap(
+        cells=cells,
+        channels=chans,
+        n_replicates=0,
+        source=f"{w['source']} (each step window predicted from the others)",
+    )

@@ -155,9 +155,18 @@ class Refit:
 
     def summary(self):
         """A JSON-ready record (``gap.json``'s screen rows)."""
-        return {"effect": self.effect, "log_evidence": self.log_evidence, "chi2": self.chi2_total,
-                "chi2_channels": self.chi2, "cv_chi2": self.cv_chi2, "cv_elpd": float(np.sum(self.cv_lpd)),
-                "size": self.size(), "nfev": self.nfev, "converged": self.converged, "seconds": self.seconds}
+        return {
+            "effect": self.effect,
+            "log_evidence": self.log_evidence,
+            "chi2": self.chi2_total,
+            "chi2_channels": self.chi2,
+            "cv_chi2": self.cv_chi2,
+            "cv_elpd": float(np.sum(self.cv_lpd)),
+            "size": self.size(),
+            "nfev": self.nfev,
+            "converged": self.converged,
+            "seconds": self.seconds,
+        }
 
 
 def refit(module, datasheet, effect=None, *, rig_config=None, start=None, options=None, max_nfev=MAX_NFEV):
@@ -199,8 +208,9 @@ def refit(module, datasheet, effect=None, *, rig_config=None, start=None, option
     rig = calibration_rig(rig_config, opt)
     model = StepResponseModel(data, rig)
     effects = () if effect is None else (E.get(effect).name,)
-    space, _ = parameter_space(rig, datasheet, data, model.shift_bound, tuple(dict.fromkeys((*effects, *opt.effects))),
-                               opt.model)
+    space, _ = parameter_space(
+        rig, datasheet, data, model.shift_bound, tuple(dict.fromkeys((*effects, *opt.effects))), opt.model
+    )
     x0 = start_point(space, start)
     with threadpool_limits(limits=1, user_api="blas"):
         x, _, sol = fit_map(model, space, data, x0, max_nfev=max_nfev)
@@ -212,21 +222,39 @@ def refit(module, datasheet, effect=None, *, rig_config=None, start=None, option
     H = J.T @ J
     for j, p in enumerate(space.priors):
         if p.kind == "uniform":
-            H[j, j] += 3.0 / p.scale ** 2
+            H[j, j] += 3.0 / p.scale**2
     cov = np.linalg.inv(H)
     cov = 0.5 * (cov + cov.T)
     data_cost = 0.5 * float(np.sum(r * r))
     _, logdet = np.linalg.slogdet(cov)
     log_evidence = -data_cost + float(space.log_prior(x[None])[0]) + 0.5 * (len(x) * np.log(2 * np.pi) + logdet)
-    cv_lpd, cv_z = window_cv(J[:r.size], r, cov, data.step)
-    windows = {"step": data.step, "since": data.since.astype(np.float32),
-               "tmean_C": (data.obs[2] - KELVIN).astype(np.float32), "levels": data.levels,
-               "step_time": data.step_time, "source": data.source}
-    return Refit(module_id=module.id, effect=effects[0] if effects else None, names=space.names, x=x, cov=cov,
-                 priors={p.name: p.to_dict() for p in space.priors},
-                 chi2={c: float(np.mean(r[k] ** 2)) for k, c in enumerate(STEP_CHANNELS)}, n=int(r.size),
-                 data_cost=data_cost, log_evidence=float(log_evidence), cv_lpd=cv_lpd, cv_z=cv_z, windows=windows,
-                 nfev=int(sol.nfev), converged=bool(sol.status > 0), seconds=time.perf_counter() - t0)
+    cv_lpd, cv_z = window_cv(J[: r.size], r, cov, data.step)
+    windows = {
+        "step": data.step,
+        "since": data.since.astype(np.float32),
+        "tmean_C": (data.obs[2] - KELVIN).astype(np.float32),
+        "levels": data.levels,
+        "step_time": data.step_time,
+        "source": data.source,
+    }
+    return Refit(
+        module_id=module.id,
+        effect=effects[0] if effects else None,
+        names=space.names,
+        x=x,
+        cov=cov,
+        priors={p.name: p.to_dict() for p in space.priors},
+        chi2={c: float(np.mean(r[k] ** 2)) for k, c in enumerate(STEP_CHANNELS)},
+        n=int(r.size),
+        data_cost=data_cost,
+        log_evidence=float(log_evidence),
+        cv_lpd=cv_lpd,
+        cv_z=cv_z,
+        windows=windows,
+        nfev=int(sol.nfev),
+        converged=bool(sol.status > 0),
+        seconds=time.perf_counter() - t0,
+    )
 
 
 def window_cv(J, r, cov, step):

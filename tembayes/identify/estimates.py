@@ -30,11 +30,19 @@ The paper's Algorithm 1 (after Mitrani et al. 2004), done carefully:
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from tembayes.errors import ModelError
 from tembayes.physics.rig import BOUNDARIES
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping
+
+    from tembayes.data.experiment import Experiment
+    from tembayes.data.steps import Step
+    from tembayes.physics.rig import RigDescription
 
 
 @dataclass(frozen=True)
@@ -85,7 +93,15 @@ def _fit_at(x, y, x0, basis):
     return float(coef[0]), float(np.sqrt(cov[0, 0])), coef
 
 
-def jump_resistance(time, voltage, current, step, *, pre_window=30.0, post_window=None):
+def jump_resistance(
+    time: np.ndarray,
+    voltage: np.ndarray,
+    current: np.ndarray,
+    step: Step,
+    *,
+    pre_window: float = 30.0,
+    post_window: float | None = None,
+) -> Jump:
     """Estimate R from the voltage jump at one step.
 
     Parameters
@@ -105,7 +121,7 @@ def jump_resistance(time, voltage, current, step, *, pre_window=30.0, post_windo
     """
     t, v, i = time, voltage, current
     k = step.index
-    dt = float(np.median(np.diff(t[max(k - 20, 1):k + 20])))
+    dt = float(np.median(np.diff(t[max(k - 20, 1) : k + 20])))
     w = post_window if post_window is not None else max(3.0, 8.0 * dt)
     pre = slice(max(step.prev_start, int(np.searchsorted(t, step.t - pre_window))), k)
     post = slice(k, min(step.hold_end, int(np.searchsorted(t, step.t + w, side="right"))))
@@ -126,8 +142,14 @@ def jump_resistance(time, voltage, current, step, *, pre_window=30.0, post_windo
     R_sd_time = abs((hi - hi_pre) - (lo - lo_pre)) / abs(dI) / 2.0 / np.sqrt(3.0)
     R_sd_fit = float(np.hypot(sd_pre, sd_post) / abs(dI))
     R_first = float((v[k] - v[k - 1]) / dI)
-    return Jump(R=float(R), R_sd=float(np.hypot(R_sd_fit, R_sd_time)), R_sd_fit=R_sd_fit, R_sd_time=float(R_sd_time),
-                R_first=R_first, window=float(w))
+    return Jump(
+        R=float(R),
+        R_sd=float(np.hypot(R_sd_fit, R_sd_time)),
+        R_sd_fit=R_sd_fit,
+        R_sd_time=float(R_sd_time),
+        R_first=R_first,
+        window=float(w),
+    )
 
 
 @dataclass(frozen=True)
@@ -149,7 +171,7 @@ class Steady:
     drift: float  # slope of T3 over the window [K/s]: how far from steady
 
 
-def hold_end(exp, start, stop, *, window=60.0):
+def hold_end(exp: Experiment, start: int, stop: int, *, window: float = 60.0) -> Steady:
     """Average the last ``window`` seconds of a hold ``[start, stop)`` of an experiment."""
     t = exp.time
     a = max(start, int(np.searchsorted(t, t[stop - 1] - window)))
@@ -165,13 +187,28 @@ def hold_end(exp, start, stop, *, window=60.0):
     sens = np.array([mean_sd(exp.sensors[c, sl]) for c in range(4)])
     drift = float(np.polyfit(t[sl] - t[sl].mean(), exp.sensors[2, sl], 1)[0])
     return Steady(
-        t_end=float(t[stop - 1]), window=float(t[stop - 1] - t[a]), current=float(np.mean(exp.current[sl])),
-        voltage=v, voltage_sd=vsd, sensors=sens[:, 0], sensors_sd=sens[:, 1],
-        t_water=float(np.mean(exp.t_water[sl])), t_amb=float(np.mean(exp.t_amb[sl])), drift=drift,
+        t_end=float(t[stop - 1]),
+        window=float(t[stop - 1] - t[a]),
+        current=float(np.mean(exp.current[sl])),
+        voltage=v,
+        voltage_sd=vsd,
+        sensors=sens[:, 0],
+        sensors_sd=sens[:, 1],
+        t_water=float(np.mean(exp.t_water[sl])),
+        t_amb=float(np.mean(exp.t_amb[sl])),
+        drift=drift,
     )
 
 
-def junction_temperatures(steady, rig, values=None, *, sds=None, n_draws=400, rng=None):
+def junction_temperatures(
+    steady: Steady,
+    rig: RigDescription,
+    values: Mapping[str, float] | None = None,
+    *,
+    sds: Mapping[str, float] | None = None,
+    n_draws: int = 400,
+    rng: np.random.Generator | None = None,
+) -> tuple[tuple[float, float], tuple[float, float], tuple[np.ndarray, np.ndarray]]:
     """Module plate (junction) temperatures at steady state, from the sensors.
 
     For each plate, the rig's block node next to it must be read by a sensor

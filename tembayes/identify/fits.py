@@ -16,11 +16,15 @@ into the covariance ("sandwich") and leave the estimate alone.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from tembayes.constants import T_REF
 from tembayes.errors import ModelError
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
 
 
 @dataclass(frozen=True)
@@ -51,24 +55,34 @@ class LineFit:
     tref: float = T_REF
 
     @property
-    def a_sd(self):
+    def a_sd(self) -> float:
+        """Standard error of the intercept ``a`` (the value at ``tref``)."""
         return float(np.sqrt(self.cov[0, 0]))
 
     @property
-    def b_sd(self):
+    def b_sd(self) -> float:
+        """Standard error of the slope ``b`` (the law's unit per kelvin)."""
         return float(np.sqrt(self.cov[1, 1]))
 
     def __call__(self, T):
         """Law value at temperature(s) ``T`` [K]."""
         return self.a + self.b * (np.asarray(T, dtype=float) - self.tref)
 
-    def sd(self, T):
+    def sd(self, T: ArrayLike) -> float | np.ndarray:
         """Standard error of the law at ``T`` [K]."""
         x = np.asarray(T, dtype=float) - self.tref
         return np.sqrt(self.cov[0, 0] + 2 * x * self.cov[0, 1] + x * x * self.cov[1, 1])
 
 
-def fit_line(T, y, sd=None, *, common=None, draws=None, tref=T_REF):
+def fit_line(
+    T: ArrayLike,
+    y: ArrayLike,
+    sd: ArrayLike | None = None,
+    *,
+    common: ArrayLike | None = None,
+    draws: ArrayLike | None = None,
+    tref: float = T_REF,
+) -> LineFit:
     """Weighted least-squares line ``y = a + b (T - tref)``.
 
     Parameters
@@ -109,7 +123,7 @@ def fit_line(T, y, sd=None, *, common=None, draws=None, tref=T_REF):
     coef = A @ (X.T @ (w * y))
     cov = A
     resid = y - X @ coef
-    chi2_red = float(np.sum(w * resid ** 2) / (n - 2))
+    chi2_red = float(np.sum(w * resid**2) / (n - 2))
     if sd is None or chi2_red > 1.0:
         cov = cov * chi2_red
     # correlated components: a shift d of the data moves the estimate by G d
@@ -125,7 +139,15 @@ def fit_line(T, y, sd=None, *, common=None, draws=None, tref=T_REF):
     return LineFit(float(coef[0]), float(coef[1]), cov, chi2_red, n, tref)
 
 
-def hysteresis(T, y, sd, direction, *, common=None, tref=T_REF):
+def hysteresis(
+    T: ArrayLike,
+    y: ArrayLike,
+    sd: ArrayLike,
+    direction: ArrayLike,
+    *,
+    common: ArrayLike | None = None,
+    tref: float = T_REF,
+) -> dict:
     """Up-step against down-step estimates at similar temperatures.
 
     Fits ``y = a + b (T - tref) + d s`` with ``s = +1/2`` for up-steps and
@@ -157,12 +179,18 @@ def hysteresis(T, y, sd, direction, *, common=None, tref=T_REF):
     A = np.linalg.inv(X.T @ (w[:, None] * X))
     coef = A @ (X.T @ (w * y[ok]))
     r = y[ok] - X @ coef
-    chi2_red = float(np.sum(w * r ** 2) / (ok.sum() - 3))
+    chi2_red = float(np.sum(w * r**2) / (ok.sum() - 3))
     var = A[2, 2] * max(1.0, chi2_red)
     if common is not None:  # propagated, as in fit_line
         g = (A @ (X.T * w)) @ np.asarray(common, dtype=float)[ok]
         var += g[2] ** 2
     dsd = float(np.sqrt(var))
     diff = float(coef[2])
-    return {"diff": diff, "sd": dsd, "z": diff / dsd, "n_up": n_up, "n_down": n_down,
-            "relative": diff / float(np.mean(y[ok]))}
+    return {
+        "diff": diff,
+        "sd": dsd,
+        "z": diff / dsd,
+        "n_up": n_up,
+        "n_down": n_down,
+        "relative": diff / float(np.mean(y[ok])),
+    }

@@ -23,16 +23,23 @@ figures.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from tembayes.constants import KELVIN, LAW_PARAMETERS, MODULE_PARAMETERS
+from tembayes.data.steps import detect_steps
 from tembayes.errors import ModelError
 from tembayes.identify.estimates import hold_end, jump_resistance, junction_temperatures
 from tembayes.identify.fits import LineFit, fit_line, hysteresis
 from tembayes.identify.rigfit import RigFit, constant_laws, fit_rig, validation_errors
-from tembayes.data.steps import detect_steps
 from tembayes.physics.rig import rig_from_config
+
+if TYPE_CHECKING:
+    from collections.abc import Callable, Mapping
+
+    from tembayes.data import Batch, Datasheet, Experiment, LazyModule, Module
+    from tembayes.physics.rig import RigDescription
 
 #: Holds whose junction temperature difference is smaller than this give no
 #: usable S (V_S / dT with dT near zero) [K].
@@ -71,22 +78,23 @@ class ModuleIdentification:
     validation: dict = field(default_factory=dict)
 
     @property
-    def fit(self):
+    def fit(self) -> dict[str, float]:
         """Law parameters of the corrected method (SI)."""
         return _laws(self.lines["R"], self.lines["S"])
 
     @property
-    def fit_sd(self):
+    def fit_sd(self) -> dict[str, float]:
         """Standard errors of :attr:`fit` (SI)."""
         return _law_sds(self.lines["R"], self.lines["S"])
 
     @property
-    def fit_paper(self):
+    def fit_paper(self) -> dict[str, float]:
         """Law parameters of the paper's literal recipe (SI)."""
         return _laws(self.lines["R_paper"], self.lines["S_paper"])
 
     @property
-    def fit_paper_sd(self):
+    def fit_paper_sd(self) -> dict[str, float]:
+        """Standard errors of :attr:`fit_paper` (SI)."""
         return _law_sds(self.lines["R_paper"], self.lines["S_paper"])
 
 
@@ -113,23 +121,37 @@ def _step_table(exp, rig, rig_values=None, rig_sds=None, *, seed=0):
                 # the same seed for every hold: shared rig-value draws, so the
                 # draws carry the correlation between holds
                 (th, tc), (sh, sc), (dh, dc) = junction_temperatures(
-                    ss, rig, rig_values, sds=rig_sds, rng=np.random.default_rng(seed))
+                    ss, rig, rig_values, sds=rig_sds, rng=np.random.default_rng(seed)
+                )
                 ends[(a, b)] = (ss, th, tc, sh, sc, dh, dc)
         prev = ends[(st.prev_start, st.index)]
         this = ends[(st.hold_start, st.hold_end)]
         ss = this[0]
-        rows.append({
-            "t_s": st.t, "dI_A": st.dI, "direction": st.direction,
-            "jump": jump,
-            # state at the step instant: the end of the previous hold
-            "Tavg_R": 0.5 * (prev[1] + prev[2]), "Tavg_R_sd": 0.5 * float(np.hypot(prev[3], prev[4])),
-            "Tavg_R_paper": 0.5 * (prev[0].sensors[1] + prev[0].sensors[2]),
-            # state at the end of this hold
-            "steady": ss, "Th": this[1], "Tc": this[2], "Th_sd": this[3], "Tc_sd": this[4],
-            "Tavg": 0.5 * (this[1] + this[2]), "dT": this[1] - this[2], "dT_sd": float(np.hypot(this[3], this[4])),
-            "Th_draws": this[5], "Tc_draws": this[6],
-            "Tavg_paper": 0.5 * (ss.sensors[1] + ss.sensors[2]), "dT_paper": ss.sensors[1] - ss.sensors[2],
-        })
+        rows.append(
+            {
+                "t_s": st.t,
+                "dI_A": st.dI,
+                "direction": st.direction,
+                "jump": jump,
+                # state at the step instant: the end of the previous hold
+                "Tavg_R": 0.5 * (prev[1] + prev[2]),
+                "Tavg_R_sd": 0.5 * float(np.hypot(prev[3], prev[4])),
+                "Tavg_R_paper": 0.5 * (prev[0].sensors[1] + prev[0].sensors[2]),
+                # state at the end of this hold
+                "steady": ss,
+                "Th": this[1],
+                "Tc": this[2],
+                "Th_sd": this[3],
+                "Tc_sd": this[4],
+                "Tavg": 0.5 * (this[1] + this[2]),
+                "dT": this[1] - this[2],
+                "dT_sd": float(np.hypot(this[3], this[4])),
+                "Th_draws": this[5],
+                "Tc_draws": this[6],
+                "Tavg_paper": 0.5 * (ss.sensors[1] + ss.sensors[2]),
+                "dT_paper": ss.sensors[1] - ss.sensors[2],
+            }
+        )
     return rows
 
 
@@ -169,16 +191,25 @@ def _laws_from_rows(rows):
         else:
             r["S_paper"] = r["S_sensor_dT"] = np.nan
     # the R law's own uncertainty enters every S the same way: a common term
-    common_R = [R.sd(r["Tavg"]) * r["steady"].current / r["dT"] if np.isfinite(r["S"]) else np.nan
-                for r in rows]
-    S = fit_line([r["Tavg"] for r in rows], [r["S"] for r in rows], [r["S_sd_indep"] for r in rows],
-                 common=np.nan_to_num(common_R), draws=np.nan_to_num(np.array(S_draws).T))
+    common_R = [R.sd(r["Tavg"]) * r["steady"].current / r["dT"] if np.isfinite(r["S"]) else np.nan for r in rows]
+    S = fit_line(
+        [r["Tavg"] for r in rows],
+        [r["S"] for r in rows],
+        [r["S_sd_indep"] for r in rows],
+        common=np.nan_to_num(common_R),
+        draws=np.nan_to_num(np.array(S_draws).T),
+    )
     S_paper = fit_line([r["Tavg_paper"] for r in rows], [r["S_paper"] for r in rows])
     S_sensor = fit_line([r["Tavg_paper"] for r in rows], [r["S_sensor_dT"] for r in rows])
     return {"R": R, "S": S, "R_paper": R_paper, "S_paper": S_paper, "S_sensor_dT": S_sensor}
 
 
-def step_estimates(exp, rig, rig_values=None, rig_sds=None):
+def step_estimates(
+    exp: Experiment,
+    rig: RigDescription,
+    rig_values: Mapping[str, float] | None = None,
+    rig_sds: Mapping[str, float] | None = None,
+) -> dict:
     """Per-step R and S of an identification run, with the rig values given (no rig fit).
 
     The step method of :func:`identify_module`'s second pass: R from each
@@ -203,14 +234,27 @@ def step_estimates(exp, rig, rig_values=None, rig_sds=None):
     rows = _step_table(exp, rig, rig_values, rig_sds)
     _laws_from_rows(rows)  # adds S to the rows
     col = lambda f: np.array([f(r) for r in rows], dtype=float)  # noqa: E731
-    return {"t_s": col(lambda r: r["t_s"]), "direction": np.array([r["direction"] for r in rows]),
-            "Tavg_R_C": col(lambda r: r["Tavg_R"]) - KELVIN, "R_ohm": col(lambda r: r["jump"].R),
-            "R_sd": col(lambda r: np.hypot(r["jump"].R_sd_fit, r["jump"].R_sd_time)),
-            "Tavg_S_C": col(lambda r: r["Tavg"]) - KELVIN, "S_V_per_K": col(lambda r: r["S"]),
-            "S_sd": col(lambda r: r["S_sd"])}
+    return {
+        "t_s": col(lambda r: r["t_s"]),
+        "direction": np.array([r["direction"] for r in rows]),
+        "Tavg_R_C": col(lambda r: r["Tavg_R"]) - KELVIN,
+        "R_ohm": col(lambda r: r["jump"].R),
+        "R_sd": col(lambda r: np.hypot(r["jump"].R_sd_fit, r["jump"].R_sd_time)),
+        "Tavg_S_C": col(lambda r: r["Tavg"]) - KELVIN,
+        "S_V_per_K": col(lambda r: r["S"]),
+        "S_sd": col(lambda r: r["S_sd"]),
+    }
 
 
-def identify_module(module, datasheet, *, rig_config=None, leg_cells=0, rig_fit_options=None, progress=None):
+def identify_module(
+    module: Module | LazyModule,
+    datasheet: Datasheet,
+    *,
+    rig_config: dict | None = None,
+    leg_cells: int = 0,
+    rig_fit_options: dict | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> ModuleIdentification:
     """Run the deterministic step method on one module.
 
     Parameters
@@ -250,11 +294,16 @@ def identify_module(module, datasheet, *, rig_config=None, leg_cells=0, rig_fit_
     const = constant_laws(laws)
     rf_const = fit_rig(exp, const, rig=rig, K0=datasheet.conductance(), **opts)
     hyst = {
-        "R": hysteresis([r["Tavg_R"] for r in rows], [r["jump"].R for r in rows],
-                        [r["jump"].R_sd_fit for r in rows], [r["direction"] for r in rows],
-                        common=[r["jump"].R_sd_time for r in rows]),
-        "S": hysteresis([r["Tavg"] for r in rows], [r["S"] for r in rows], [r["S_sd"] for r in rows],
-                        [r["direction"] for r in rows]),
+        "R": hysteresis(
+            [r["Tavg_R"] for r in rows],
+            [r["jump"].R for r in rows],
+            [r["jump"].R_sd_fit for r in rows],
+            [r["direction"] for r in rows],
+            common=[r["jump"].R_sd_time for r in rows],
+        ),
+        "S": hysteresis(
+            [r["Tavg"] for r in rows], [r["S"] for r in rows], [r["S_sd"] for r in rows], [r["direction"] for r in rows]
+        ),
     }
     validation = {}
     for v in module.validations:
@@ -266,7 +315,9 @@ def identify_module(module, datasheet, *, rig_config=None, leg_cells=0, rig_fit_
     return ModuleIdentification(module.id, rows, lines, hyst, rf, rf_const, validation)
 
 
-def identify_batch(batch, *, leg_cells=0, progress=None):
+def identify_batch(
+    batch: Batch, *, leg_cells: int = 0, progress: Callable[[str], None] | None = None
+) -> dict[str, ModuleIdentification]:
     """Run :func:`identify_module` on every module of a batch.
 
     Returns
@@ -274,12 +325,13 @@ def identify_batch(batch, *, leg_cells=0, progress=None):
     dict
         Module id -> ModuleIdentification.
     """
-    return {mid: identify_module(m, batch.datasheet, rig_config=batch.rig_config, leg_cells=leg_cells,
-                                 progress=progress)
-            for mid, m in batch.modules.items()}
+    return {
+        mid: identify_module(m, batch.datasheet, rig_config=batch.rig_config, leg_cells=leg_cells, progress=progress)
+        for mid, m in batch.modules.items()
+    }
 
 
-def batch_average(results):
+def batch_average(results: Mapping[str, ModuleIdentification]) -> dict[str, float]:
     """The batch's average laws (the paper's dashed line): mean and spread of the module fits."""
     out = {}
     for k in LAW_PARAMETERS:
@@ -292,7 +344,7 @@ def batch_average(results):
     return out
 
 
-def to_json(results, batch):
+def to_json(results: Mapping[str, ModuleIdentification], batch: Batch) -> dict:
     """The ``identify.json`` document (docs/outputs.md, 'identify.json (identify)') for a batch."""
 
     def c(T):
@@ -305,32 +357,52 @@ def to_json(results, batch):
     for mid, r in results.items():
         steps = []
         for row in r.steps:
-            steps.append({
-                "t_s": row["t_s"], "dI_A": row["dI_A"], "direction": row["direction"],
-                "Tavg_C": c(row["Tavg"]), "R_ohm": row["jump"].R, "S_V_per_K": num(row["S"]),
-                "R_sd_ohm": row["jump"].R_sd, "S_sd_V_per_K": num(row["S_sd"]),
-                "Tavg_R_C": c(row["Tavg_R"]), "dT_K": row["dT"], "dT_sd_K": row["dT_sd"],
-                "T_hot_C": c(row["Th"]), "T_cold_C": c(row["Tc"]),
-                "current_A": row["steady"].current, "voltage_V": row["steady"].voltage,
-                "steady_drift_K_per_s": row["steady"].drift,
-                "paper": {"R_ohm": row["jump"].R_first, "Tavg_R_C": c(row["Tavg_R_paper"]),
-                          "Tavg_C": c(row["Tavg_paper"]), "dT_K": row["dT_paper"], "S_V_per_K": num(row["S_paper"])},
-            })
+            steps.append(
+                {
+                    "t_s": row["t_s"],
+                    "dI_A": row["dI_A"],
+                    "direction": row["direction"],
+                    "Tavg_C": c(row["Tavg"]),
+                    "R_ohm": row["jump"].R,
+                    "S_V_per_K": num(row["S"]),
+                    "R_sd_ohm": row["jump"].R_sd,
+                    "S_sd_V_per_K": num(row["S_sd"]),
+                    "Tavg_R_C": c(row["Tavg_R"]),
+                    "dT_K": row["dT"],
+                    "dT_sd_K": row["dT_sd"],
+                    "T_hot_C": c(row["Th"]),
+                    "T_cold_C": c(row["Tc"]),
+                    "current_A": row["steady"].current,
+                    "voltage_V": row["steady"].voltage,
+                    "steady_drift_K_per_s": row["steady"].drift,
+                    "paper": {
+                        "R_ohm": row["jump"].R_first,
+                        "Tavg_R_C": c(row["Tavg_R_paper"]),
+                        "Tavg_C": c(row["Tavg_paper"]),
+                        "dT_K": row["dT_paper"],
+                        "S_V_per_K": num(row["S_paper"]),
+                    },
+                }
+            )
         modules[mid] = {
             "fit": r.fit | {"K_W_per_K": r.rig_fit.values["K_W_per_K"]},
             "fit_sd": r.fit_sd | {"K_W_per_K": r.rig_fit.sd["K_W_per_K"]},
             "fit_sd_note": "R: jump fits plus the step-time error shared by all steps of the run; S: hold "
-                           "averages plus the rig values and R law shared by all holds (propagated, not "
-                           "weighted); both scaled up by the scatter when it exceeds them",
+            "averages plus the rig values and R law shared by all holds (propagated, not "
+            "weighted); both scaled up by the scatter when it exceeds them",
             "fit_paper": r.fit_paper,
             "fit_paper_sd": r.fit_paper_sd,
             "fit_quality": {k: {"chi2_red": v.chi2_red, "n": v.n} for k, v in r.lines.items()},
             "steps": steps,
             "hysteresis": r.hysteresis,
-            "rig_fit": {"values": r.rig_fit.values, "sd": r.rig_fit.sd, "rmse": r.rig_fit.rmse,
-                        "success": r.rig_fit.success,
-                        "sd_note": "statistical only (noise and residual autocorrelation); the model's own "
-                                   "error (lumped module vs real legs) is not in it and can be larger"},
+            "rig_fit": {
+                "values": r.rig_fit.values,
+                "sd": r.rig_fit.sd,
+                "rmse": r.rig_fit.rmse,
+                "success": r.rig_fit.success,
+                "sd_note": "statistical only (noise and residual autocorrelation); the model's own "
+                "error (lumped module vs real legs) is not in it and can be larger",
+            },
             "rig_fit_constant_35C": {"values": r.rig_fit_constant.values, "rmse": r.rig_fit_constant.rmse},
             "validation": {
                 name: {model: {ch: e for ch, e in errs.items() if ch != "simulation"} for model, errs in v.items()}
@@ -341,15 +413,15 @@ def to_json(results, batch):
         "tref_C": 25.0,
         "method": {
             "fit": "R from the voltage jump extrapolated to the step instant (c0 + c1 sqrt(tau)); S from the "
-                   "hold's steady state with junction temperatures reconstructed through the rig network; "
-                   "weighted linear fits (covariance scaled by the reduced chi-square when > 1)",
+            "hold's steady state with junction temperatures reconstructed through the rig network; "
+            "weighted linear fits (covariance scaled by the reduced chi-square when > 1)",
             "fit_paper": "the paper's recipe: R from the first sample after the step, S with sensor dT = T2 - T3 "
-                         "and sensor T_mean = (T2 + T3)/2, unweighted linear fits",
+            "and sensor T_mean = (T2 + T3)/2, unweighted linear fits",
             "Tavg_C": "mean junction temperature at the end of the hold that follows the step (where S is "
-                      "measured); Tavg_R_C is the one at the step instant (where R is measured)",
+            "measured); Tavg_R_C is the one at the step instant (where R is measured)",
             "validation": "RMSE and max |error| per sensor [K] and on the voltage [V]; 'constant' = R, S fixed "
-                          "at their 35 degC values with their own rig fit (paper Fig. 8), 'linear' = the laws "
-                          "(Fig. 9)",
+            "at their 35 degC values with their own rig fit (paper Fig. 8), 'linear' = the laws "
+            "(Fig. 9)",
         },
         "modules": modules,
         "batch_average": batch_average(results),

@@ -17,6 +17,7 @@ finite-difference perturbations at once.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -25,10 +26,24 @@ from tembayes.constants import KELVIN, LAW_PARAMETERS, T_REF
 from tembayes.physics.rig import REFERENCE
 from tembayes.physics.simulate import Inputs, simulate
 
+if TYPE_CHECKING:
+    from collections.abc import Mapping, Sequence
+
+    from tembayes.data.experiment import Experiment
+    from tembayes.physics.rig import RigDescription
+
 #: What the rig fit adjusts by default (the rest of the rig stays nominal:
 #: the steel's geometry and heat capacity are known).
-FIT_PARAMETERS = ("K_W_per_K", "g_cooler", "g_paste_hot", "g_paste_cold", "c_plate_hot", "c_plate_cold",
-                  "leak_top", "leak_bottom")
+FIT_PARAMETERS = (
+    "K_W_per_K",
+    "g_cooler",
+    "g_paste_hot",
+    "g_paste_cold",
+    "c_plate_hot",
+    "c_plate_cold",
+    "leak_top",
+    "leak_bottom",
+)
 
 SENSOR_NOISE_K = 0.004  # reference rig NTC noise [K]
 VOLTAGE_NOISE_V = 0.001  # reference rig voltage noise [V]
@@ -60,7 +75,7 @@ class RigFit:
     message: str
 
 
-def decimate(inputs, max_rate=1.0):
+def decimate(inputs: Inputs, max_rate: float = 1.0) -> np.ndarray:
     """Indices of samples at no more than ``max_rate`` [Hz] (always keeps the last)."""
     dt = float(np.median(np.diff(inputs.time)))
     step = max(1, int(round(1.0 / (max_rate * dt))))
@@ -70,8 +85,18 @@ def decimate(inputs, max_rate=1.0):
     return idx
 
 
-def fit_rig(exp, laws, *, rig=REFERENCE, parameters=FIT_PARAMETERS, K0=None, max_rate=1.0, fixed=None,
-            prior=True, voltage=True):
+def fit_rig(
+    exp: Experiment,
+    laws: Mapping[str, float],
+    *,
+    rig: RigDescription = REFERENCE,
+    parameters: Sequence[str] = FIT_PARAMETERS,
+    K0: float | None = None,
+    max_rate: float = 1.0,
+    fixed: Mapping[str, float] | None = None,
+    prior: bool = True,
+    voltage: bool = True,
+) -> RigFit:
     """Least-squares fit of the rig's thermal parameters with the laws fixed.
 
     Two stages.  Stage 1 is a plain fit with the sensors' noise as scale.
@@ -158,13 +183,22 @@ def fit_rig(exp, laws, *, rig=REFERENCE, parameters=FIT_PARAMETERS, K0=None, max
             fun(x)
             return last["J"]
 
-        return least_squares(fun, x0, jac=jac, bounds=(x0 - np.log(20.0), x0 + np.log(20.0)), method="trf",
-                             x_scale="jac", xtol=1e-8, ftol=1e-10, max_nfev=200)
+        return least_squares(
+            fun,
+            x0,
+            jac=jac,
+            bounds=(x0 - np.log(20.0), x0 + np.log(20.0)),
+            method="trf",
+            x_scale="jac",
+            xtol=1e-8,
+            ftol=1e-10,
+            max_nfev=200,
+        )
 
     noise = np.array([SENSOR_NOISE_K] * 4 + [VOLTAGE_NOISE_V])[:nch]
     res1 = solve(1.0 / noise, False)
     r1 = model(res1.x[None])[0]
-    scale = np.sqrt(np.mean(r1 ** 2, axis=1))
+    scale = np.sqrt(np.mean(r1**2, axis=1))
     rho = np.array([np.corrcoef(rc[:-1], rc[1:])[0, 1] for rc in r1])
     rho = np.clip(np.nan_to_num(rho), 0.0, 0.999)
     n_factor = (1 - rho) / (1 + rho)
@@ -180,20 +214,24 @@ def fit_rig(exp, laws, *, rig=REFERENCE, parameters=FIT_PARAMETERS, K0=None, max
     values = {p: float(np.exp(v)) for p, v in zip(parameters, res.x)}
     sd = {p: float(np.exp(v) * s) for p, v, s in zip(parameters, res.x, sd_log)}
     r = model(res.x[None])[0]
-    rmse = {ch: float(np.sqrt(np.mean(rr ** 2))) for ch, rr in zip(list(rig.sensors) + ["voltage_V"], r)}
+    rmse = {ch: float(np.sqrt(np.mean(rr**2))) for ch, rr in zip(list(rig.sensors) + ["voltage_V"], r)}
     return RigFit(values, sd, rmse, bool(res.success), int(res.nfev), str(res.message))
 
 
-def constant_laws(laws, T_C=35.0):
+def constant_laws(laws: Mapping[str, float], T_C: float = 35.0) -> dict[str, float]:
     """The laws frozen at their value at ``T_C`` [degC] (the paper's Figure 8 model)."""
     x = T_C + KELVIN - T_REF
     return {
-        "R0_ohm": laws["R0_ohm"] + laws["R1_ohm_per_K"] * x, "R1_ohm_per_K": 0.0,
-        "S0_V_per_K": laws["S0_V_per_K"] + laws["S1_V_per_K2"] * x, "S1_V_per_K2": 0.0,
+        "R0_ohm": laws["R0_ohm"] + laws["R1_ohm_per_K"] * x,
+        "R1_ohm_per_K": 0.0,
+        "S0_V_per_K": laws["S0_V_per_K"] + laws["S1_V_per_K2"] * x,
+        "S1_V_per_K2": 0.0,
     }
 
 
-def validation_errors(exp, laws, rig_values, *, rig=REFERENCE):
+def validation_errors(
+    exp: Experiment, laws: Mapping[str, float], rig_values: Mapping[str, float], *, rig: RigDescription = REFERENCE
+) -> dict:
     """Simulate a run with fixed parameters; errors per sensor and on the voltage.
 
     Returns
@@ -207,8 +245,8 @@ def validation_errors(exp, laws, rig_values, *, rig=REFERENCE):
     out = {}
     for c, ch in enumerate(sim.channels):
         r = exp.sensors[c] - sim.sensors[0, c]
-        out[ch] = {"rmse": float(np.sqrt(np.mean(r ** 2))), "max_abs": float(np.max(np.abs(r)))}
+        out[ch] = {"rmse": float(np.sqrt(np.mean(r**2))), "max_abs": float(np.max(np.abs(r)))}
     rv = exp.voltage - sim.voltage[0]
-    out["voltage_V"] = {"rmse": float(np.sqrt(np.mean(rv ** 2))), "max_abs": float(np.max(np.abs(rv)))}
+    out["voltage_V"] = {"rmse": float(np.sqrt(np.mean(rv**2))), "max_abs": float(np.max(np.abs(rv)))}
     out["simulation"] = sim
     return out

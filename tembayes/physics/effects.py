@@ -28,12 +28,18 @@ gap diagnosis's prior gives it.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from tembayes.constants import EFFECTS
 from tembayes.errors import ModelError
 from tembayes.physics import kernel as K
+
+if TYPE_CHECKING:
+    from collections.abc import Iterable, Mapping
+
+    from tembayes.physics.rig import Network, RigDescription
 
 
 @dataclass(frozen=True)
@@ -81,14 +87,15 @@ class Effect:
     hook: object = field(default=None, repr=False, compare=False)
 
     @property
-    def parameter_names(self):
+    def parameter_names(self) -> tuple[str, ...]:
+        """Names of the effect's parameters."""
         return tuple(p.name for p in self.parameters)
 
-    def parameter(self, name):
+    def parameter(self, name: str) -> EffectParameter:
         """The :class:`EffectParameter` called ``name``."""
         return next(p for p in self.parameters if p.name == name)
 
-    def defaults(self, value=None):
+    def defaults(self, value: float | None = None) -> dict[str, float]:
         """Bench parameter values; ``value`` sets the first and scales the rest."""
         first = self.parameters[0].default
         f = 1.0 if value is None else float(value) / first
@@ -251,7 +258,7 @@ assert tuple(CATALOGUE) == EFFECTS  # the contract's names, in its order
 EFFECT_PARAMETERS = {p.name: e.name for e in CATALOGUE.values() for p in e.parameters}
 
 
-def get(name):
+def get(name: str) -> Effect:
     """The catalogue effect called ``name``."""
     try:
         return CATALOGUE[name]
@@ -259,7 +266,7 @@ def get(name):
         raise ModelError(f"unknown effect '{name}'; the catalogue has: {', '.join(CATALOGUE)}") from None
 
 
-def parse_effects(specs):
+def parse_effects(specs: Iterable[str] | None) -> dict[str, dict[str, float]]:
     """Parse ``["k_temperature", "sensor_lag=4"]`` into effect parameter values.
 
     Returns
@@ -286,28 +293,30 @@ def parse_effects(specs):
     return out
 
 
-def apply_tem(P, params):
+def apply_tem(P: np.ndarray, params: Mapping[str, float | np.ndarray]) -> None:
     """Write every ``tem`` and ``input`` effect coefficient into ``P`` (in place)."""
     for e in CATALOGUE.values():
         if e.stage in ("tem", "input"):
             e.hook(P, params)
 
 
-def apply_network(net, rig, params):
+def apply_network(net: Network, rig: RigDescription, params: Mapping[str, float | np.ndarray]) -> None:
     """Apply every ``network`` effect to ``net`` (in place)."""
     for e in CATALOGUE.values():
         if e.stage == "network":
             e.hook(net, rig, params)
 
 
-def apply_sensors(time, Y, params):
+def apply_sensors(time: np.ndarray, Y: np.ndarray, params: Mapping[str, float | np.ndarray]) -> None:
     """Apply every ``sensors`` effect to the sensor readings ``Y`` (nd, nch, nt) in place."""
     for e in CATALOGUE.values():
         if e.stage == "sensors":
             e.hook(time, Y, params)
 
 
-def has_sensor_effect(params):
+def has_sensor_effect(params: Mapping[str, float | np.ndarray]) -> bool:
     """True if a sensor-stage effect has a non-zero parameter in ``params``."""
-    return any(e.stage == "sensors" and any(np.any(np.asarray(params.get(p.name, 0.0)) != 0) for p in e.parameters)
-               for e in CATALOGUE.values())
+    return any(
+        e.stage == "sensors" and any(np.any(np.asarray(params.get(p.name, 0.0)) != 0) for p in e.parameters)
+        for e in CATALOGUE.values()
+    )

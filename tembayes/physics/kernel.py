@@ -24,8 +24,13 @@ steps land exactly on every sample time.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 from numba import njit, prange
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike, DTypeLike
 
 # Index of each coefficient in a TEM parameter vector ``p``.  Every effect
 # coefficient is zero in the paper's model.
@@ -58,7 +63,7 @@ def _poly(p, i, x):
 
 
 @njit(cache=True)
-def tem_heat(T, I, p, Q):
+def tem_heat(T: np.ndarray, I: float | complex, p: np.ndarray, Q: np.ndarray) -> None:
     """Heat released by the module into its chain of nodes.
 
     Parameters
@@ -124,14 +129,21 @@ def tem_heat(T, I, p, Q):
         # Thomson heat T dS/dT I dT of the segment, written as
         # d(S T) - S dT so that it telescopes with the junction terms: the
         # heat released then equals V I exactly for any law shape.
-        qt = -lam * I * (_poly(p, P_S0, T[j] - tref) * T[j] - _poly(p, P_S0, T[j + 1] - tref) * T[j + 1]
-                         - _poly(p, P_S0, xs) * dT)
+        qt = (
+            -lam
+            * I
+            * (
+                _poly(p, P_S0, T[j] - tref) * T[j]
+                - _poly(p, P_S0, T[j + 1] - tref) * T[j + 1]
+                - _poly(p, P_S0, xs) * dT
+            )
+        )
         Q[j] += 0.5 * qt
         Q[j + 1] += 0.5 * qt
 
 
 @njit(cache=True)
-def tem_voltage(T, I, p):
+def tem_voltage(T: np.ndarray, I: float | complex, p: np.ndarray) -> float | complex:
     """Module terminal voltage [V] for the chain temperatures ``T`` [K] and true current ``I`` [A].
 
     ``V = R I + V_seebeck`` with the paper's ``V_seebeck = S(T_mean) (Th - Tc)``
@@ -162,7 +174,7 @@ def tem_voltage(T, I, p):
 
 
 @njit(cache=True)
-def true_current(i_meas, p):
+def true_current(i_meas: float | np.ndarray, p: np.ndarray) -> float | np.ndarray:
     """True current [A] behind a measured current [A] (``current_offset`` effect)."""
     return (i_meas - p[P_IOFFSET]) / (1.0 + p[P_IGAIN])
 
@@ -256,7 +268,7 @@ def _lusolve(W, piv, b):
 def _steady(y, I, uw, ua, A, Bb, Cinv, tem, p, Tt, Qt, Tz, Qz, f, J, dfdI, piv):
     """Newton iterations to the steady state at constant inputs (in place)."""
     N = y.shape[0]
-    for it in range(60):
+    for _it in range(60):
         _rhs(y, I, uw, ua, A, Bb, Cinv, tem, p, Tt, Qt, f)
         _jac(y, I, 0.0, A, Cinv, tem, p, Tz, Qz, J, dfdI)
         _lu(J, piv)
@@ -273,9 +285,7 @@ def _steady(y, I, uw, ua, A, Bb, Cinv, tem, p, Tt, Qt, Tz, Qz, f, J, dfdI, piv):
 
 
 @njit(cache=True)
-def _integrate_one(
-    t, i_meas, tw, ta, A, Bb, Cinv, tem, p, rec, y, steady_start, atol, hmax, out, vout, stats
-):
+def _integrate_one(t, i_meas, tw, ta, A, Bb, Cinv, tem, p, rec, y, steady_start, atol, hmax, out, vout, stats):
     N = y.shape[0]
     m = tem.shape[0]
     nt = t.shape[0]
@@ -405,7 +415,7 @@ def _integrate_one(
     stats[1] = nrej
 
 
-def writable(a, dtype=None):
+def writable(a: ArrayLike, dtype: DTypeLike = None) -> np.ndarray:
     """``a`` as the compiled entry points take it: C-contiguous and writable.
 
     A read-only or strided array is a different numba type, and so another
@@ -421,17 +431,30 @@ def writable(a, dtype=None):
 def _kernel_args(t, i_meas, tw, ta, A, Bb, Cinv, tem, P, rec, Y0, steady_start, atol, hmax):
     """The integrators' arguments as their one compiled signature takes them (see :func:`writable`)."""
     f, i = np.float64, np.int64
-    return (writable(t, f), writable(i_meas, f), writable(tw, f), writable(ta, f), writable(A), writable(Bb),
-            writable(Cinv), writable(tem, i), writable(P), writable(rec, i), writable(Y0, f), bool(steady_start),
-            float(atol), float(hmax))
+    return (
+        writable(t, f),
+        writable(i_meas, f),
+        writable(tw, f),
+        writable(ta, f),
+        writable(A),
+        writable(Bb),
+        writable(Cinv),
+        writable(tem, i),
+        writable(P),
+        writable(rec, i),
+        writable(Y0, f),
+        bool(steady_start),
+        float(atol),
+        float(hmax),
+    )
 
 
-def integrate(*args):
+def integrate(*args) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Simulate ``nd`` parameter draws of one experiment (see :func:`_integrate`)."""
     return _integrate(*_kernel_args(*args))
 
 
-def integrate_grids(*args):
+def integrate_grids(*args) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`integrate` with a time grid and inputs of its own for every draw (see :func:`_integrate_grids`)."""
     return _integrate_grids(*_kernel_args(*args))
 
@@ -481,8 +504,22 @@ def _integrate(t, i_meas, tw, ta, A, Bb, Cinv, tem, P, rec, Y0, steady_start, at
     nt = t.shape[0]
     # one grid for every draw: stride-0 views, no copies
     T = np.broadcast_to(t, (nd, nt))
-    return _integrate_grids(T, np.broadcast_to(i_meas, (nd, nt)), np.broadcast_to(tw, (nd, nt)),
-                           np.broadcast_to(ta, (nd, nt)), A, Bb, Cinv, tem, P, rec, Y0, steady_start, atol, hmax)
+    return _integrate_grids(
+        T,
+        np.broadcast_to(i_meas, (nd, nt)),
+        np.broadcast_to(tw, (nd, nt)),
+        np.broadcast_to(ta, (nd, nt)),
+        A,
+        Bb,
+        Cinv,
+        tem,
+        P,
+        rec,
+        Y0,
+        steady_start,
+        atol,
+        hmax,
+    )
 
 
 @njit(cache=True, parallel=True)
@@ -502,14 +539,39 @@ def _integrate_grids(T, I, TW, TA, A, Bb, Cinv, tem, P, rec, Y0, steady_start, a
     for d in prange(nd):
         y = Y0[d].copy()
         _integrate_one(
-            T[d], I[d], TW[d], TA[d], A[d], Bb[d], Cinv[d], tem, P[d], rec, y, steady_start, atol, hmax,
-            out[d], volt[d], stats[d],
+            T[d],
+            I[d],
+            TW[d],
+            TA[d],
+            A[d],
+            Bb[d],
+            Cinv[d],
+            tem,
+            P[d],
+            rec,
+            y,
+            steady_start,
+            atol,
+            hmax,
+            out[d],
+            volt[d],
+            stats[d],
         )
     return out, volt, stats
 
 
 @njit(cache=True)
-def rhs_one(y, I, uw, ua, A, Bb, Cinv, tem, p):
+def rhs_one(
+    y: np.ndarray,
+    I: float,
+    uw: float,
+    ua: float,
+    A: np.ndarray,
+    Bb: np.ndarray,
+    Cinv: np.ndarray,
+    tem: np.ndarray,
+    p: np.ndarray,
+) -> np.ndarray:
     """Right-hand side ``dT/dt`` [K/s] for one draw (used by the scipy reference and tests)."""
     m = tem.shape[0]
     f = np.empty(y.shape[0])
@@ -518,30 +580,55 @@ def rhs_one(y, I, uw, ua, A, Bb, Cinv, tem, p):
 
 
 @njit(cache=True)
-def jac_one(y, I, A, Cinv, tem, p):
+def jac_one(y: np.ndarray, I: float, A: np.ndarray, Cinv: np.ndarray, tem: np.ndarray, p: np.ndarray) -> np.ndarray:
     """State Jacobian [1/s] for one draw (used by the scipy reference and tests)."""
     N = y.shape[0]
     m = tem.shape[0]
     J = np.empty((N, N))
-    _jac(y, I, 0.0, A, Cinv, tem, p, np.empty(m, dtype=np.complex128),
-         np.empty(m, dtype=np.complex128), J, np.empty(N))
+    _jac(y, I, 0.0, A, Cinv, tem, p, np.empty(m, dtype=np.complex128), np.empty(m, dtype=np.complex128), J, np.empty(N))
     return J
 
 
 @njit(cache=True)
-def steady_one(y0, I, uw, ua, A, Bb, Cinv, tem, p):
+def steady_one(
+    y0: np.ndarray,
+    I: float,
+    uw: float,
+    ua: float,
+    A: np.ndarray,
+    Bb: np.ndarray,
+    Cinv: np.ndarray,
+    tem: np.ndarray,
+    p: np.ndarray,
+) -> tuple[np.ndarray, bool]:
     """Steady state [K] at constant inputs for one draw, from the guess ``y0``."""
     N = y0.shape[0]
     m = tem.shape[0]
     y = y0.copy()
-    ok = _steady(y, I, uw, ua, A, Bb, Cinv, tem, p, np.empty(m), np.empty(m),
-                 np.empty(m, dtype=np.complex128), np.empty(m, dtype=np.complex128),
-                 np.empty(N), np.empty((N, N)), np.empty(N), np.empty(N, dtype=np.int64))
+    ok = _steady(
+        y,
+        I,
+        uw,
+        ua,
+        A,
+        Bb,
+        Cinv,
+        tem,
+        p,
+        np.empty(m),
+        np.empty(m),
+        np.empty(m, dtype=np.complex128),
+        np.empty(m, dtype=np.complex128),
+        np.empty(N),
+        np.empty((N, N)),
+        np.empty(N),
+        np.empty(N, dtype=np.int64),
+    )
     return y, ok
 
 
 @njit(cache=True)
-def first_order_lag(time, Y, tau):
+def first_order_lag(time: np.ndarray, Y: np.ndarray, tau: np.ndarray) -> None:
     """First-order lag ``y' = (u - y) / tau`` of sampled signals, in place.
 
     Exact for inputs linear between samples (uneven sampling allowed).

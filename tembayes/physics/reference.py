@@ -8,6 +8,8 @@ speed is measured against.  Same network, same module element, same inputs
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 from scipy.integrate import solve_ivp
 
@@ -17,8 +19,23 @@ from tembayes.physics import kernel as K
 from tembayes.physics.rig import REFERENCE
 from tembayes.physics.simulate import Simulation, build
 
+if TYPE_CHECKING:
+    from collections.abc import Mapping
 
-def simulate_reference(inputs, params, *, rig=REFERENCE, method="BDF", rtol=1e-9, atol=1e-9, jac=True):
+    from tembayes.physics.rig import RigDescription
+    from tembayes.physics.simulate import Inputs
+
+
+def simulate_reference(
+    inputs: Inputs,
+    params: Mapping[str, float | np.ndarray],
+    *,
+    rig: RigDescription = REFERENCE,
+    method: str = "BDF",
+    rtol: float = 1e-9,
+    atol: float = 1e-9,
+    jac: bool = True,
+) -> Simulation:
     """Simulate each parameter set with ``scipy.integrate.solve_ivp``, one after the other.
 
     Parameters
@@ -54,23 +71,24 @@ def simulate_reference(inputs, params, *, rig=REFERENCE, method="BDF", rtol=1e-9
     for d in range(nd):
         A, Bb, Cinv, p = m["A"][d], m["Bb"][d], m["Cinv"][d], m["P"][d]
 
-        def u(tt):
+        def u(tt, p=p):
             i_true = K.true_current(np.interp(tt, t, inputs.current), p)
             return i_true, np.interp(tt, t, inputs.t_water), np.interp(tt, t, inputs.t_amb)
 
-        def fun(tt, y):
+        def fun(tt, y, A=A, Bb=Bb, Cinv=Cinv, p=p):
             i_true, tw, ta = u(tt)
             return K.rhs_one(y, i_true, tw, ta, A, Bb, Cinv, tem, p)
 
-        def jacf(tt, y):
+        def jacf(tt, y, A=A, Cinv=Cinv, p=p):
             return K.jac_one(y, u(tt)[0], A, Cinv, tem, p)
 
         i0, tw0, ta0 = u(t[0])
         y0, ok = K.steady_one(np.full(len(names), tw0), i0, tw0, ta0, A, Bb, Cinv, tem, p)
         if not ok:
             raise ModelError("reference: steady-state start did not converge")
-        sol = solve_ivp(fun, (t[0], t[-1]), y0, method=method, t_eval=t, rtol=rtol, atol=atol,
-                        jac=jacf if jac else None)
+        sol = solve_ivp(
+            fun, (t[0], t[-1]), y0, method=method, t_eval=t, rtol=rtol, atol=atol, jac=jacf if jac else None
+        )
         if not sol.success:
             raise ModelError(f"reference solve_ivp failed: {sol.message}")
         Y = sol.y

@@ -28,10 +28,14 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from types import MappingProxyType
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from tembayes.errors import ModelError
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping, Sequence
 
 BOUNDARIES = ("water", "ambient")
 
@@ -113,10 +117,11 @@ class Network:
     G: np.ndarray
     Gb: np.ndarray
 
-    def index(self, node):
+    def index(self, node: str) -> int:
+        """Index of the node called ``node``."""
         return self.nodes.index(node)
 
-    def matrices(self):
+    def matrices(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Return ``(A, Bb, Cinv)`` of ``dT/dt = A T + Bb u + Cinv Q`` [1/s, 1/s, K/J]."""
         Cinv = 1.0 / self.C
         A = self.G.copy()
@@ -197,28 +202,31 @@ class RigDescription:
                 raise ModelError(f"rig '{self.name}': sensor {ch} reads unknown node '{node}'")
         for ch, d in self.depths.items():
             if ch not in self.sensors or d.toward not in known or d.parameter not in names:
-                raise ModelError(f"rig '{self.name}': depth of {ch} needs a sensor, a node to read towards and a "
-                                 f"parameter; got {d}")
+                raise ModelError(
+                    f"rig '{self.name}': depth of {ch} needs a sensor, a node to read towards and a parameter; got {d}"
+                )
         object.__setattr__(self, "sensors", MappingProxyType(dict(self.sensors)))
         object.__setattr__(self, "physics", MappingProxyType(dict(self.physics)))
         object.__setattr__(self, "depths", MappingProxyType(dict(self.depths)))
 
     # -- parameters ---------------------------------------------------------
     @property
-    def parameter_names(self):
+    def parameter_names(self) -> tuple[str, ...]:
+        """Names of the rig's parameters."""
         return tuple(p.name for p in self.parameters)
 
-    def parameter(self, name):
+    def parameter(self, name: str) -> RigParameter:
+        """The :class:`RigParameter` called ``name`` (ModelError if the rig has none)."""
         for p in self.parameters:
             if p.name == name:
                 return p
         raise ModelError(f"rig '{self.name}' has no parameter '{name}'; it has {self.parameter_names}")
 
-    def nominal(self):
+    def nominal(self) -> dict[str, float]:
         """Nominal parameter values as a dict (SI)."""
         return {p.name: p.nominal for p in self.parameters}
 
-    def with_nominal(self, **values):
+    def with_nominal(self, **values: float) -> RigDescription:
         """A copy with some nominal values replaced (e.g. from batch.toml overrides)."""
         params = []
         for p in self.parameters:
@@ -233,16 +241,21 @@ class RigDescription:
 
             name = sorted(values)[0]
             near = difflib.get_close_matches(name, self.parameter_names, n=1, cutoff=0.6)
-            raise ModelError(f"unknown rig parameter '{name}'" + (f" (did you mean '{near[0]}'?)" if near else "")
-                             + f"; rig '{self.name}' has {', '.join(self.parameter_names)}")
+            raise ModelError(
+                f"unknown rig parameter '{name}'"
+                + (f" (did you mean '{near[0]}'?)" if near else "")
+                + f"; rig '{self.name}' has {', '.join(self.parameter_names)}"
+            )
         return dataclasses.replace(self, parameters=tuple(params))
 
     @property
-    def tem_chain(self):
+    def tem_chain(self) -> tuple[str, ...]:
         """Node names of (hot plate, leg cells..., cold plate)."""
         return (self.hot, *self.legs, self.cold)
 
-    def readout(self, channels, values=None):
+    def readout(
+        self, channels: Sequence[str], values: Mapping[str, float | np.ndarray] | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """How each channel reads the nodes: ``T = T[a] + f (T[b] - T[a])``.
 
         Parameters
@@ -262,16 +275,23 @@ class RigDescription:
         names = self.node_names
         values = values or {}
         a = np.array([names.index(self.sensors[c]) for c in channels], dtype=np.int64)
-        b = np.array([names.index(self.depths[c].toward) if c in self.depths else i for c, i in zip(channels, a)],
-                     dtype=np.int64)
-        cols = [(np.atleast_1d(np.asarray(values.get(d.parameter, self.parameter(d.parameter).nominal), float))
-                 - d.centre) / d.spacing if (d := self.depths.get(c)) else np.zeros(1) for c in channels]
+        b = np.array(
+            [names.index(self.depths[c].toward) if c in self.depths else i for c, i in zip(channels, a)], dtype=np.int64
+        )
+        cols = [
+            (np.atleast_1d(np.asarray(values.get(d.parameter, self.parameter(d.parameter).nominal), float)) - d.centre)
+            / d.spacing
+            if (d := self.depths.get(c))
+            else np.zeros(1)
+            for c in channels
+        ]
         f = np.column_stack(np.broadcast_arrays(*cols)) if cols else np.zeros((1, 0))
         return a, b, f
 
     # -- network ------------------------------------------------------------
     @property
-    def node_names(self):
+    def node_names(self) -> tuple[str, ...]:
+        """Names of the network's nodes, in order."""
         return tuple(n for n, _ in self.nodes)
 
     def _check_expr(self, expr):
@@ -299,7 +319,8 @@ class RigDescription:
                 except ValueError:
                     if part.replace("_", "").isalnum() and not part[0].isdigit():
                         raise ModelError(
-                            f"rig '{self.name}': expression '{expr}' names unknown parameter '{part}'") from None
+                            f"rig '{self.name}': expression '{expr}' names unknown parameter '{part}'"
+                        ) from None
                     raise ModelError(f"rig '{self.name}': bad factor '{part}' in '{expr}'") from None
             if names == 0:
                 raise ModelError(f"rig '{self.name}': term '{term.strip()}' of '{expr}' names no parameter")
@@ -321,7 +342,7 @@ class RigDescription:
             total = total + value
         return total
 
-    def network(self, values=None):
+    def network(self, values: Mapping[str, float | np.ndarray] | None = None) -> Network:
         """Build the network arrays.
 
         Parameters
@@ -378,20 +399,38 @@ _REFERENCE_PARAMETERS = (
     RigParameter("c_legs", 1.25, 1.0, 1.5, "J/K", "all legs of the module together"),
     RigParameter("leak_top", 0.02, 0.01, 0.03, "W/K", "top block to ambient (enclosure)"),
     RigParameter("leak_bottom", 0.04, 0.02, 0.06, "W/K", "bottom block to ambient (enclosure, tabs)"),
-    RigParameter("tab_share", 0.5, 0.2, 0.9, "1",
-                 "share of leak_bottom through the tabs the block rests on (at its bottom face); "
-                 "the rest leaves through the side walls"),
     RigParameter(
-        "c_half_block", RHO_C * AREA * 0.005, 0.97 * RHO_C * AREA * 0.005,
-        1.03 * RHO_C * AREA * 0.005, "J/K", "5 mm of a steel block (rho c V)",
+        "tab_share",
+        0.5,
+        0.2,
+        0.9,
+        "1",
+        "share of leak_bottom through the tabs the block rests on (at its bottom face); "
+        "the rest leaves through the side walls",
     ),
     RigParameter(
-        "g_steel_quarter", _steel_g(0.0025), 0.95 * _steel_g(0.0025), 1.05 * _steel_g(0.0025),
-        "W/K", "2.5 mm of steel (k A / d)",
+        "c_half_block",
+        RHO_C * AREA * 0.005,
+        0.97 * RHO_C * AREA * 0.005,
+        1.03 * RHO_C * AREA * 0.005,
+        "J/K",
+        "5 mm of a steel block (rho c V)",
     ),
     RigParameter(
-        "g_steel_half", _steel_g(0.005), 0.95 * _steel_g(0.005), 1.05 * _steel_g(0.005),
-        "W/K", "5 mm of steel (k A / d)",
+        "g_steel_quarter",
+        _steel_g(0.0025),
+        0.95 * _steel_g(0.0025),
+        1.05 * _steel_g(0.0025),
+        "W/K",
+        "2.5 mm of steel (k A / d)",
+    ),
+    RigParameter(
+        "g_steel_half",
+        _steel_g(0.005),
+        0.95 * _steel_g(0.005),
+        1.05 * _steel_g(0.005),
+        "W/K",
+        "5 mm of steel (k A / d)",
     ),
 )
 
@@ -403,8 +442,15 @@ _REFERENCE_PARAMETERS = (
 #: ridge until a module did not converge in 60 000 steps (held, the same module
 #: converged in 25 000); its range's uncertainty is carried over to the laws
 #: instead (``--discrepancy robust``).
-CERAMIC = RigParameter("g_ceramic", 50.0, 35.0, 70.0, "W/K",
-                       "through a module's alumina plate to its junctions (the plate's two layers)", held=True)
+CERAMIC = RigParameter(
+    "g_ceramic",
+    50.0,
+    35.0,
+    70.0,
+    "W/K",
+    "through a module's alumina plate to its junctions (the plate's two layers)",
+    held=True,
+)
 #: Share of a plate's heat capacity at its junctions (copper and solder); the rest is alumina.
 JUNCTION_SHARE = 0.2
 #: Nominal depth of every sensor below its block's nearer face [m].
@@ -415,12 +461,21 @@ SENSOR_DEPTH = 2.5e-3
 #: from the junctions' temperature difference, so the laws' R0-S0-K ridge
 #: moves with it; a calibration holds the depths at nominal and carries their
 #: range over (``--discrepancy robust``).
-DEPTHS = tuple(RigParameter(f"depth_{s}", SENSOR_DEPTH, SENSOR_DEPTH - 0.25e-3, SENSOR_DEPTH + 0.25e-3, "m",
-                            f"depth of {s} below its block's nearer face", held=True)
-               for s in ("T1", "T2", "T3", "T4"))
+DEPTHS = tuple(
+    RigParameter(
+        f"depth_{s}",
+        SENSOR_DEPTH,
+        SENSOR_DEPTH - 0.25e-3,
+        SENSOR_DEPTH + 0.25e-3,
+        "m",
+        f"depth of {s} below its block's nearer face",
+        held=True,
+    )
+    for s in ("T1", "T2", "T3", "T4")
+)
 
 
-def reference_rig(leg_cells=0, block_cells=2, layers=False):
+def reference_rig(leg_cells: int = 0, block_cells: int = 2, layers: bool = False) -> RigDescription:
     """The reference identification rig.
 
     Parameters
@@ -507,9 +562,15 @@ def reference_rig(leg_cells=0, block_cells=2, layers=False):
         cold="cold_plate",
         sensors={"T1_C": top[k], "T2_C": top[nb - 1 - k], "T3_C": bottom[k], "T4_C": bottom[nb - 1 - k]},
         legs=legs,
-        depths={ch: SensorDepth(deeper, f"depth_{ch[:2]}", SENSOR_DEPTH, 0.010 / nb)
-                for ch, deeper in (("T1_C", top[k + 1]), ("T2_C", top[nb - 2 - k]), ("T3_C", bottom[k + 1]),
-                                   ("T4_C", bottom[nb - 2 - k]))},
+        depths={
+            ch: SensorDepth(deeper, f"depth_{ch[:2]}", SENSOR_DEPTH, 0.010 / nb)
+            for ch, deeper in (
+                ("T1_C", top[k + 1]),
+                ("T2_C", top[nb - 2 - k]),
+                ("T3_C", bottom[k + 1]),
+                ("T4_C", bottom[nb - 2 - k]),
+            )
+        },
     )
 
 
@@ -521,7 +582,14 @@ REFERENCE = reference_rig()
 PRESETS = MappingProxyType({"reference": reference_rig})
 
 
-def rig_from_config(config, leg_cells=0, block_cells=2, *, layers=False, physics=None):
+def rig_from_config(
+    config: Mapping | None,
+    leg_cells: int = 0,
+    block_cells: int = 2,
+    *,
+    layers: bool = False,
+    physics: Mapping[str, float] | None = None,
+) -> RigDescription:
     """The rig a batch.toml ``[rig]`` table asks for.
 
     Parameters

@@ -18,6 +18,7 @@ Unknown names are an error, so a typo cannot silently fall back to a default.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -26,6 +27,12 @@ from tembayes.errors import ModelError
 from tembayes.physics import effects
 from tembayes.physics import kernel as K
 from tembayes.physics.rig import REFERENCE
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping
+
+    from tembayes.data.experiment import Experiment
+    from tembayes.physics.rig import RigDescription
 
 #: Default absolute local error tolerance of the integrator [K].
 ATOL = 2e-4
@@ -61,11 +68,11 @@ class Inputs:
             raise ModelError("Inputs.time must have at least 2 strictly increasing samples")
 
     @classmethod
-    def from_experiment(cls, exp):
+    def from_experiment(cls, exp: Experiment) -> Inputs:
         """Inputs of a loaded :class:`tembayes.data.Experiment`."""
         return cls(exp.time, exp.current, exp.t_water, exp.t_amb)
 
-    def slice(self, start, stop):
+    def slice(self, start: int | None, stop: int | None) -> Inputs:
         """Samples ``start:stop``."""
         s = slice(start, stop)
         return Inputs(self.time[s], self.current[s], self.t_water[s], self.t_amb[s])
@@ -99,7 +106,7 @@ class Simulation:
     steps: np.ndarray
 
     @property
-    def delta_t(self):
+    def delta_t(self) -> np.ndarray:
         """Junction temperature difference ``t_hot - t_cold`` [K]."""
         return self.t_hot - self.t_cold
 
@@ -114,7 +121,9 @@ def _as_draws(params):
     return {k: np.broadcast_to(a, (nd,)) for k, a in arrs.items()}, nd
 
 
-def check_params(params, rig=REFERENCE):
+def check_params(
+    params: Mapping[str, float | np.ndarray], rig: RigDescription = REFERENCE
+) -> tuple[dict[str, np.ndarray], int]:
     """Validate a parameter mapping; return it as arrays of shape ``(nd,)`` and ``nd``."""
     missing = [k for k in MODULE_PARAMETERS if k not in params]
     if missing:
@@ -136,7 +145,7 @@ def check_params(params, rig=REFERENCE):
     return arrs, nd
 
 
-def tem_vectors(params, nd, tref=T_REF):
+def tem_vectors(params: Mapping[str, np.ndarray], nd: int, tref: float = T_REF) -> np.ndarray:
     """Kernel parameter vectors ``(nd, N_P)`` from a checked parameter mapping."""
     P = np.zeros((nd, K.N_P))
     P[:, K.P_R0] = params["R0_ohm"]
@@ -149,7 +158,7 @@ def tem_vectors(params, nd, tref=T_REF):
     return P
 
 
-def build(params, rig=REFERENCE):
+def build(params: Mapping[str, float | np.ndarray], rig: RigDescription = REFERENCE) -> dict:
     """Kernel arrays for a parameter mapping (the rig's ``physics`` values where the mapping has none).
 
     Returns
@@ -168,7 +177,16 @@ def build(params, rig=REFERENCE):
     return dict(A=A, Bb=Bb, Cinv=Cinv, P=tem_vectors(params, nd), tem=tem, network=net, params=params, nd=nd)
 
 
-def simulate(inputs, params, *, rig=REFERENCE, y0=None, steady_start=True, atol=ATOL, hmax=None):
+def simulate(
+    inputs: Inputs,
+    params: Mapping[str, float | np.ndarray],
+    *,
+    rig: RigDescription = REFERENCE,
+    y0: np.ndarray | None = None,
+    steady_start: bool = True,
+    atol: float = ATOL,
+    hmax: float | None = None,
+) -> Simulation:
     """Simulate an experiment for ``nd`` parameter sets.
 
     Parameters
@@ -210,18 +228,32 @@ def simulate(inputs, params, *, rig=REFERENCE, y0=None, steady_start=True, atol=
     if hmax is None:
         hmax = float(np.max(np.diff(inputs.time)))
     out, volt, stats = K.integrate(
-        inputs.time, inputs.current, inputs.t_water, inputs.t_amb,
-        m["A"], m["Bb"], m["Cinv"], m["tem"], m["P"], rec, Y0, bool(steady_start), float(atol), float(hmax),
+        inputs.time,
+        inputs.current,
+        inputs.t_water,
+        inputs.t_amb,
+        m["A"],
+        m["Bb"],
+        m["Cinv"],
+        m["tem"],
+        m["P"],
+        rec,
+        Y0,
+        bool(steady_start),
+        float(atol),
+        float(hmax),
     )
     if np.any(stats[:, 3] == 2):
-        raise ModelError(f"the integrator gave up (more than {K.MAX_STEPS_PER_POINT} steps per sample: the "
-                         "parameters make the network too stiff or unstable); check the parameters")
+        raise ModelError(
+            f"the integrator gave up (more than {K.MAX_STEPS_PER_POINT} steps per sample: the "
+            "parameters make the network too stiff or unstable); check the parameters"
+        )
     if np.any(stats[:, 3]):
         raise ModelError("the steady-state start did not converge; check the parameters")
     if not np.all(np.isfinite(volt)):
         raise ModelError("the simulation diverged (non-finite values); check the parameters")
     nch = len(channels)
-    sensors = out[:, :, :nch] + f[:, None, :] * (out[:, :, nch + 2:] - out[:, :, :nch])
+    sensors = out[:, :, :nch] + f[:, None, :] * (out[:, :, nch + 2 :] - out[:, :, :nch])
     sensors = np.ascontiguousarray(sensors.transpose(0, 2, 1))
     effects.apply_sensors(inputs.time, sensors, m["params"])
     return Simulation(
@@ -235,7 +267,17 @@ def simulate(inputs, params, *, rig=REFERENCE, y0=None, steady_start=True, atol=
     )
 
 
-def integrate_on_grids(m, grids, current, t_water, t_amb, rec, atol, hmax, y0=None):
+def integrate_on_grids(
+    m: dict,
+    grids: np.ndarray,
+    current: np.ndarray,
+    t_water: np.ndarray,
+    t_amb: np.ndarray,
+    rec: np.ndarray,
+    atol: float,
+    hmax: float,
+    y0: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Run the kernel on a time grid per draw, from the steady state at the first point (or from ``y0``).
 
     Parameters
@@ -270,8 +312,9 @@ def integrate_on_grids(m, grids, current, t_water, t_amb, rec, atol, hmax, y0=No
     TA = np.repeat(np.asarray(t_amb, float)[None, :], nd, axis=0)
     steady = y0 is None
     Y0 = np.full((nd, len(m["network"].nodes)), float(t_water[0])) if steady else np.array(y0, dtype=float)
-    out, volt, stats = K.integrate_grids(grids, current, TW, TA, m["A"], m["Bb"], m["Cinv"], m["tem"], m["P"], rec,
-                                         Y0, steady, float(atol), float(hmax))
+    out, volt, stats = K.integrate_grids(
+        grids, current, TW, TA, m["A"], m["Bb"], m["Cinv"], m["tem"], m["P"], rec, Y0, steady, float(atol), float(hmax)
+    )
     failed = (stats[:, 3] != 0) | ~np.all(np.isfinite(volt), axis=1)
     out[failed] = np.nan
     volt[failed] = np.nan

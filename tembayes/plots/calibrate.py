@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import io
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 from matplotlib.figure import Figure
@@ -40,6 +41,10 @@ from tembayes.calibrate.run import CalibrationRun, load_run  # noqa: F401 (re-ex
 from tembayes.constants import LAW_PARAMETERS, MODULE_PARAMETERS
 from tembayes.data.batch import file_stem
 from tembayes.data.write import atomic_write_bytes
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+    from pathlib import Path
 
 __all__ = [
     "CalibrationRun",
@@ -164,18 +169,27 @@ def _own_range(x):
     return (lo, hi)
 
 
-def _corner_figure(K):
-    """An empty Figure sized as corner sizes its own, plus room for a title."""
+def _corner_figure(K, fig=None):
+    """An empty Figure (``fig``, resized, or a new one) sized as corner sizes its own, plus room for a title."""
     plot = _CORNER_PANEL_IN * K + _CORNER_PANEL_IN * (K - 1) * _CORNER_WHSPACE
     dim = _CORNER_LB_IN + plot + _CORNER_TR_IN
-    return Figure(figsize=(dim, dim + _CORNER_TITLE_IN)), plot
+    if fig is None:
+        return Figure(figsize=(dim, dim + _CORNER_TITLE_IN)), plot
+    if fig.axes:
+        raise ValueError("fig must be an empty figure: the corner plot lays out its own grid")
+    fig.set_size_inches(dim, dim + _CORNER_TITLE_IN)
+    return fig, plot
 
 
 def _corner_adjust(fig, plot_in):
     """Leave corner's margins but make room for the title on the taller figure."""
     w, h = fig.get_size_inches()
-    fig.subplots_adjust(left=_CORNER_LB_IN / w, right=(_CORNER_LB_IN + plot_in) / w,
-                        bottom=_CORNER_LB_IN / h, top=(_CORNER_LB_IN + plot_in) / h)
+    fig.subplots_adjust(
+        left=_CORNER_LB_IN / w,
+        right=(_CORNER_LB_IN + plot_in) / w,
+        bottom=_CORNER_LB_IN / h,
+        top=(_CORNER_LB_IN + plot_in) / h,
+    )
 
 
 def _grid(fig, K):
@@ -201,9 +215,11 @@ def _pick_modules(run, max_n, key=None):
     if len(mods) <= max_n:
         return mods, []
     if key is None:
+
         def key(m):
             p = run.outlier_prob(m)
             return (-(p if p is not None else -1.0), 0 if run.converged(m) is False else 1)
+
     pos = {m: i for i, m in enumerate(mods)}
     ranked = sorted(mods, key=lambda m: (key(m), pos[m]))
     shown = ranked[:max_n]
@@ -217,8 +233,10 @@ def _check_params(run, params):
         raise ValueError("params is empty: give at least one parameter name")
     missing = [p for p in params if p not in run.idata.posterior]
     if missing:
-        raise ValueError(f"parameter(s) {missing} are not in {run.path / 'posterior.nc'}; "
-                         f"it has {list(run.idata.posterior.data_vars)}")
+        raise ValueError(
+            f"parameter(s) {missing} are not in {run.path / 'posterior.nc'}; "
+            f"it has {list(run.idata.posterior.data_vars)}"
+        )
     return params
 
 
@@ -243,7 +261,15 @@ def _prior_density(run, module_id, name, x_si):
     return gaussian_kde(d[:, 0])(x_si)
 
 
-def plot_corner_module(run, module_id, *, params=MODULE_PARAMETERS, show_prior=False, max_draws=MAX_CORNER_DRAWS):
+def plot_corner_module(
+    run: CalibrationRun | Path | str,
+    module_id: str,
+    *,
+    params: Sequence[str] = MODULE_PARAMETERS,
+    show_prior: bool = False,
+    max_draws: int = MAX_CORNER_DRAWS,
+    fig: Figure | None = None,
+) -> Figure:
     """Corner plot of one module's posterior.
 
     Diagonal: marginal histograms with the 5, 50 and 95 % quantiles (dashed)
@@ -268,6 +294,8 @@ def plot_corner_module(run, module_id, *, params=MODULE_PARAMETERS, show_prior=F
         the panel height (flat = the data, not the prior, set the posterior).
     max_draws : int
         Draws are thinned evenly to at most this many.
+    fig : matplotlib.figure.Figure, optional
+        An empty figure to draw into (default: a new one).
 
     Returns
     -------
@@ -284,11 +312,23 @@ def plot_corner_module(run, module_id, *, params=MODULE_PARAMETERS, show_prior=F
     if len(X) < 2:
         raise ValueError(f"module {module_id}: fewer than two finite posterior draws in {run.path / 'posterior.nc'}")
     rng = [_own_range(X[:, j]) for j in range(K)]
-    fig, plot_in = _corner_figure(K)
-    corner.corner(X, fig=fig, labels=[_axis_label(p) for p in params], range=rng, quantiles=list(CORNER_QUANTILES),
-                  show_titles=False, plot_datapoints=False, plot_density=True, fill_contours=False,
-                  levels=CONTOUR_LEVELS, smooth=1.0, hist_kwargs={"density": True}, color="C0",
-                  label_kwargs={"fontsize": 10})
+    fig, plot_in = _corner_figure(K, fig)
+    corner.corner(
+        X,
+        fig=fig,
+        labels=[_axis_label(p) for p in params],
+        range=rng,
+        quantiles=list(CORNER_QUANTILES),
+        show_titles=False,
+        plot_datapoints=False,
+        plot_density=True,
+        fill_contours=False,
+        levels=CONTOUR_LEVELS,
+        smooth=1.0,
+        hist_kwargs={"density": True},
+        color="C0",
+        label_kwargs={"fontsize": 10},
+    )
     _corner_adjust(fig, plot_in)
     axes = _grid(fig, K)
     for j, p in enumerate(params):
@@ -305,15 +345,25 @@ def plot_corner_module(run, module_id, *, params=MODULE_PARAMETERS, show_prior=F
     p_out = run.outlier_prob(module_id)
     conv = run.converged(module_id)
     n_all = int(np.prod([run.idata.posterior.sizes[d] for d in ("chain", "draw")]))
-    fig.suptitle(f"Module {module_id} posterior: {run.status(module_id)}; outlier prob {_p_text(p_out)}",
-                 color="C3" if conv is False else "k", fontsize=12, y=1.0 - 0.25 / fig.get_size_inches()[1],
-                 va="top")
+    fig.suptitle(
+        f"Module {module_id} posterior: {run.status(module_id)}; outlier prob {_p_text(p_out)}",
+        color="C3" if conv is False else "k",
+        fontsize=12,
+        y=1.0 - 0.25 / fig.get_size_inches()[1],
+        va="top",
+    )
     note = f"{len(X)} of {n_all} draws; quantiles 5/50/95 %; contours {', '.join(f'{q:.0%}' for q in CONTOUR_LEVELS)}"
     handles = [Patch(color="C0", alpha=0.6, label="posterior")]
     if show_prior:
         handles.append(Line2D([], [], color="0.45", ls="--", label="prior density (shape over the range, rescaled)"))
-    fig.legend(handles=handles, loc="upper right", fontsize=9, title=note, title_fontsize=8,
-               bbox_to_anchor=(1.0 - 0.2 / fig.get_size_inches()[0], 1.0 - 0.9 / fig.get_size_inches()[1]))
+    fig.legend(
+        handles=handles,
+        loc="upper right",
+        fontsize=9,
+        title=note,
+        title_fontsize=8,
+        bbox_to_anchor=(1.0 - 0.2 / fig.get_size_inches()[0], 1.0 - 0.9 / fig.get_size_inches()[1]),
+    )
     return fig
 
 
@@ -332,18 +382,32 @@ def _overlay(axes, X, rng, color, *, fill=False, ls="-", own_bins=True, lw=1.3):
         ax = axes[j, j]
         r = _own_range(X[:, j]) if own_bins else rng[j]
         if fill:
-            n, _, _ = ax.hist(X[:, j], bins=30, range=r, density=True, histtype="stepfilled", color=color, alpha=0.5,
-                              lw=0)
+            n, _, _ = ax.hist(
+                X[:, j], bins=30, range=r, density=True, histtype="stepfilled", color=color, alpha=0.5, lw=0
+            )
         else:
             n, _, _ = ax.hist(X[:, j], bins=20, range=r, density=True, histtype="step", color=color, ls=ls, lw=lw)
         peaks.append(float(np.max(n)))
         for i in range(j + 1, K):
             rr = [_own_range(X[:, j]), _own_range(X[:, i])] if own_bins else [rng[j], rng[i]]
             try:
-                corner.hist2d(X[:, j], X[:, i], ax=axes[i, j], range=rr, bins=30 if fill else 20, color=color,
-                              levels=CONTOUR_LEVELS, smooth=1.0, quiet=True, plot_datapoints=False,
-                              plot_density=False, fill_contours=fill, no_fill_contours=not fill,
-                              contour_kwargs={"linestyles": ls, "linewidths": lw}, new_fig=False)
+                corner.hist2d(
+                    X[:, j],
+                    X[:, i],
+                    ax=axes[i, j],
+                    range=rr,
+                    bins=30 if fill else 20,
+                    color=color,
+                    levels=CONTOUR_LEVELS,
+                    smooth=1.0,
+                    quiet=True,
+                    plot_datapoints=False,
+                    plot_density=False,
+                    fill_contours=fill,
+                    no_fill_contours=not fill,
+                    contour_kwargs={"linestyles": ls, "linewidths": lw},
+                    new_fig=False,
+                )
             except ValueError:  # too few distinct points for contours
                 axes[i, j].plot(np.median(X[:, j]), np.median(X[:, i]), "o", color=color, ms=4)
     return peaks
@@ -366,7 +430,13 @@ def _restyle_grid(axes, K):
                     lab.set_rotation(45)
 
 
-def plot_corner_population(run, *, params=MODULE_PARAMETERS, max_modules=MAX_OVERLAY_MODULES):
+def plot_corner_population(
+    run: CalibrationRun | Path | str,
+    *,
+    params: Sequence[str] = MODULE_PARAMETERS,
+    max_modules: int = MAX_OVERLAY_MODULES,
+    fig: Figure | None = None,
+) -> Figure:
     """Every module's posterior over the population predictive of a new module.
 
     Grey (filled): the population predictive (``population`` group; absent
@@ -389,6 +459,8 @@ def plot_corner_population(run, *, params=MODULE_PARAMETERS, max_modules=MAX_OVE
         :data:`DISPLAY_UNITS`).
     max_modules : int
         Most modules drawn individually.
+    fig : matplotlib.figure.Figure, optional
+        An empty figure to draw into (default: a new one).
 
     Returns
     -------
@@ -416,11 +488,19 @@ def plot_corner_population(run, *, params=MODULE_PARAMETERS, max_modules=MAX_OVE
     if not data:
         raise ValueError(f"no finite posterior draws to plot in {run.path / 'posterior.nc'}")
     rng = _ranges(data)
-    fig, plot_in = _corner_figure(K)
+    fig, plot_in = _corner_figure(K, fig)
     # the grid: corner's labels, ticks and ranges, drawn invisibly
-    corner.corner(data[0], fig=fig, labels=[_axis_label(p) for p in params], range=rng, plot_datapoints=False,
-                  plot_density=False, plot_contours=False, hist_kwargs={"visible": False},
-                  label_kwargs={"fontsize": 10})
+    corner.corner(
+        data[0],
+        fig=fig,
+        labels=[_axis_label(p) for p in params],
+        range=rng,
+        plot_datapoints=False,
+        plot_density=False,
+        plot_contours=False,
+        hist_kwargs={"visible": False},
+        label_kwargs={"fontsize": 10},
+    )
     _corner_adjust(fig, plot_in)
     axes = _grid(fig, K)
     peaks = []
@@ -456,12 +536,21 @@ def plot_corner_population(run, *, params=MODULE_PARAMETERS, max_modules=MAX_OVE
     if rest:
         what += f" ({len(mods)} shown individually: highest outlier probability first)"
     pop_note = "" if pop is not None else "; no population fit in this run"
-    fig.suptitle(f"Module posteriors over the population: {what}{pop_note}", fontsize=12,
-                 y=1.0 - 0.25 / fig.get_size_inches()[1], va="top")
+    fig.suptitle(
+        f"Module posteriors over the population: {what}{pop_note}",
+        fontsize=12,
+        y=1.0 - 0.25 / fig.get_size_inches()[1],
+        va="top",
+    )
     w, h = fig.get_size_inches()
-    fig.legend(handles=handles, loc="upper right", fontsize=9, bbox_to_anchor=(1.0 - 0.2 / w, 1.0 - 0.9 / h),
-               title=f"contours {', '.join(f'{q:.0%}' for q in CONTOUR_LEVELS)}; diagonal: density (log)",
-               title_fontsize=8)
+    fig.legend(
+        handles=handles,
+        loc="upper right",
+        fontsize=9,
+        bbox_to_anchor=(1.0 - 0.2 / w, 1.0 - 0.9 / h),
+        title=f"contours {', '.join(f'{q:.0%}' for q in CONTOUR_LEVELS)}; diagonal: density (log)",
+        title_fontsize=8,
+    )
     return fig
 
 
@@ -476,7 +565,13 @@ def _law_curves(D, T_C, tref_C):
     return R, S
 
 
-def plot_laws(run, *, max_modules=MAX_OVERLAY_MODULES, n_temperatures=60):
+def plot_laws(
+    run: CalibrationRun | Path | str,
+    *,
+    max_modules: int = MAX_OVERLAY_MODULES,
+    n_temperatures: int = 60,
+    fig: Figure | None = None,
+) -> Figure:
     """R(T) and S(T) of every module with their 90 % posterior bands.
 
     Top row: ``R(T) = R0 + R1 (T - Tref)`` [ohm] and
@@ -496,6 +591,8 @@ def plot_laws(run, *, max_modules=MAX_OVERLAY_MODULES, n_temperatures=60):
     max_modules : int
     n_temperatures : int
         Temperature grid points.
+    fig : matplotlib.figure.Figure, optional
+        An empty figure to draw into (default: a new one).
 
     Returns
     -------
@@ -533,7 +630,7 @@ def plot_laws(run, *, max_modules=MAX_OVERLAY_MODULES, n_temperatures=60):
         ref_label = "median of the module medians"
     else:
         raise ValueError(f"no finite posterior draws of {LAW_PARAMETERS} in {run.path / 'posterior.nc'}")
-    fig = Figure(figsize=(12.0, 8.0 + 0.18 * int(np.ceil((len(shown) + 3) / 3))), layout="constrained")
+    fig = fig or Figure(figsize=(12.0, 8.0 + 0.18 * int(np.ceil((len(shown) + 3) / 3))), layout="constrained")
     axes = fig.subplots(2, 2, sharex=True)
     # deviations: R in mohm (ohm x 1e3), S in uV/K (mV/K x 1e3)
     dev_factor = (1e3, 1e3)
@@ -545,8 +642,9 @@ def plot_laws(run, *, max_modules=MAX_OVERLAY_MODULES, n_temperatures=60):
             b = pop_band[k]
             ax.fill_between(T, b[0], b[2], color="0.8", lw=0, zorder=0, gid="band:population")
             ax.plot(T, b[1], color="0.35", ls="--", lw=1.4, zorder=1, gid="law:population")
-            axd.fill_between(T, (b[0] - ref[k]) * dev_factor[k], (b[2] - ref[k]) * dev_factor[k], color="0.8", lw=0,
-                             zorder=0)
+            axd.fill_between(
+                T, (b[0] - ref[k]) * dev_factor[k], (b[2] - ref[k]) * dev_factor[k], color="0.8", lw=0, zorder=0
+            )
             axd.plot(T, (b[1] - ref[k]) * dev_factor[k], color="0.35", ls="--", lw=1.4, zorder=1)
         for m in rest:
             if m in bands:
@@ -561,8 +659,9 @@ def plot_laws(run, *, max_modules=MAX_OVERLAY_MODULES, n_temperatures=60):
             ls = ":" if run.converged(m) is False else "-"
             ax.fill_between(T, b[0], b[2], color=c, alpha=0.3, lw=0, zorder=2, gid=f"band:{m}")
             ax.plot(T, b[1], color=c, lw=1.5, ls=ls, zorder=3, gid=f"law:{m}")
-            axd.fill_between(T, (b[0] - ref[k]) * dev_factor[k], (b[2] - ref[k]) * dev_factor[k], color=c, alpha=0.3,
-                             lw=0, zorder=2)
+            axd.fill_between(
+                T, (b[0] - ref[k]) * dev_factor[k], (b[2] - ref[k]) * dev_factor[k], color=c, alpha=0.3, lw=0, zorder=2
+            )
             axd.plot(T, (b[1] - ref[k]) * dev_factor[k], color=c, lw=1.5, ls=ls, zorder=3)
         for a in (ax, axd):
             a.axvline(tref, color="0.5", lw=0.8, ls=":", zorder=0)
@@ -573,8 +672,16 @@ def plot_laws(run, *, max_modules=MAX_OVERLAY_MODULES, n_temperatures=60):
         if m in bands:
             bad = run.converged(m) is False
             conv = ", NOT CONVERGED (dotted)" if bad else ""
-            handles.append(Line2D([], [], color=colors[m], lw=1.5, ls=":" if bad else "-",
-                                  label=f"{m}: outlier prob {_p_text(run.outlier_prob(m))}{conv}"))
+            handles.append(
+                Line2D(
+                    [],
+                    [],
+                    color=colors[m],
+                    lw=1.5,
+                    ls=":" if bad else "-",
+                    label=f"{m}: outlier prob {_p_text(run.outlier_prob(m))}{conv}",
+                )
+            )
     if rest:
         handles.append(Line2D([], [], color="0.6", lw=0.8, label=f"other {len(rest)} modules (median)"))
     if pop_band is not None:
@@ -594,7 +701,7 @@ def plot_laws(run, *, max_modules=MAX_OVERLAY_MODULES, n_temperatures=60):
 # --------------------------------------------------------------------------- hysteresis
 
 
-def plot_hysteresis(run):
+def plot_hysteresis(run: CalibrationRun | Path | str, *, fig: Figure | None = None) -> Figure:
     """Up-step minus down-step difference of R and S per module.
 
     From ``summary.json`` (``hysteresis``: the calibration's fit of R and S
@@ -606,6 +713,8 @@ def plot_hysteresis(run):
     Parameters
     ----------
     run : CalibrationRun or str or Path
+    fig : matplotlib.figure.Figure, optional
+        An empty figure to draw into (default: a new one).
 
     Returns
     -------
@@ -615,7 +724,7 @@ def plot_hysteresis(run):
     run = _as_run(run)
     mods = list(run.module_ids)
     n = len(mods)
-    fig = Figure(figsize=(max(7.0, min(20.0, 3.0 + 0.35 * n)), 6.5), layout="constrained")
+    fig = fig or Figure(figsize=(max(7.0, min(20.0, 3.0 + 0.35 * n)), 6.5), layout="constrained")
     axes = fig.subplots(2, 1, sharex=True)
     x = np.arange(n)
     spec = (("R_ohm", 1e3, "R up − down [mΩ]"), ("S_V_per_K", 1e6, "S up − down [µV/K]"))
@@ -633,15 +742,31 @@ def plot_hysteresis(run):
         for sel, color in ((ok & ~flagged, "C0"), (ok & flagged, "C3")):
             for cs, filled in ((sel & conv, True), (sel & ~conv, False)):
                 if cs.any():
-                    ax.errorbar(x[cs], est[cs], yerr=np.where(np.isfinite(sd[cs]), 2 * sd[cs], 0.0), fmt="o",
-                                color=color, mfc=color if filled else "none", ms=5, capsize=3, elinewidth=1.0,
-                                gid=f"hysteresis:{key}")
+                    ax.errorbar(
+                        x[cs],
+                        est[cs],
+                        yerr=np.where(np.isfinite(sd[cs]), 2 * sd[cs], 0.0),
+                        fmt="o",
+                        color=color,
+                        mfc=color if filled else "none",
+                        ms=5,
+                        capsize=3,
+                        elinewidth=1.0,
+                        gid=f"hysteresis:{key}",
+                    )
         ax.axhline(0.0, color="k", lw=1.0, zorder=0)
         ax.set_ylabel(ylabel)
         ax.grid(True, axis="y", alpha=0.3)
         if not ok.any():
-            ax.text(0.5, 0.5, "no hysteresis estimates in summary.json", transform=ax.transAxes, ha="center",
-                    va="center", color="0.4")
+            ax.text(
+                0.5,
+                0.5,
+                "no hysteresis estimates in summary.json",
+                transform=ax.transAxes,
+                ha="center",
+                va="center",
+                color="0.4",
+            )
     step = max(1, int(np.ceil(n / 40)))
     axes[1].set_xticks(x[::step])
     axes[1].set_xticklabels([mods[i] for i in x[::step]], rotation=90 if n > 8 else 0, fontsize=8)
@@ -671,7 +796,13 @@ def _per_sample_loglike(run, m):
     return per, st
 
 
-def plot_step_loglike(run, *, max_modules=MAX_OVERLAY_MODULES, ncols=3):
+def plot_step_loglike(
+    run: CalibrationRun | Path | str,
+    *,
+    max_modules: int = MAX_OVERLAY_MODULES,
+    ncols: int = 3,
+    fig: Figure | None = None,
+) -> Figure:
     """Per module: how well each step window is fitted, against its temperature.
 
     For every step window: the posterior mean of its log-likelihood
@@ -691,6 +822,8 @@ def plot_step_loglike(run, *, max_modules=MAX_OVERLAY_MODULES, ncols=3):
     max_modules : int
     ncols : int
         Panels per row.
+    fig : matplotlib.figure.Figure, optional
+        An empty figure to draw into (default: a new one).
 
     Returns
     -------
@@ -709,7 +842,7 @@ def plot_step_loglike(run, *, max_modules=MAX_OVERLAY_MODULES, ncols=3):
     n = len(shown)
     nc = max(1, min(ncols, n))
     nr = int(np.ceil(n / nc))
-    fig = Figure(figsize=(4.3 * nc, 3.3 * nr + 0.6), layout="constrained")
+    fig = fig or Figure(figsize=(4.3 * nc, 3.3 * nr + 0.6), layout="constrained")
     axes = np.atleast_1d(fig.subplots(nr, nc, sharex=True, squeeze=False)).ravel()
     for ax in axes[n:]:
         fig.delaxes(ax)
@@ -723,17 +856,27 @@ def plot_step_loglike(run, *, max_modules=MAX_OVERLAY_MODULES, ncols=3):
         for style, d in ((_UP_STYLE, 1), (_DOWN_STYLE, -1)):
             sel = ok & (st["direction"] == d)
             if sel.any():
-                ax.plot(T[sel], per[sel], ls="none", marker=style["marker"], color=style["color"], ms=6, zorder=3,
-                        gid=f"steploglike:{m}")
+                ax.plot(
+                    T[sel],
+                    per[sel],
+                    ls="none",
+                    marker=style["marker"],
+                    color=style["color"],
+                    ms=6,
+                    zorder=3,
+                    gid=f"steploglike:{m}",
+                )
         other = ok & ~np.isin(st["direction"], (1, -1))
         if other.any():
             ax.plot(T[other], per[other], "o", color="0.3", ms=4, zorder=3)
         if not ok.any():
             ax.text(0.5, 0.5, "no finite step log-likelihoods", transform=ax.transAxes, ha="center", color="0.4")
         conv = run.converged(m)
-        ax.set_title(f"{m}: outlier prob {_p_text(run.outlier_prob(m))}"
-                     + ("; NOT CONVERGED" if conv is False else ""),
-                     fontsize=10, color="C3" if conv is False else "k")
+        ax.set_title(
+            f"{m}: outlier prob {_p_text(run.outlier_prob(m))}" + ("; NOT CONVERGED" if conv is False else ""),
+            fontsize=10,
+            color="C3" if conv is False else "k",
+        )
         ax.grid(True, alpha=0.3)
     for i, ax in enumerate(axes[:n]):
         if i % nc == 0:
@@ -741,12 +884,17 @@ def plot_step_loglike(run, *, max_modules=MAX_OVERLAY_MODULES, ncols=3):
         if i >= n - nc:
             ax.set_xlabel("Mean module temperature at the step [°C]")
             ax.xaxis.set_tick_params(labelbottom=True)
-    handles = [Line2D([], [], color=s["color"], marker=s["marker"], ls="none", label=s["label"])
-               for s in (_UP_STYLE, _DOWN_STYLE)]
+    handles = [
+        Line2D([], [], color=s["color"], marker=s["marker"], ls="none", label=s["label"])
+        for s in (_UP_STYLE, _DOWN_STYLE)
+    ]
     handles.append(Line2D([], [], color="0.4", ls="--", label="module median"))
     fig.legend(handles=handles, loc="outside lower center", ncols=3, fontsize=9)
-    what = f"{n} of {len(run.module_ids)} modules, largest drop below their median first" if rest else \
-        f"{n} module{'s' if n != 1 else ''}"
+    what = (
+        f"{n} of {len(run.module_ids)} modules, largest drop below their median first"
+        if rest
+        else f"{n} module{'s' if n != 1 else ''}"
+    )
     fig.suptitle(f"Fit per step window: posterior mean log-likelihood per sample ({what})")
     return fig
 
@@ -760,7 +908,9 @@ def _save(fig, path, fmt, dpi):
     return atomic_write_bytes(path, buf.getvalue())
 
 
-def save_calibration_figures(run_dir, *, fmt="png", dpi=DPI, max_corner_modules=MAX_CORNER_MODULES):
+def save_calibration_figures(
+    run_dir: Path | str, *, fmt: str = "png", dpi: float = DPI, max_corner_modules: int = MAX_CORNER_MODULES
+) -> list[Path]:
     """Write the figures of a calibration run into ``RUN/figures``.
 
     Files, each written atomically (replacing older ones): ``corner_<id>``

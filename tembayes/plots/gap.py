@@ -7,6 +7,7 @@ They read :class:`~tembayes.gap.where.GapMap` and
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from matplotlib.colors import LogNorm
@@ -14,8 +15,13 @@ from matplotlib.figure import Figure
 
 from tembayes.constants import KELVIN
 
+if TYPE_CHECKING:
+    from tembayes.gap.result import GapDiagnosis
+    from tembayes.gap.where import GapMap
+    from tembayes.predict.predictive import Prediction
 
-def plot_gap_map(gmap, fig=None, alpha=0.05):
+
+def plot_gap_map(gmap: GapMap, *, fig: Figure | None = None, alpha: float = 0.05) -> Figure:
     """Heat map of the score (RMS standardised residual) per channel and regime.
 
     1 means the measurement scatters as the predictive band says; cells that
@@ -36,17 +42,27 @@ def plot_gap_map(gmap, fig=None, alpha=0.05):
     for i, ch in enumerate(channels):
         for j, (_, reg) in enumerate(regimes):
             if np.isfinite(S[i, j]):
-                ax.text(j, i, f"{S[i, j]:.1f}" + ("*" if (ch, reg) in sig else ""), ha="center", va="center",
-                        fontsize=7, color="white" if S[i, j] > 2.5 else "black")
+                ax.text(
+                    j,
+                    i,
+                    f"{S[i, j]:.1f}" + ("*" if (ch, reg) in sig else ""),
+                    ha="center",
+                    va="center",
+                    fontsize=7,
+                    color="white" if S[i, j] > 2.5 else "black",
+                )
     ax.set_yticks(range(len(channels)), channels)
     ax.set_xticks(range(len(regimes)), [r for _, r in regimes], rotation=60, ha="right", fontsize=7)
     fig.colorbar(im, ax=ax, label="RMS standardised residual")
-    ax.set_title(f"Gap map: {Path(gmap.source).name} (* significant, Bonferroni over {len(gmap.cells)} cells, "
-                 f"{gmap.n_replicates} replicates)", fontsize=9)
+    ax.set_title(
+        f"Gap map: {Path(gmap.source).name} (* significant, Bonferroni over {len(gmap.cells)} cells, "
+        f"{gmap.n_replicates} replicates)",
+        fontsize=9,
+    )
     return fig
 
 
-def plot_residual_patterns(pred, fig=None):
+def plot_residual_patterns(pred: Prediction, *, fig: Figure | None = None) -> Figure:
     """Standardised residuals against T-bar and against time since the last step, per channel.
 
     The standardisation uses the predictive's 90 % band (half-width / 1.645).
@@ -82,7 +98,7 @@ def plot_residual_patterns(pred, fig=None):
     return fig
 
 
-def plot_ranking(diag, fig=None):
+def plot_ranking(diag: GapDiagnosis, *, fig: Figure | None = None) -> Figure:
     """The candidates: held-out evidence (with 2 se) and the gap before and after, best first.
 
     Parameters
@@ -99,11 +115,14 @@ def plot_ranking(diag, fig=None):
         se = np.array([r.get("evidence_se", 0.0) for r in rows][::-1])
         # recalibrated on every module (blue, the best green); on the lead module only, or only
         # screened (its refit's Laplace posterior): grey
-        colour = ["C2" if r["effect"] == diag.best else "C0" if r["evidence_kind"] == "heldout_elpd" else "0.65"
-                  for r in rows][::-1]
+        colour = [
+            "C2" if r["effect"] == diag.best else "C0" if r["evidence_kind"] == "heldout_elpd" else "0.65" for r in rows
+        ][::-1]
         ax1.barh(y, ev, xerr=2 * se, color=colour)
-        ax1.set_xlabel("held-out ELPD difference to the base model [nats], ±2 se\n"
-                       "(grey: the lead module only, recalibrated or screened)")
+        ax1.set_xlabel(
+            "held-out ELPD difference to the base model [nats], ±2 se\n"
+            "(grey: the lead module only, recalibrated or screened)"
+        )
         ax1.set_xscale("symlog", linthresh=max(1.0, float(np.min(np.abs(se[se > 0])) if np.any(se > 0) else 1.0)))
         before = np.array([r["gap_before"] for r in rows][::-1]) * 1e3
         after = np.array([r["gap_after"] for r in rows][::-1]) * 1e3
@@ -122,8 +141,8 @@ def plot_ranking(diag, fig=None):
     return fig
 
 
-def save_gap_figures(diag, out_dir):
-    """Write the figure set of a :class:`~tembayes.gap.diagnose.GapDiagnosis`; returns the paths.
+def save_gap_figures(diag: GapDiagnosis, out_dir: Path | str) -> list[Path]:
+    """Write the figure set of a :class:`~tembayes.gap.result.GapDiagnosis`; returns the paths.
 
     ``ranking.png``, and per module and held-out run ``gap_map_<module>_<run>.png``
     and ``residuals_<module>_<run>.png``.

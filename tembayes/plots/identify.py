@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import io
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from matplotlib.figure import Figure
@@ -32,6 +33,15 @@ from matplotlib.patches import Patch
 
 from tembayes.constants import KELVIN, T_REF
 from tembayes.data.write import atomic_write_bytes
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping
+
+    from matplotlib.axes import Axes
+
+    from tembayes.data import Batch, Experiment
+    from tembayes.identify.pipeline import ModuleIdentification
+    from tembayes.physics.simulate import Simulation
 
 __all__ = [
     "plot_identification_run",
@@ -68,12 +78,22 @@ _DIRECTION_MARKERS = {"up": "^", "down": "v"}
 # the display scale and labels.
 _LAWS = {
     "R": {
-        "line": "R", "scale": 1.0, "ylabel": "R_m [ohm]", "hyst_decimals": 4, "X0": "R0_ohm", "X1": "R1_ohm_per_K",
+        "line": "R",
+        "scale": 1.0,
+        "ylabel": "R_m [ohm]",
+        "hyst_decimals": 4,
+        "X0": "R0_ohm",
+        "X1": "R1_ohm_per_K",
         "title": "Electrical resistance R_m(T_avg) (paper Fig. 6)",
         "paper_label": "paper recipe (first sample, sensor T)",
     },
     "S": {
-        "line": "S", "scale": 1e3, "ylabel": "S_m [mV/K]", "hyst_decimals": 3, "X0": "S0_V_per_K", "X1": "S1_V_per_K2",
+        "line": "S",
+        "scale": 1e3,
+        "ylabel": "S_m [mV/K]",
+        "hyst_decimals": 3,
+        "X0": "S0_V_per_K",
+        "X1": "S1_V_per_K2",
         "title": "Seebeck coefficient S_m(T_avg) (paper Fig. 7)",
         "paper_label": "paper recipe (sensor dT and T)",
     },
@@ -121,7 +141,7 @@ def _channel_names(sim, n):
     return [str(ch).removesuffix("_C") for ch in names]
 
 
-def plot_identification_run(experiments, fig=None):
+def plot_identification_run(experiments: Mapping[str, Experiment], *, fig: Figure | None = None) -> Figure:
     """The identification runs of a batch (the paper's Fig. 5).
 
     Three stacked panels over a shared time axis: module current, terminal
@@ -188,13 +208,18 @@ def _law_points(rows, which, scale):
         sd = [r["S_sd"] for r in rows]
         Tp = [r["Tavg_paper"] for r in rows]
         yp = [r["S_paper"] for r in rows]
+
     def f(v):
         return np.asarray(v, dtype=float)
 
     return {
-        "T": f(T) - KELVIN, "T_sd": f(T_sd), "y": f(y) * scale, "sd": f(sd) * scale,
+        "T": f(T) - KELVIN,
+        "T_sd": f(T_sd),
+        "y": f(y) * scale,
+        "sd": f(sd) * scale,
         "direction": np.array([r["direction"] for r in rows]),
-        "T_paper": f(Tp) - KELVIN, "y_paper": f(yp) * scale,
+        "T_paper": f(Tp) - KELVIN,
+        "y_paper": f(yp) * scale,
     }
 
 
@@ -209,7 +234,14 @@ def _hysteresis_note(res, which):
     return f"; up − down {h['diff'] * spec['scale']:+.{d}f} ± {h['sd'] * spec['scale']:.{d}f} {unit}"
 
 
-def plot_law(results, which, average=None, ax=None, paper=True):
+def plot_law(
+    results: Mapping[str, ModuleIdentification],
+    which: str,
+    *,
+    average: Mapping[str, float] | None = None,
+    ax: Axes | None = None,
+    paper: bool = True,
+) -> Figure:
     """Per-step estimates and fitted linear law of R_m or S_m (the paper's Figs. 6 and 7).
 
     For each module (colour C0, C1, ...): the step estimates with their
@@ -266,13 +298,33 @@ def plot_law(results, which, average=None, ax=None, paper=True):
             okp = np.isfinite(pts["T_paper"]) & np.isfinite(pts["y_paper"])
             for d, marker in _DIRECTION_MARKERS.items():
                 m = okp & (pts["direction"] == d)
-                ax.scatter(pts["T_paper"][m], pts["y_paper"][m], marker=marker, s=30, facecolors="none",
-                           edgecolors=color, linewidths=0.9, alpha=0.45, zorder=2, gid=f"paper:{mid}")
+                ax.scatter(
+                    pts["T_paper"][m],
+                    pts["y_paper"][m],
+                    marker=marker,
+                    s=30,
+                    facecolors="none",
+                    edgecolors=color,
+                    linewidths=0.9,
+                    alpha=0.45,
+                    zorder=2,
+                    gid=f"paper:{mid}",
+                )
         for d, marker in _DIRECTION_MARKERS.items():
             m = ok & (pts["direction"] == d)
             if m.any():
-                ax.errorbar(pts["T"][m], pts["y"][m], yerr=pts["sd"][m], xerr=pts["T_sd"][m], fmt=marker,
-                            color=color, ms=5, elinewidth=0.8, capsize=0, zorder=4)
+                ax.errorbar(
+                    pts["T"][m],
+                    pts["y"][m],
+                    yerr=pts["sd"][m],
+                    xerr=pts["T_sd"][m],
+                    fmt=marker,
+                    color=color,
+                    ms=5,
+                    elinewidth=0.8,
+                    capsize=0,
+                    zorder=4,
+                )
         if ok.any():
             T_all.append(pts["T"][ok])
             line = res.lines[spec["line"]]
@@ -294,8 +346,9 @@ def plot_law(results, which, average=None, ax=None, paper=True):
         Line2D([], [], color="0.3", marker="v", ls="none", label="step down"),
     ]
     if paper:
-        handles.append(Line2D([], [], color="0.3", marker="^", mfc="none", ls="none", alpha=0.6,
-                              label=spec["paper_label"]))
+        handles.append(
+            Line2D([], [], color="0.3", marker="^", mfc="none", ls="none", alpha=0.6, label=spec["paper_label"])
+        )
     ax.legend(handles=handles, fontsize=8, loc="best", framealpha=0.9)
     ax.set_xlabel("Mean module temperature T_avg [°C]")
     ax.set_ylabel(spec["ylabel"])
@@ -304,7 +357,7 @@ def plot_law(results, which, average=None, ax=None, paper=True):
     return fig
 
 
-def plot_validation(exp, sim, title=None, fig=None):
+def plot_validation(exp: Experiment, sim: Simulation, *, title: str | None = None, fig: Figure | None = None) -> Figure:
     """Measured against simulated sensor temperatures of one run (the paper's Figs. 8 and 9).
 
     Top panel: T1..T4 measured (solid) and simulated (dashed) [degC], hot
@@ -342,17 +395,20 @@ def plot_validation(exp, sim, title=None, fig=None):
         ax_t.plot(t, exp.sensors[c] - KELVIN, color=color, lw=1.2, gid=f"measured:{name}")
         ax_t.plot(t, Tsim[c] - KELVIN, color=color, lw=1.2, ls="--", gid=f"simulated:{name}")
         r = exp.sensors[c] - Tsim[c]
-        rmse = float(np.sqrt(np.mean(r ** 2)))
+        rmse = float(np.sqrt(np.mean(r**2)))
         ax_r.plot(t, r, color=color, lw=0.9, label=f"{name}: RMSE {rmse:.2f} K", gid=f"residual:{name}")
         handles.append(Line2D([], [], color=color, lw=1.5, label=name))
-    handles += [Line2D([], [], color="0.3", lw=1.2, label="measured"),
-                Line2D([], [], color="0.3", lw=1.2, ls="--", label="simulated")]
+    handles += [
+        Line2D([], [], color="0.3", lw=1.2, label="measured"),
+        Line2D([], [], color="0.3", lw=1.2, ls="--", label="simulated"),
+    ]
     # legends beside the panels: the traces fill the whole time axis
     ax_t.legend(handles=handles, fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     ax_t.set_ylabel("Temperature [°C]")
     ax_t.grid(True, alpha=0.3)
-    ax_r.axhspan(-ACCURACY_BAND_K, ACCURACY_BAND_K, color="0.88", zorder=0,
-                 label=f"±{ACCURACY_BAND_K:g} K (paper's accuracy)")
+    ax_r.axhspan(
+        -ACCURACY_BAND_K, ACCURACY_BAND_K, color="0.88", zorder=0, label=f"±{ACCURACY_BAND_K:g} K (paper's accuracy)"
+    )
     ax_r.axhline(0.0, color="0.5", lw=0.6, zorder=0)
     ax_r.set_ylabel("Measured − simulated [K]")
     ax_r.set_xlabel("Time since start of run [h]")
@@ -374,7 +430,7 @@ def _binned_rms(x, r, edges, min_count=MIN_BIN_SAMPLES):
     return np.array(centres), np.array(rms)
 
 
-def plot_error_vs_tavg(exp, sims, fig=None):
+def plot_error_vs_tavg(exp: Experiment, sims: Mapping[str, Simulation], *, fig: Figure | None = None) -> Figure:
     """Cold-side sensor error against the mean sensor temperature, for several models.
 
     The paper's argument for temperature-dependent laws: a model with R and
@@ -417,9 +473,8 @@ def plot_error_vs_tavg(exp, sims, fig=None):
         ax.scatter(x, r, s=4, alpha=0.15, color=color, lw=0, rasterized=True, zorder=1)
         centres, rms = _binned_rms(x, r, edges)
         ax.plot(centres, rms, color=color, lw=2.0, marker="o", ms=5, zorder=3, gid=f"rms:{label}")
-        total = float(np.sqrt(np.mean(r ** 2)))
-        handles.append(Line2D([], [], color=color, lw=2.0, marker="o",
-                              label=f"{label} (overall RMSE {total:.2f} K)"))
+        total = float(np.sqrt(np.mean(r**2)))
+        handles.append(Line2D([], [], color=color, lw=2.0, marker="o", label=f"{label} (overall RMSE {total:.2f} K)"))
     ax.axvline(CONSTANT_MODEL_T_C, color="k", ls=":", lw=1.2, zorder=2)
     handles += [
         Line2D([], [], color="k", ls=":", lw=1.2, label=f"{CONSTANT_MODEL_T_C:g} °C (constant model's T)"),
@@ -443,7 +498,7 @@ def _save_png(fig, path):
     return atomic_write_bytes(path, buf.getvalue())
 
 
-def save_identify_figures(results, batch, out_dir):
+def save_identify_figures(results: Mapping[str, ModuleIdentification], batch: Batch, out_dir: Path | str) -> list[Path]:
     """Write the identification figures of a batch as PNG files.
 
     Files (``dpi`` 120), each written atomically:
@@ -474,10 +529,16 @@ def save_identify_figures(results, batch, out_dir):
     out.mkdir(parents=True, exist_ok=True)
     missing = [mid for mid in results if mid not in batch.modules]
     if missing:
-        raise ValueError(f"modules {missing} of the results are not in the batch {batch.path}; "
-                         "pass the batch the results were computed from")
-    written = [_save_png(plot_identification_run({mid: batch.modules[mid].identification for mid in results}),
-                         out / "identification_run.png")]
+        raise ValueError(
+            f"modules {missing} of the results are not in the batch {batch.path}; "
+            "pass the batch the results were computed from"
+        )
+    written = [
+        _save_png(
+            plot_identification_run({mid: batch.modules[mid].identification for mid in results}),
+            out / "identification_run.png",
+        )
+    ]
     average = batch_average(results)
     for which in ("R", "S"):
         written.append(_save_png(plot_law(results, which, average=average), out / f"law_{which}.png"))
@@ -495,7 +556,9 @@ def save_identify_figures(results, batch, out_dir):
             for model, title in titles.items():
                 fig = plot_validation(exp, models[model]["simulation"], title=f"{mid} {fname}: {title}")
                 written.append(_save_png(fig, out / f"validation_{mid}_{stem}_{model}.png"))
-            sims = {f"R, S constant at {CONSTANT_MODEL_T_C:g} °C": models["constant"]["simulation"],
-                    "linear laws": models["linear"]["simulation"]}
+            sims = {
+                f"R, S constant at {CONSTANT_MODEL_T_C:g} °C": models["constant"]["simulation"],
+                "linear laws": models["linear"]["simulation"],
+            }
             written.append(_save_png(plot_error_vs_tavg(exp, sims), out / f"error_vs_tavg_{mid}_{stem}.png"))
     return written

@@ -1,5 +1,6 @@
-"""Figures of a posterior-predictive (``tembayes predict``): the paper's Figures
-8-9 with credible bands.
+"""Figures of a posterior-predictive (``tembayes predict``).
+
+The paper's Figures 8-9 with credible bands.
 
 They read :class:`~tembayes.predict.predictive.Prediction` objects only.
 Temperatures in degC, errors in K (= degC differences), voltage in V.
@@ -9,6 +10,7 @@ from __future__ import annotations
 
 import io
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from matplotlib.figure import Figure
@@ -18,11 +20,21 @@ from matplotlib.patches import Patch
 from tembayes.constants import KELVIN
 from tembayes.data.write import atomic_write_bytes
 
+if TYPE_CHECKING:
+    from collections.abc import Mapping
+
+    from tembayes.predict.predictive import Prediction, PredictResult
+
 #: Band shades, widest first (95, 90, 50 %).
 _BAND_ALPHA = {95: 0.18, 90: 0.3, 50: 0.55}
 _COLORS = {"T1_C": "C1", "T2_C": "C3", "T3_C": "C0", "T4_C": "C9", "voltage_V": "C2"}
-_LABELS = {"T1_C": "T1 (top, at cooler)", "T2_C": "T2 (top, at module)", "T3_C": "T3 (bottom, at module)",
-           "T4_C": "T4 (bottom, far)", "voltage_V": "voltage"}
+_LABELS = {
+    "T1_C": "T1 (top, at cooler)",
+    "T2_C": "T2 (top, at module)",
+    "T3_C": "T3 (bottom, at module)",
+    "T4_C": "T4 (bottom, far)",
+    "voltage_V": "voltage",
+}
 #: The paper's stated accuracy of its validation [K].
 PAPER_ACCURACY_K = 0.5
 DPI = 120
@@ -38,7 +50,7 @@ def _title(pred):
     return f"{Path(pred.source).name} — {pred.label}, {laws} ({pred.n_draws} posterior draws)"
 
 
-def plot_prediction(pred, fig=None):
+def plot_prediction(pred: Prediction, *, fig: Figure | None = None) -> Figure:
     """Measured vs predicted channels with the 50/90/95 % bands (paper Fig. 9 with bands).
 
     One panel per channel (T1..T4, voltage) plus the current on top.
@@ -55,25 +67,39 @@ def plot_prediction(pred, fig=None):
         color = _COLORS.get(ch, "C0")
         for lv in sorted(pred.bands, reverse=True):
             lo, hi = pred.bands[lv]
-            ax.fill_between(t, (lo[c] - off) * fac, (hi[c] - off) * fac, color=color, alpha=_BAND_ALPHA.get(lv, 0.3),
-                            lw=0, gid=f"band{lv}:{ch}")
+            ax.fill_between(
+                t,
+                (lo[c] - off) * fac,
+                (hi[c] - off) * fac,
+                color=color,
+                alpha=_BAND_ALPHA.get(lv, 0.3),
+                lw=0,
+                gid=f"band{lv}:{ch}",
+            )
         ax.plot(t, (pred.measured[c] - off) * fac, color="k", lw=0.6, gid=f"measured:{ch}")
         ax.plot(t, (pred.median[c] - off) * fac, color=color, lw=0.8, ls="--", gid=f"median:{ch}")
         ax.set_ylabel(f"{_LABELS.get(ch, ch)} [{unit}]", fontsize=8)
         ax.grid(True, alpha=0.3)
-        ax.set_title("band coverage " + ", ".join(f"{lv} %: {100 * cov[lv][c]:.0f} %" for lv in sorted(pred.bands)),
-                     loc="right", fontsize=7)
-    handles = [Line2D([], [], color="k", lw=0.8, label="measured"),
-               Line2D([], [], color="0.4", lw=0.8, ls="--", label="predictive median")]
-    handles += [Patch(facecolor="0.4", alpha=_BAND_ALPHA.get(lv, 0.3), label=f"{lv} % band")
-                for lv in sorted(pred.bands, reverse=True)]
+        ax.set_title(
+            "band coverage " + ", ".join(f"{lv} %: {100 * cov[lv][c]:.0f} %" for lv in sorted(pred.bands)),
+            loc="right",
+            fontsize=7,
+        )
+    handles = [
+        Line2D([], [], color="k", lw=0.8, label="measured"),
+        Line2D([], [], color="0.4", lw=0.8, ls="--", label="predictive median"),
+    ]
+    handles += [
+        Patch(facecolor="0.4", alpha=_BAND_ALPHA.get(lv, 0.3), label=f"{lv} % band")
+        for lv in sorted(pred.bands, reverse=True)
+    ]
     axes[0].legend(handles=handles, fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     axes[-1].set_xlabel("time since start of run [h]")
     fig.suptitle(_title(pred))
     return fig
 
 
-def plot_residuals(pred, fig=None):
+def plot_residuals(pred: Prediction, *, fig: Figure | None = None) -> Figure:
     """Measured minus predictive mean, with the bands centred the same way (paper Fig. 9, bottom)."""
     fig = fig or Figure(figsize=(11.0, 10.0), layout="constrained")
     axes = fig.subplots(len(pred.channels), 1, sharex=True)
@@ -84,20 +110,31 @@ def plot_residuals(pred, fig=None):
         color = _COLORS.get(ch, "C0")
         for lv in sorted(pred.bands, reverse=True):
             lo, hi = pred.bands[lv]
-            ax.fill_between(t, (lo[c] - pred.mean[c]) * fac, (hi[c] - pred.mean[c]) * fac, color=color,
-                            alpha=_BAND_ALPHA.get(lv, 0.3), lw=0, gid=f"band{lv}:{ch}")
+            ax.fill_between(
+                t,
+                (lo[c] - pred.mean[c]) * fac,
+                (hi[c] - pred.mean[c]) * fac,
+                color=color,
+                alpha=_BAND_ALPHA.get(lv, 0.3),
+                lw=0,
+                gid=f"band{lv}:{ch}",
+            )
         ax.plot(t, pred.residual[c] * fac, color="k", lw=0.5, gid=f"residual:{ch}")
         ax.axhline(0.0, color="0.5", lw=0.6)
         ax.set_ylabel(f"{ch.split('_')[0]} error [{unit}]", fontsize=8)
         ax.grid(True, alpha=0.3)
-        ax.set_title(f"RMSE {m[ch]['rmse'] * fac:.3g} {unit}, max {m[ch]['max_abs'] * fac:.3g} {unit}, "
-                     f"90 % band coverage {100 * m[ch]['coverage90']:.0f} %", loc="right", fontsize=7)
+        ax.set_title(
+            f"RMSE {m[ch]['rmse'] * fac:.3g} {unit}, max {m[ch]['max_abs'] * fac:.3g} {unit}, "
+            f"90 % band coverage {100 * m[ch]['coverage90']:.0f} %",
+            loc="right",
+            fontsize=7,
+        )
     axes[-1].set_xlabel("time since start of run [h]")
     fig.suptitle("Measured − predictive mean, with the predictive bands: " + _title(pred))
     return fig
 
 
-def plot_error_vs_tavg(preds, fig=None):
+def plot_error_vs_tavg(preds: Mapping[str, Prediction], *, fig: Figure | None = None) -> Figure:
     """RMSE against T-bar for several predictions (the paper's constant-vs-linear point).
 
     Parameters
@@ -111,10 +148,25 @@ def plot_error_vs_tavg(preds, fig=None):
         rows = pred.by_tavg()
         x = np.array([0.5 * (r["Tavg_C_low"] + r["Tavg_C_high"]) for r in rows])
         for ch, ls in (("T3_C", "-"), ("T2_C", ":")):
-            ax_t.plot(x, [r["rmse"][ch] for r in rows], color=f"C{i}", ls=ls, marker="o", ms=4,
-                      label=f"{label}: {ch.split('_')[0]}", gid=f"rms:{label}:{ch}")
-        ax_v.plot(x, [1e3 * r["rmse"]["voltage_V"] for r in rows], color=f"C{i}", marker="o", ms=4, label=label,
-                  gid=f"rms:{label}:voltage_V")
+            ax_t.plot(
+                x,
+                [r["rmse"][ch] for r in rows],
+                color=f"C{i}",
+                ls=ls,
+                marker="o",
+                ms=4,
+                label=f"{label}: {ch.split('_')[0]}",
+                gid=f"rms:{label}:{ch}",
+            )
+        ax_v.plot(
+            x,
+            [1e3 * r["rmse"]["voltage_V"] for r in rows],
+            color=f"C{i}",
+            marker="o",
+            ms=4,
+            label=label,
+            gid=f"rms:{label}:voltage_V",
+        )
     for ax in (ax_t, ax_v):
         ax.axvline(35.0, color="k", ls=":", lw=1.0)
         ax.set_xlabel("T̄ ≈ (T2 + T3)/2, measured [°C]")
@@ -137,15 +189,20 @@ def _save_png(fig, path):
     return Path(path)
 
 
-def save_predict_figures(result, out_dir):
+def save_predict_figures(result: PredictResult, out_dir: Path | str) -> list[Path]:
     """Write the figure set of a :class:`~tembayes.predict.predictive.PredictResult`; returns the paths."""
     out = Path(out_dir)
-    written = [_save_png(plot_prediction(result.linear), out / "prediction.png"),
-               _save_png(plot_residuals(result.linear), out / "residuals.png")]
+    written = [
+        _save_png(plot_prediction(result.linear), out / "prediction.png"),
+        _save_png(plot_residuals(result.linear), out / "residuals.png"),
+    ]
     if result.constant is not None:
         written.append(_save_png(plot_prediction(result.constant), out / "prediction_constant.png"))
         written.append(_save_png(plot_residuals(result.constant), out / "residuals_constant.png"))
-        written.append(_save_png(plot_error_vs_tavg({"R, S linear in T̄": result.linear,
-                                                     "R, S constant at 35 °C": result.constant}),
-                                 out / "error_vs_tavg.png"))
+        written.append(
+            _save_png(
+                plot_error_vs_tavg({"R, S linear in T̄": result.linear, "R, S constant at 35 °C": result.constant}),
+                out / "error_vs_tavg.png",
+            )
+        )
     return written

@@ -8,24 +8,38 @@
 from __future__ import annotations
 
 import io
+from typing import TYPE_CHECKING
 
 import numpy as np
 from matplotlib.figure import Figure
 
 from tembayes.constants import LAW_PARAMETERS
 
+if TYPE_CHECKING:
+    from collections.abc import Mapping
+
+    from tembayes.calibrate.run import CalibrationRun
+
 #: Resolution of the report's figures [dots per inch] (small files, sharp enough on screen).
 REPORT_DPI = 90
 
 
-def png_bytes(fig, dpi=REPORT_DPI):
+def png_bytes(fig: Figure, dpi: float = REPORT_DPI) -> bytes:
     """``fig`` rendered as PNG (no timestamp in the file: the same figure, the same bytes)."""
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=dpi, metadata={"Software": None})
     return buf.getvalue()
 
 
-def plot_module_laws(run, module_id, steps, *, max_draws=2000, n_temperatures=60):
+def plot_module_laws(
+    run: CalibrationRun,
+    module_id: str,
+    steps: Mapping[str, np.ndarray],
+    *,
+    max_draws: int = 2000,
+    n_temperatures: int = 60,
+    fig: Figure | None = None,
+) -> Figure:
     """R(T) and S(T) of one module: 90 % posterior band, population band, step estimates.
 
     Parameters
@@ -38,6 +52,8 @@ def plot_module_laws(run, module_id, steps, *, max_draws=2000, n_temperatures=60
         ``direction`` (arrays over the steps; SI but temperatures in degC).
     max_draws : int
     n_temperatures : int
+    fig : matplotlib.figure.Figure, optional
+        An empty figure to draw into (default: a new one).
 
     Returns
     -------
@@ -51,14 +67,18 @@ def plot_module_laws(run, module_id, steps, *, max_draws=2000, n_temperatures=60
     dT = T - run.tref_C
     q = (0.05, 0.5, 0.95)
     D = run.draws(module_id, LAW_PARAMETERS, max_draws=max_draws)
-    bands = [np.quantile(D[:, [0]] + D[:, [1]] * dT, q, axis=0),
-             np.quantile((D[:, [2]] + D[:, [3]] * dT) * 1e3, q, axis=0)]
+    bands = [
+        np.quantile(D[:, [0]] + D[:, [1]] * dT, q, axis=0),
+        np.quantile((D[:, [2]] + D[:, [3]] * dT) * 1e3, q, axis=0),
+    ]
     pop = run.population_draws(LAW_PARAMETERS, max_draws=20000)
-    fig = Figure(figsize=(11.0, 4.2), layout="constrained")
+    fig = fig or Figure(figsize=(11.0, 4.2), layout="constrained")
     axes = fig.subplots(1, 2)
     up = np.asarray(steps["direction"]) == "up"
-    pts = [(steps["Tavg_R_C"], np.asarray(steps["R_ohm"]), np.asarray(steps["R_sd"])),
-           (steps["Tavg_S_C"], np.asarray(steps["S_V_per_K"]) * 1e3, np.asarray(steps["S_sd"]) * 1e3)]
+    pts = [
+        (steps["Tavg_R_C"], np.asarray(steps["R_ohm"]), np.asarray(steps["R_sd"])),
+        (steps["Tavg_S_C"], np.asarray(steps["S_V_per_K"]) * 1e3, np.asarray(steps["S_sd"]) * 1e3),
+    ]
     for k, ax in enumerate(axes):
         if pop is not None:
             P = pop[:, [0]] + pop[:, [1]] * dT if k == 0 else (pop[:, [2]] + pop[:, [3]] * dT) * 1e3
@@ -68,8 +88,10 @@ def plot_module_laws(run, module_id, steps, *, max_draws=2000, n_temperatures=60
         ax.fill_between(T, b[0], b[2], color="C2", alpha=0.45, lw=0, label=f"{module_id} posterior 90 %")
         ax.plot(T, b[1], color="C2", lw=1.5, label="posterior median")
         x, y, e = pts[k]
-        for sel, style in ((up, dict(color="C3", marker="^", label="step estimate, up-step")),
-                           (~up, dict(color="C0", marker="v", label="step estimate, down-step"))):
+        for sel, style in (
+            (up, dict(color="C3", marker="^", label="step estimate, up-step")),
+            (~up, dict(color="C0", marker="v", label="step estimate, down-step")),
+        ):
             ax.errorbar(np.asarray(x)[sel], y[sel], yerr=2 * e[sel], ls="none", ms=5, capsize=2, lw=0.8, **style)
         ax.axvline(run.tref_C, color="0.5", lw=0.8, ls=":")
         ax.set_xlabel("Mean module temperature T [°C]")
@@ -81,4 +103,3 @@ def plot_module_laws(run, module_id, steps, *, max_draws=2000, n_temperatures=60
     axes[1].legend(fontsize=8, loc="best")
     fig.suptitle(f"{module_id}: laws with 90 % bands over the step estimates (±2 sd)")
     return fig
-

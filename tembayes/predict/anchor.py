@@ -37,6 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
+from tembayes.common.ou import fit_ou, innovations
 from tembayes.constants import MODULE_PARAMETERS
 from tembayes.data.quality import noise_estimate
 from tembayes.errors import ModelError
@@ -53,8 +54,9 @@ FD_STEP = 1.0
 
 def to_coords(draws, names):
     """``(M, p)`` coordinates (log of positive parameters) of ``name -> (M,)`` draws."""
-    return np.column_stack([np.asarray(draws[k], float) if k in LINEAR else np.log(np.asarray(draws[k], float))
-                            for k in names])
+    return np.column_stack(
+        [np.asarray(draws[k], float) if k in LINEAR else np.log(np.asarray(draws[k], float)) for k in names]
+    )
 
 
 def from_coords(Z, names):
@@ -82,35 +84,25 @@ class ResidualProcess:
     rmse: float
 
     def whiten(self, t, r):
-        """Innovations ``(r_i - phi_i r_{i-1}) / (sd sqrt(1 - phi_i^2))`` of residuals ``r`` at times ``t``."""
-        phi = np.exp(-np.diff(t) / self.tau_s)
-        e = np.empty(r.shape)
-        e[..., 0] = r[..., 0] / self.sd
-        e[..., 1:] = (r[..., 1:] - phi * r[..., :-1]) / (self.sd * np.sqrt(1.0 - phi * phi))
-        return e
+        """Innovations of residuals ``r`` at times ``t`` (:func:`tembayes.common.ou.innovations`)."""
+        return innovations(t, r, self.sd, self.tau_s)
 
     def to_dict(self):
+        """``{"sd", "tau_s", "rmse"}`` (``metrics.json``'s ``anchor.residual``)."""
         return {"sd": self.sd, "tau_s": self.tau_s, "rmse": self.rmse}
 
 
 def fit_residual_process(t, r, floor):
     """Maximum-likelihood :class:`ResidualProcess` of residuals ``r`` at times ``t``.
 
+    The whole residual, white noise included, is one OU process
+    (:func:`tembayes.common.ou.fit_ou` without white noise): it is the
+    predictive's noise, and the whitening weights of the anchoring.
     ``floor`` is the least sd (the channel's measurement noise).
     """
     r = np.asarray(r, float)
-    dt = np.diff(t)
-    best = None
-    for tau in np.geomspace(0.05, 2e4, 80):
-        phi = np.exp(-dt / tau)
-        q = 1.0 - phi * phi
-        innov = r[1:] - phi * r[:-1]
-        s2 = (r[0] ** 2 + np.sum(innov * innov / q)) / len(r)
-        ll = -0.5 * len(r) * np.log(s2) - 0.5 * np.sum(np.log(q))
-        if best is None or ll > best[0]:
-            best = (ll, tau, s2)
-    _, tau, s2 = best
-    return ResidualProcess(float(max(np.sqrt(s2), floor)), float(tau), float(np.sqrt(np.mean(r * r))))
+    fit = fit_ou(t, r)
+    return ResidualProcess(float(max(fit.sd, floor)), fit.tau_s, float(np.sqrt(np.mean(r * r))))
 
 
 #: A rig parameter is *unpinned* by the step likelihood when its step
@@ -177,10 +169,13 @@ class Anchored:
     iterations: int
 
     def to_dict(self):
+        """What the anchoring did, as plain data (``metrics.json``'s ``anchor``)."""
         return {
-            "prior_sd": self.prior_sd, "posterior_sd": self.posterior_sd,
+            "prior_sd": self.prior_sd,
+            "posterior_sd": self.posterior_sd,
             "residual": {k: v.to_dict() for k, v in self.residual.items()},
-            "shift_s": self.shift, "iterations": self.iterations,
+            "shift_s": self.shift,
+            "iterations": self.iterations,
         }
 
 
@@ -239,8 +234,10 @@ def anchor_rig(model, draws, names, *, shift=None, fixed=None):
 
     def simulate(Zu, Zgiven):
         n = len(Zu)
-        params = {**from_coords(np.broadcast_to(Zgiven, (n, len(given))), given),
-                  **{k: np.full(n, val) for k, val in fixed.items()}}
+        params = {
+            **from_coords(np.broadcast_to(Zgiven, (n, len(given))), given),
+            **{k: np.full(n, val) for k, val in fixed.items()},
+        }
         if p:
             params.update(from_coords(Zu, names))
         calls["n"] += 1
@@ -318,5 +315,12 @@ def anchor_rig(model, draws, names, *, shift=None, fixed=None):
     vfloor = noise_estimate(np.asarray(exp.voltage, float))
     vfloor = float(vfloor) if np.isfinite(vfloor) and vfloor > 0 else 1e-4
     residual[CHANNELS[-1]] = fit_residual_process(t, v - volt2[0], vfloor)
-    return Anchored(names=names, draws=new, prior_sd=prior_sd, posterior_sd=posterior_sd,
-                    residual=residual, shift=shift, iterations=calls["n"])
+    return Anchored(
+        names=names,
+        draws=new,
+        prior_sd=prior_sd,
+        posterior_sd=posterior_sd,
+        residual=residual,
+        shift=shift,
+        iterations=calls["n"],
+    )

@@ -28,12 +28,12 @@ from __future__ import annotations
 
 import time as _time
 import warnings
-import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from tembayes.common.seeds import stream
 from tembayes.constants import KELVIN, MODULE_PARAMETERS, T_REF
 from tembayes.errors import DataError, ModelError, TembayesError
 from tembayes.physics import effects as E
@@ -82,6 +82,7 @@ class PredictiveDraws:
 
     @property
     def n(self):
+        """Number of draws."""
         return len(self.noise_sd)
 
 
@@ -119,10 +120,14 @@ def module_draws(run, module_id, identification, rig, *, laws="linear"):
         All the module's draws (``chain x draw``).
     """
     if module_id not in run.module_ids:
-        raise DataError(run.path / "posterior.nc", f"has no module '{module_id}'",
-                        f"Choose one of {list(run.module_ids)} or 'population'.")
-    return posterior_draws(module_raw_draws(run, module_id), run.priors(module_id), module_id, identification, rig,
-                           laws=laws)
+        raise DataError(
+            run.path / "posterior.nc",
+            f"has no module '{module_id}'",
+            f"Choose one of {list(run.module_ids)} or 'population'.",
+        )
+    return posterior_draws(
+        module_raw_draws(run, module_id), run.priors(module_id), module_id, identification, rig, laws=laws
+    )
 
 
 def posterior_draws(raw, priors, label, identification, rig, *, laws="linear"):
@@ -164,9 +169,14 @@ def posterior_draws(raw, priors, label, identification, rig, *, laws="linear"):
     sd = np.array([a.residual[c].sd for c in CHANNELS])
     tau = np.array([a.residual[c].tau_s for c in CHANNELS])
     M = len(params["R0_ohm"])
-    return PredictiveDraws(params=params, noise_sd=np.repeat(sd[None], M, axis=0), label=label, laws=laws,
-                           anchor={label: {"updated": list(names), **a.to_dict()}},
-                           noise_tau=np.repeat(tau[None], M, axis=0))
+    return PredictiveDraws(
+        params=params,
+        noise_sd=np.repeat(sd[None], M, axis=0),
+        label=label,
+        laws=laws,
+        anchor={label: {"updated": list(names), **a.to_dict()}},
+        noise_tau=np.repeat(tau[None], M, axis=0),
+    )
 
 
 def unpinned_effects(draws, priors, fraction=UNPINNED_FRACTION):
@@ -214,8 +224,11 @@ def population_draws(run, module_draws_by_id, rng, n):
     """
     pop = run.population_draws(MODULE_PARAMETERS)
     if pop is None:
-        raise DataError(run.path / "posterior.nc", "has no population fit",
-                        "Calibrate the whole batch (the population needs at least two modules).")
+        raise DataError(
+            run.path / "posterior.nc",
+            "has no population fit",
+            "Calibrate the whole batch (the population needs at least two modules).",
+        )
     rows = rng.choice(len(pop), size=n, replace=len(pop) < n)
     ids = list(module_draws_by_id)
     which = rng.integers(len(ids), size=n)
@@ -242,9 +255,14 @@ def population_draws(run, module_draws_by_id, rng, n):
 def subsample(draws, rng, n):
     """``n`` draws of a :class:`PredictiveDraws` (without replacement when there are enough)."""
     idx = rng.choice(draws.n, size=n, replace=draws.n < n)
-    return PredictiveDraws(params={k: np.asarray(v)[idx] for k, v in draws.params.items()},
-                           noise_sd=draws.noise_sd[idx], label=draws.label, laws=draws.laws, anchor=draws.anchor,
-                           noise_tau=None if draws.noise_tau is None else draws.noise_tau[idx])
+    return PredictiveDraws(
+        params={k: np.asarray(v)[idx] for k, v in draws.params.items()},
+        noise_sd=draws.noise_sd[idx],
+        label=draws.label,
+        laws=draws.laws,
+        anchor=draws.anchor,
+        noise_tau=None if draws.noise_tau is None else draws.noise_tau[idx],
+    )
 
 
 @dataclass(frozen=True)
@@ -289,6 +307,9 @@ class Prediction:
     start_current : float or None
         The pre-history current the run's initial state was taken from [A]
         (:meth:`~tembayes.predict.runmodel.RunModel.fit_start`).
+    predictive : ndarray, shape (M, 5, n), optional
+        Every draw's prediction with its noise, the values the bands are
+        quantiles of (float32; kept with ``keep_predictive=True``).
     """
 
     source: str
@@ -310,6 +331,7 @@ class Prediction:
     noise_tau: np.ndarray | None = None
     n_failed: int = 0
     start_current: float | None = None
+    predictive: np.ndarray | None = None
 
     @property
     def residual(self):
@@ -322,13 +344,20 @@ class Prediction:
         return np.mean((self.measured >= lo) & (self.measured <= hi), axis=1)
 
     def metrics(self):
-        """``{channel: {rmse, max_abs, coverage50, coverage90, coverage95}}`` (docs/outputs.md,
-        'metrics.json (predict)')."""
+        """``{channel: {rmse, max_abs, coverage50, coverage90, coverage95}}``.
+
+        As in docs/outputs.md, 'metrics.json (predict)'.
+        """
         r = self.residual
         cov = {lv: self.coverage(lv) for lv in LEVELS}
-        return {ch: {"rmse": float(np.sqrt(np.mean(r[c] ** 2))), "max_abs": float(np.max(np.abs(r[c]))),
-                     **{f"coverage{lv}": float(cov[lv][c]) for lv in LEVELS}}
-                for c, ch in enumerate(self.channels)}
+        return {
+            ch: {
+                "rmse": float(np.sqrt(np.mean(r[c] ** 2))),
+                "max_abs": float(np.max(np.abs(r[c]))),
+                **{f"coverage{lv}": float(cov[lv][c]) for lv in LEVELS},
+            }
+            for c, ch in enumerate(self.channels)
+        }
 
     def by_tavg(self, width=TAVG_BIN_K, min_samples=30):
         """RMSE per channel in bins of T-bar (measured ``(T2 + T3)/2``).
@@ -347,12 +376,18 @@ class Prediction:
             m = (tc >= lo) & (tc < hi)
             if m.sum() < min_samples:
                 continue
-            out.append({"Tavg_C_low": float(lo), "Tavg_C_high": float(hi), "n": int(m.sum()),
-                        "rmse": {ch: float(np.sqrt(np.mean(r[c, m] ** 2))) for c, ch in enumerate(self.channels)}})
+            out.append(
+                {
+                    "Tavg_C_low": float(lo),
+                    "Tavg_C_high": float(hi),
+                    "n": int(m.sum()),
+                    "rmse": {ch: float(np.sqrt(np.mean(r[c, m] ** 2))) for c, ch in enumerate(self.channels)},
+                }
+            )
         return out
 
 
-def simulate_predictive(model, draws, rng, *, progress=None, keep_draws=False, shift=None):
+def simulate_predictive(model, draws, rng, *, progress=None, keep_draws=False, keep_predictive=False, shift=None):
     """Simulate every draw through an experiment and form the bands.
 
     Parameters
@@ -367,6 +402,9 @@ def simulate_predictive(model, draws, rng, *, progress=None, keep_draws=False, s
     keep_draws : bool
         Keep the draws' predictions in the result (``deviations``), for
         posterior-predictive checks (:mod:`tembayes.gap`).
+    keep_predictive : bool
+        Keep the draws' predictions with noise (``predictive``), for
+        :mod:`tembayes.predict.inference`.
     shift : float, optional
         The run's step phase [s] for every draw (e.g. taken from the run by
         :meth:`RunModel.fit_phase`); default: unknown, one drawn per draw.
@@ -397,14 +435,19 @@ def simulate_predictive(model, draws, rng, *, progress=None, keep_draws=False, s
     ok = np.all(np.isfinite(Y), axis=(1, 2))
     n_failed = int(M - ok.sum())
     if n_failed > MAX_FAILED_FRACTION * M:
-        raise ModelError(f"the simulation of {exp.path} failed for {n_failed} of {M} draws (no steady start, step "
-                         f"budget exceeded or non-finite values); at most {MAX_FAILED_FRACTION:.0%} may fail")
+        raise ModelError(
+            f"the simulation of {exp.path} failed for {n_failed} of {M} draws (no steady start, step "
+            f"budget exceeded or non-finite values); at most {MAX_FAILED_FRACTION:.0%} may fail"
+        )
     noise_sd, noise_tau = draws.noise_sd, draws.noise_tau
     if n_failed:
         # a draw the rig cannot simulate (far in a posterior's tail) is left out and counted,
         # rather than discarding the other draws' bands
-        warnings.warn(f"{exp.path}: {n_failed} of {M} predictive draws failed to simulate and are left out",
-                      RuntimeWarning, stacklevel=2)
+        warnings.warn(
+            f"{exp.path}: {n_failed} of {M} predictive draws failed to simulate and are left out",
+            RuntimeWarning,
+            stacklevel=2,
+        )
         Y, noise_sd = Y[ok], noise_sd[ok]
         noise_tau = None if noise_tau is None else noise_tau[ok]
     mean = Y.mean(axis=0)
@@ -418,13 +461,28 @@ def simulate_predictive(model, draws, rng, *, progress=None, keep_draws=False, s
     tavg = 0.5 * (measured[1] + measured[2])
     starts = np.concatenate([[model.time[0]], model.step_time])
     since = model.time - starts[model.sample_hold]
-    return Prediction(source=str(exp.path), label=draws.label, laws=draws.laws, time=model.time.copy(),
-                      channels=CHANNELS, measured=measured, mean=mean, median=Q[qi[0.5]], bands=bands, tavg=tavg,
-                      current=np.asarray(exp.current, float), n_draws=len(Y), seconds=_time.perf_counter() - t0,
-                      since_step=since, deviations=dev,
-                      noise_sd=noise_sd if keep_draws else None,
-                      noise_tau=noise_tau if keep_draws else None, n_failed=n_failed,
-                      start_current=model.start_current)
+    return Prediction(
+        source=str(exp.path),
+        label=draws.label,
+        laws=draws.laws,
+        time=model.time.copy(),
+        channels=CHANNELS,
+        measured=measured,
+        mean=mean,
+        median=Q[qi[0.5]],
+        bands=bands,
+        tavg=tavg,
+        current=np.asarray(exp.current, float),
+        n_draws=len(Y),
+        seconds=_time.perf_counter() - t0,
+        since_step=since,
+        deviations=dev,
+        noise_sd=noise_sd if keep_draws else None,
+        noise_tau=noise_tau if keep_draws else None,
+        n_failed=n_failed,
+        start_current=model.start_current,
+        predictive=Y.astype(np.float32) if keep_predictive else None,
+    )
 
 
 @dataclass(frozen=True)
@@ -452,30 +510,39 @@ class PredictResult:
     def to_json(self):
         """``metrics.json`` (docs/outputs.md, 'metrics.json (predict)'): the metrics plus the context."""
         doc = {"channels": self.linear.metrics()}
-        doc.update({
-            "module": self.linear.label, "experiment": self.linear.source, "laws": "linear",
-            "n_draws": self.linear.n_draws, "seed": self.seed, "levels_percent": list(LEVELS),
-            "units": {"T1_C": "K (= degC difference)", "T2_C": "K", "T3_C": "K", "T4_C": "K", "voltage_V": "V"},
-            "rmse_about": "the posterior-predictive mean",
-            "by_Tavg": self.linear.by_tavg(),
-            "anchor": self.draws.anchor,
-            "n_failed_draws": self.linear.n_failed,
-            # the run's initial state: the steady state of this current, fitted on its first minute
-            "initial_state": {"pre_history_current_A": self.linear.start_current,
-                              "first_level_A": float(self.linear.current[0])},
-            "seconds": self.seconds,
-        })
+        doc.update(
+            {
+                "module": self.linear.label,
+                "experiment": self.linear.source,
+                "laws": "linear",
+                "n_draws": self.linear.n_draws,
+                "seed": self.seed,
+                "levels_percent": list(LEVELS),
+                "units": {"T1_C": "K (= degC difference)", "T2_C": "K", "T3_C": "K", "T4_C": "K", "voltage_V": "V"},
+                "rmse_about": "the posterior-predictive mean",
+                "by_Tavg": self.linear.by_tavg(),
+                "anchor": self.draws.anchor,
+                "n_failed_draws": self.linear.n_failed,
+                # the run's initial state: the steady state of this current, fitted on its first minute
+                "initial_state": {
+                    "pre_history_current_A": self.linear.start_current,
+                    "first_level_A": float(self.linear.current[0]),
+                },
+                "seconds": self.seconds,
+            }
+        )
         if self.constant is not None:
-            doc["constant_laws"] = {"T_C": CONSTANT_AT_C, "channels": self.constant.metrics(),
-                                    "by_Tavg": self.constant.by_tavg()}
+            doc["constant_laws"] = {
+                "T_C": CONSTANT_AT_C,
+                "channels": self.constant.metrics(),
+                "by_Tavg": self.constant.by_tavg(),
+            }
         return doc
 
 
-def _seed_for(seed, label, what):
-    return np.random.default_rng([int(seed), zlib.crc32(f"{label}/{what}".encode())])
-
-
-def predict(run, experiment, module, batch, *, n_draws=500, seed=0, compare_constant=True, progress=None):
+def predict(
+    run, experiment, module, batch, *, n_draws=500, seed=0, compare_constant=True, keep_predictive=False, progress=None
+):
     """Posterior-predictive bands of an experiment for a module or a new unit.
 
     Parameters
@@ -491,6 +558,10 @@ def predict(run, experiment, module, batch, *, n_draws=500, seed=0, compare_cons
     seed : int
     compare_constant : bool
         Also predict with R and S constant at 35 degC.
+    keep_predictive : bool
+        Keep every draw of the (linear-law) predictive, noise included
+        (:attr:`Prediction.predictive`: memory ``n_draws x 5 x samples x 4`` bytes),
+        for :func:`~tembayes.predict.inference.to_inference_data`.
     progress : callable, optional
 
     Returns
@@ -502,8 +573,11 @@ def predict(run, experiment, module, batch, *, n_draws=500, seed=0, compare_cons
     if n_draws < 10:
         raise TembayesError(f"n_draws must be at least 10 (bands from fewer draws are noise), got {n_draws}")
     if module != "population" and module not in run.module_ids:
-        raise DataError(run.path / "posterior.nc", f"has no module '{module}'",
-                        f"Choose one of {list(run.module_ids)} or 'population'.")
+        raise DataError(
+            run.path / "posterior.nc",
+            f"has no module '{module}'",
+            f"Choose one of {list(run.module_ids)} or 'population'.",
+        )
     rig = run.rig_for(batch)
     model = RunModel(experiment, rig, start="data")
     ids = list(run.module_ids) if module == "population" else [module]
@@ -515,20 +589,27 @@ def predict(run, experiment, module, batch, *, n_draws=500, seed=0, compare_cons
             per[mid] = module_draws(run, mid, batch.modules[mid].identification, rig, laws=laws)
         if laws == "linear":
             lin = per
-        rng = _seed_for(seed, module, laws)
+        rng = stream(seed, f"{module}/{laws}")
         if module == "population":
             draws = population_draws(run, per, rng, n_draws)
             params = draws.params
             if laws == "constant":
                 # the population's laws frozen; K moved as the modules' own rig fits moved it
                 params = constant_laws(params)
-                ratio = np.mean([np.mean(per[m].params["K_W_per_K"]) / np.mean(lin[m].params["K_W_per_K"])
-                                 for m in ids])
+                ratio = np.mean(
+                    [np.mean(per[m].params["K_W_per_K"]) / np.mean(lin[m].params["K_W_per_K"]) for m in ids]
+                )
                 params["K_W_per_K"] = params["K_W_per_K"] * ratio
             draws = PredictiveDraws(params, draws.noise_sd, "population", laws, draws.anchor, draws.noise_tau)
         else:
             draws = subsample(per[module], rng, n_draws)
         say(f"{module}: simulating {n_draws} predictive draws of {Path(str(experiment.path)).name} ({laws} laws)")
-        results[laws] = (simulate_predictive(model, draws, rng, progress=progress), draws)
-    return PredictResult(linear=results["linear"][0], constant=results.get("constant", (None,))[0],
-                         draws=results["linear"][1], seed=int(seed), seconds=_time.perf_counter() - t0)
+        keep = keep_predictive and laws == "linear"
+        results[laws] = (simulate_predictive(model, draws, rng, progress=progress, keep_predictive=keep), draws)
+    return PredictResult(
+        linear=results["linear"][0],
+        constant=results.get("constant", (None,))[0],
+        draws=results["linear"][1],
+        seed=int(seed),
+        seconds=_time.perf_counter() - t0,
+    )

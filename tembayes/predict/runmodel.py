@@ -128,13 +128,13 @@ class RunModel:
         keep = np.zeros(len(t), bool)
         keep[-1] = True
         # the run's start is a step too when it starts away from the first level's steady state
-        keep[:np.searchsorted(t, t[0] + dense, side="right")] = True
+        keep[: np.searchsorted(t, t[0] + dense, side="right")] = True
         mark = np.floor((t - t[0]) / spacing)
         keep[1:] |= mark[1:] != mark[:-1]
         for s in steps:
             lo = s.index - 2
             hi = np.searchsorted(t, s.t + dense, side="right")
-            keep[max(lo, 0):hi] = True
+            keep[max(lo, 0) : hi] = True
             keep[s.index - 1] = True  # the last old sample ends its hold's spline
         self._samples = np.flatnonzero(keep)
         base = t[self._samples]
@@ -205,7 +205,6 @@ class RunModel:
         """
         m = build(params, self.rig)
         nd = m["nd"]
-        names = m["network"].nodes
         a, b, f = self.rig.readout(SENSOR_CHANNELS, m["params"])
         rec = np.concatenate([a, b]).astype(np.int64)
         shift = np.broadcast_to(np.atleast_1d(np.asarray(shift, dtype=float)), (nd,))
@@ -220,8 +219,10 @@ class RunModel:
         y0 = self._initial_states(m, Ic[:, 0], G[:, 0], (a, b, f)) if self.start == "data" else None
         out, volt, failed, _ = integrate_on_grids(m, G, Ic, tw, ta, rec, self.atol, self.hmax, y0=y0)
         if strict and np.any(failed):
-            raise ModelError(f"the simulation of {self.exp.path} failed for {int(failed.sum())} of {nd} draws "
-                             "(no steady start, step budget exceeded or non-finite values)")
+            raise ModelError(
+                f"the simulation of {self.exp.path} failed for {int(failed.sum())} of {nd} draws "
+                "(no steady start, step budget exceeded or non-finite values)"
+            )
         nch = len(a)
         sensors = out[:, :, :nch] + f[:, None, :] * (out[:, :, nch:] - out[:, :, :nch])
         sensors = np.ascontiguousarray(sensors.transpose(0, 2, 1))
@@ -286,22 +287,33 @@ class RunModel:
         cost = np.sum(((y[None] - F) / sd[None, :, None]) ** 2, axis=(1, 2))
         cost = np.where(np.isfinite(cost), cost, np.inf)
         k = int(np.argmin(cost))
-        if 0 < k < n - 1 and np.all(np.isfinite(cost[k - 1:k + 2])):
-            c0, c1, c2 = cost[k - 1:k + 2]
+        if 0 < k < n - 1 and np.all(np.isfinite(cost[k - 1 : k + 2])):
+            c0, c1, c2 = cost[k - 1 : k + 2]
             den = c0 - 2 * c1 + c2
             if den > 0:
                 return float(np.clip(s[k] + 0.5 * (s[1] - s[0]) * (c0 - c2) / den, -b * (1 - 1e-9), b * (1 - 1e-9)))
         return float(s[k])
 
     def _initial_states(self, m, current, t, readout, modes=4):
-        """``(nd, N)``: the steady states under ``current`` [A] moved along the ``modes`` slowest modes
-        of the network until the sensors (``readout``: ``(a, b, f)`` of :meth:`RigDescription.readout`)
-        read the run's first samples."""
+        """``(nd, N)``: the steady states under ``current`` [A], moved to the run's first samples.
+
+        Moved along the ``modes`` slowest modes of the network until the sensors
+        (``readout``: ``(a, b, f)`` of :meth:`RigDescription.readout`) read the
+        run's first samples.
+        """
         N = len(m["network"].nodes)
         G = np.stack([t - 1e-3, t], axis=1)
         I = np.ascontiguousarray(np.repeat(np.asarray(current, float)[:, None], 2, axis=1))
-        xs, _, _, _ = integrate_on_grids(m, G, I, np.full(2, self._tw[0]), np.full(2, self._ta[0]),
-                                         np.arange(N, dtype=np.int64), self.atol, self.hmax)
+        xs, _, _, _ = integrate_on_grids(
+            m,
+            G,
+            I,
+            np.full(2, self._tw[0]),
+            np.full(2, self._ta[0]),
+            np.arange(N, dtype=np.int64),
+            self.atol,
+            self.hmax,
+        )
         xs = xs[:, -1]
         # the network's conduction with the module's own (K along its chain of plates and legs):
         # L symmetric, dx/dt = C^-1 L x, so C^(-1/2) L C^(-1/2) is symmetric and its eigenvectors the modes
@@ -358,13 +370,14 @@ class RunModel:
         y = np.asarray(self.exp.sensors, float)[:, idx][:, early]
         v = np.asarray(self.exp.voltage, float)[idx][early]
         # the voltage too: it reads the junctions, whose fast modes the block sensors barely see
-        cost = (np.sum(((y[None] - sens[:, :, early]) / self.noise[None, :4, None]) ** 2, axis=(1, 2))
-                + np.sum(((v[None] - volt[:, early]) / self.noise[4]) ** 2, axis=1))
+        cost = np.sum(((y[None] - sens[:, :, early]) / self.noise[None, :4, None]) ** 2, axis=(1, 2)) + np.sum(
+            ((v[None] - volt[:, early]) / self.noise[4]) ** 2, axis=1
+        )
         cost = np.where(np.isfinite(cost), cost, np.inf)
         k = int(np.argmin(cost))
         best = float(cand[k])
-        if 0 < k < n - 1 and np.all(np.isfinite(cost[k - 1:k + 2])):
-            c0, c1, c2 = cost[k - 1:k + 2]
+        if 0 < k < n - 1 and np.all(np.isfinite(cost[k - 1 : k + 2])):
+            c0, c1, c2 = cost[k - 1 : k + 2]
             den = c0 - 2 * c1 + c2
             if den > 0:
                 best = float(cand[k] + 0.5 * (cand[1] - cand[0]) * (c0 - c2) / den)

@@ -22,10 +22,17 @@ docs/outputs.md, 'Module parameters' (``R0_ohm``).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from tembayes.constants import KELVIN, MODULE_PARAMETERS
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from tembayes.calibrate.run import CalibrationRun
+    from tembayes.data import Datasheet
 
 #: Checks applied when the user sets none.
 DEFAULT_TOLERANCES = ("R0=5%", "S0=5%", "K=10%", "outlier_prob=0.5", "converged=yes")
@@ -58,7 +65,7 @@ class Tolerance:
     value: tuple
 
 
-def parse_tolerance(text):
+def parse_tolerance(text: str) -> Tolerance:
     """One :class:`Tolerance` from its text; ``ValueError`` naming what is wrong."""
     if "=" not in text:
         raise ValueError(f"tolerance {text!r}: expected NAME=VALUE, e.g. R0=5% or R1=0.008:0.012")
@@ -74,12 +81,15 @@ def parse_tolerance(text):
         return Tolerance(text, key, "max", (p,))
     name = _SHORT.get(key, key)
     if name not in MODULE_PARAMETERS:
-        raise ValueError(f"tolerance {text!r}: unknown name {key!r}; use one of "
-                         f"{sorted(_SHORT) + ['outlier_prob', 'converged']}")
+        raise ValueError(
+            f"tolerance {text!r}: unknown name {key!r}; use one of {sorted(_SHORT) + ['outlier_prob', 'converged']}"
+        )
     if val.endswith("%"):
         if name not in _DATASHEET:
-            raise ValueError(f"tolerance {text!r}: the datasheet gives no value of {name}; give an absolute "
-                             f"range, e.g. {key}=LOW:HIGH in SI units")
+            raise ValueError(
+                f"tolerance {text!r}: the datasheet gives no value of {name}; give an absolute "
+                f"range, e.g. {key}=LOW:HIGH in SI units"
+            )
         f = _number(text, val[:-1]) / 100.0
         if not f > 0:
             raise ValueError(f"tolerance {text!r}: a positive percentage")
@@ -99,7 +109,14 @@ def _number(text, s):
         raise ValueError(f"tolerance {text!r}: {s!r} is not a number") from None
 
 
-def check_module(tolerances, run, module_id, datasheet, *, confidence=DEFAULT_CONFIDENCE):
+def check_module(
+    tolerances: Sequence[Tolerance],
+    run: CalibrationRun,
+    module_id: str,
+    datasheet: Datasheet,
+    *,
+    confidence: float = DEFAULT_CONFIDENCE,
+) -> dict:
     """Every check of one module.
 
     Parameters
@@ -137,9 +154,17 @@ def check_module(tolerances, run, module_id, datasheet, *, confidence=DEFAULT_CO
                 lo, hi = tol.value
                 where = f"range {lo:.4g}..{hi:.4g}"
             p_in = float(np.mean((x >= lo) & (x <= hi))) if len(x) else float("nan")
-            checks.append({"check": tol.text, "passed": bool(p_in >= confidence), "p_inside": p_in,
-                           "low": lo, "high": hi, "mean": float(np.mean(x)),
-                           "detail": f"mean {np.mean(x):.4g}, P(inside {where}) = {p_in:.3f}"})
+            checks.append(
+                {
+                    "check": tol.text,
+                    "passed": bool(p_in >= confidence),
+                    "p_inside": p_in,
+                    "low": lo,
+                    "high": hi,
+                    "mean": float(np.mean(x)),
+                    "detail": f"mean {np.mean(x):.4g}, P(inside {where}) = {p_in:.3f}",
+                }
+            )
     return {"passed": all(c["passed"] for c in checks), "checks": checks}
 
 
@@ -153,4 +178,3 @@ def _vs_datasheet(tol, draws, datasheet, tref_C):
         x = x + dT * draws[:, col + 1]  # the law at th_C: R0 + R1 (th - tref)
     f = tol.value[0]
     return x, ref * (1.0 - f), ref * (1.0 + f), ref
-

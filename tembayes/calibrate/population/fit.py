@@ -1,0 +1,192 @@
+"""The two-stage population fit: hyperparameters sampled given each module's posterior draws."""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from tembayes.calibrate.population.check import compare_terms
+from tembayes.calibrate.population.hyper import HyperPosterior, start_walkers
+from tembayes.calibrate.population.inputs import sampler_seed, validate_draws
+from tembayes.calibrate.population.membership import outlier_probabilities
+from tembayes.calibrate.population.model import N_HYPER, OUTLIER_FRACTION_PRIOR, OUTLIER_SCALE, Population
+from tembayes.calibrate.population.result import assemble
+from tembayes.calibrate.population.sampling import POPULATION_TARGETS, Budget, run_emcee
+from tembayes.calibrate.population.terms import GaussianTerms, module_summaries
+from tembayes.calibrate.priors import law_log_prior
+from tembayes.common.provenance import versions
+from tembayes.errors import ModelError
+
+#: How a module's likelihood enters (:mod:`.terms`; "auto": Gaussian, checked by :mod:`.check`).
+METHODS = ("auto", "gaussian", "importance")
+#: Importance sums in the sampler use at most this many draws over all modules ...
+IMPORTANCE_BUDGET = 20000
+#: ... and at least this many per module.
+IMPORTANCE_MIN_DRAWS = 32
+
+
+@dataclass(frozen=True)
+class _Sampled:
+    """The terms a run ended with, its natural hyper draws (n, W, 11), diagnostics and the auto check."""
+
+    terms: object
+    kept: np.ndarray
+    diag: dict
+    check: object
+
+
+def _sampler_draws(n_modules, max_draws_per_module):
+    """Draws per module of the importance sums the sampler uses."""
+    return max(IMPORTANCE_MIN_DRAWS, min(max_draws_per_module, IMPORTANCE_BUDGET // n_modules))
+
+
+def _sample(pop, summ, method, max_draws_per_module, run):
+    """Sample with the terms ``method`` asks for; "auto" re-runs with importance sums if the check fails.
+
+    ``run(terms, label) -> (kept, diag)`` samples the hyperposterior of one kind of terms.
+    """
+
+    def with_importance(check):
+        terms = summ.importance_terms(_sampler_draws(len(summ.x), max_draws_per_module))
+        return _Sampled(terms, *run(terms, "population (importance)"), check)
+
+    if method == "importance":
+        return with_importance(None)
+    gauss = GaussianTerms(summ.mean, summ.cov)
+    kept, diag = run(gauss, "population (gaussian)")
+    if method == "gaussian":
+        return _Sampled(gauss, kept, diag, None)
+    check = compare_terms(pop, gauss, summ, kept)
+    if check.passed:
+        return _Sampled(gauss, kept, diag, check)
+    warnings.warn(
+        f"the Gaussian approximation of the module posteriors changes the result "
+        f"(reweighting ESS {check.reweight_ess_fraction:.2f}, outlier_prob difference "
+        f"{check.outlier_prob_diff_max:.3f}); re-running with importance sums",
+        UserWarning,
+        stacklevel=3,
+    )
+    return with_importance(check)
+
+
+def _result_diagnostics(pop, ids, summ, sampled, max_draws_per_module):
+    """Diagnostics of the draws: method, check, importance-weight ESS at the posterior-median hyperparameters."""
+    imp = summ.importance_terms(max_draws_per_module)
+    h_med = np.median(sampled.kept.reshape(-1, sampled.kept.shape[2]), axis=0)
+    wess = imp.weight_ess(pop, h_med)
+    return {
+        "method": sampled.terms.name,
+        "check": None if sampled.check is None else asdict(sampled.check),
+        "weight_ess": {mid: float(v) for mid, v in zip(ids, wess)},
+        "weight_ess_min": float(wess.min()),
+        "interim_weight_ess_min": float(summ.interim_ess.min()),
+        "draws_per_module_importance": int(max(imp.draws_per_module)),
+        "versions": versions(),
+    }
+
+
+def fit_population(
+    draws,
+    datasheet,
+    *,
+    rng,
+    log_interim_prior=None,
+    max_steps=40000,
+    max_seconds=None,
+    progress=False,
+    method="auto",
+    spread_prior=None,
+    outlier_fraction_prior=OUTLIER_FRACTION_PRIOR,
+    outlier_scale=OUTLIER_SCALE,
+    nwalkers=32,
+    max_draws_per_module=256,
+    n_predictive=4000,
+    n_rao_blackwell=2048,
+    convergence=POPULATION_TARGETS,
+):
+    """Population (batch-level) posterior from per-module posterior draws.
+
+    Parameters
+    ----------
+    draws : dict
+        Module id -> ndarray (M_i, 5) of posterior draws in SI, order
+        :data:`~tembayes.constants.MODULE_PARAMETERS` (R0 [ohm], R1 [ohm/K],
+        S0 [V/K], S1 [V/K^2], K [W/K]); at least 2 modules, >= 20 draws each.
+    datasheet : tembayes.data.Datasheet
+        Sets the coordinates and the hyperprior scales.
+    rng : numpy.random.Generator
+        The only source of randomness (emcee's RandomState is seeded from it);
+        the same generator state gives the same result.
+    log_interim_prior : callable, optional
+        ``f(theta (n, 5) SI) -> (n,)`` log density the draws were made under;
+        default :func:`~tembayes.calibrate.priors.law_log_prior` (datasheet).
+    max_steps : int
+        Budget of emcee steps.
+    max_seconds : float, optional
+        Wall-clock budget of the sampling [s], checked at the sampler's
+        convergence checks (every 1000 steps).
+    progress : bool
+        emcee's progress bar.
+    method : {"auto", "gaussian", "importance"}
+        How a module's likelihood enters (:mod:`.terms`, :mod:`.check`).
+    spread_prior : dict, optional
+        Spread name (``tau_R0_rel``, ``tau_R1_ohm_per_K``, ``tau_S0_rel``,
+        ``tau_S1_V_per_K2``, ``tau_K_rel``) -> ``(median, log_sd)`` of a
+        log-normal prior, e.g. :meth:`PopulationResult.spread_prior` of an
+        earlier batch; unnamed spreads keep the default.
+    outlier_fraction_prior : (float, float)
+        Beta(a, b) prior of the module-level outlier fraction.
+    outlier_scale : float
+        Width of the outlier component in unit-to-unit spreads.
+    nwalkers : int
+    max_draws_per_module : int
+        Draws per module (evenly thinned) in the importance sums.
+    n_predictive : int
+        Draws of :attr:`PopulationResult.predictive`.
+    n_rao_blackwell : int
+        Hyper draws averaged for ``outlier_prob``.
+    convergence : tembayes.calibrate.sampler.Targets
+        Convergence targets; default :data:`~tembayes.calibrate.population.sampling.POPULATION_TARGETS`
+        (the modules' rule on a chain of 150 autocorrelation times), looser for quick looks.
+
+    Returns
+    -------
+    PopulationResult
+
+    Raises
+    ------
+    ModelError
+        Fewer than 2 modules, malformed or non-finite draws (naming the
+        module), draws outside the interim prior's support, bad options.
+    """
+    if method not in METHODS:
+        raise ModelError(f"method must be 'auto', 'gaussian' or 'importance', got {method!r}")
+    if nwalkers < 2 * N_HYPER + 2 or nwalkers % 2:
+        raise ModelError(f"nwalkers must be even and >= {2 * N_HYPER + 2}, got {nwalkers}")
+    budget = Budget(max_steps, max_seconds, progress, convergence)
+    ids, arrays = validate_draws(draws)
+    seed = sampler_seed(rng)
+    t0 = time.perf_counter()
+    pop = Population(
+        datasheet, spread_prior=spread_prior, outlier_fraction_prior=outlier_fraction_prior, outlier_scale=outlier_scale
+    )
+    interim = law_log_prior(datasheet) if log_interim_prior is None else log_interim_prior
+    summ = module_summaries(ids, arrays, pop, interim)
+
+    def run(terms, label):
+        post = HyperPosterior(pop, terms, summ.mean, summ.cov)
+        p0 = start_walkers(post, summ.mean, summ.cov, rng, nwalkers)
+        kept, diag = run_emcee(post, p0, seed, budget, label=label)
+        return post.natural(kept), diag
+
+    sampled = _sample(pop, summ, method, max_draws_per_module, run)
+    p_out, mcse = outlier_probabilities(pop, sampled.terms, sampled.kept, n_rao_blackwell)
+    diag = {
+        **sampled.diag,
+        **_result_diagnostics(pop, ids, summ, sampled, max_draws_per_module),
+        "elapsed_s": float(time.perf_counter() - t0),
+    }
+    return assemble(pop, ids, sampled.kept, p_out, mcse, rng, n_predictive, diag)

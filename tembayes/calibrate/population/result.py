@@ -1,0 +1,147 @@
+"""The batch-level posterior: hyperparameter draws, outlier probabilities, predictive of a new unit."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from tembayes.calibrate.population.model import GROSS_SHARE, N_PARAMS, TAU_NAMES
+from tembayes.constants import MODULE_PARAMETERS
+
+#: Quantiles :meth:`PopulationResult.summary` reports.
+SUMMARY_QUANTILES = (0.05, 0.95)
+
+
+@dataclass(frozen=True)
+class PopulationResult:
+    """The batch-level posterior.
+
+    Attributes
+    ----------
+    module_ids : tuple of str
+        Modules in input order.
+    outlier_prob : dict
+        Module id -> posterior probability that the module does not belong to
+        the population (off in at least one parameter), averaged over the
+        hyperparameter draws.
+    predictive : ndarray, shape (n, 5)
+        Draws of the parameters of a new module of the type that is a
+        *member* (outlier component excluded), SI, MODULE_PARAMETERS order.
+    hyper : dict
+        ``HYPER_NAMES`` -> ndarray (nwalkers, ndraws), the stored draws after
+        burn-in (every ``diagnostics["thin_by"]``-th step):
+        ``mu_<param>`` [SI; population median for R0, S0, K], ``tau_R0_rel``,
+        ``tau_S0_rel``, ``tau_K_rel`` [-] (relative sd), ``tau_R1_ohm_per_K``
+        [ohm/K], ``tau_S1_V_per_K2`` [V/K^2], ``outlier_fraction`` [-].
+    diagnostics : dict
+        ``converged``, ``rhat_max`` (nested R-hat), ``rhat_walkers_max``
+        (per-walker R-hat, reported), ``ess_bulk_min``, ``tau_max`` [steps],
+        ``n_steps``, ``n_burn`` [steps], ``thin_by``, ``nwalkers``, ``acceptance_min``,
+        ``weight_ess`` (module -> importance-weight ESS at the posterior-median
+        hyperparameters), ``weight_ess_min``, ``interim_weight_ess_min``,
+        ``outlier_prob_mcse`` (module -> Monte Carlo se), ``method``,
+        ``check`` (Gaussian vs importance, if run), ``emcee_seed`` (the
+        RandomState seed drawn from the caller's Generator), ``versions``,
+        ``targets`` (the convergence targets used), ``elapsed_s`` [s].
+    predictive_with_outliers : ndarray, shape (n, 5)
+        The same as :attr:`predictive` including the outlier component (a new
+        unit may be off).
+    """
+
+    module_ids: tuple
+    outlier_prob: dict
+    predictive: np.ndarray
+    hyper: dict
+    diagnostics: dict
+    predictive_with_outliers: np.ndarray = None
+
+    def summary(self) -> dict:
+        """Mean, sd, 5 % and 95 % quantiles of :attr:`predictive` (SI).
+
+        Returns
+        -------
+        dict
+            Contract parameter name -> ``{"mean", "sd", "q05", "q95"}``.
+        """
+        out = {}
+        for j, name in enumerate(MODULE_PARAMETERS):
+            v = self.predictive[:, j]
+            q05, q95 = np.quantile(v, SUMMARY_QUANTILES)
+            out[name] = {"mean": float(v.mean()), "sd": float(v.std(ddof=1)), "q05": float(q05), "q95": float(q95)}
+        return out
+
+    def spread_prior(self, widen=1.0) -> dict:
+        """The spreads learned here as a prior for another batch of the type.
+
+        Parameters
+        ----------
+        widen : float
+            Factor on the log-sd (>= 1 to allow for batch-to-batch change).
+
+        Returns
+        -------
+        dict
+            Spread name (``tau_...``, see :attr:`hyper`) -> ``(median, log_sd)``,
+            the format of ``fit_population(spread_prior=...)``.
+        """
+        out = {}
+        for k in TAU_NAMES:
+            lv = np.log(self.hyper[k].ravel())
+            out[k] = (float(np.exp(np.median(lv))), float(widen * lv.std(ddof=1)))
+        return out
+
+
+def predictive(pop, kept, rng, n):
+    """Draws of a new module from natural hyper draws ``kept`` (..., 11).
+
+    Returns
+    -------
+    member, with_outliers : ndarray (n, 5)
+        SI parameters of a new member, and of a new unit drawn from the whole
+        mixture (outlier components included).
+    """
+    flat = kept.reshape(-1, kept.shape[-1])
+    h = flat[rng.integers(0, len(flat), n)]
+    mu, tau, _, logeps, _ = pop.unpack(h)
+    z = rng.standard_normal((n, N_PARAMS))
+    member = pop.coords.to_theta(mu + tau * z)
+    u = rng.random((n, N_PARAMS))
+    eps = np.exp(logeps)[:, None]
+    moderate = u < (1.0 - GROSS_SHARE) * eps
+    gross = (u >= (1.0 - GROSS_SHARE) * eps) & (u < eps)
+    x = np.where(moderate, mu + pop.lam * tau * z, mu + tau * z)
+    x = np.where(gross, pop.gross_mean + pop.gross_sd * z, x)
+    return member, pop.coords.to_theta(x)
+
+
+def assemble(pop, ids, kept, p_out, mcse, rng, n_predictive, diag):
+    """The :class:`PopulationResult` of natural hyper draws ``kept`` (n, W, 11).
+
+    Parameters
+    ----------
+    pop : .model.Population
+    ids : tuple of str
+    kept : ndarray (n, W, 11)
+    p_out, mcse : ndarray (N,)
+        Outlier probabilities and their Monte Carlo se.
+    rng : numpy.random.Generator
+        Draws the predictive.
+    n_predictive : int
+    diag : dict
+        Diagnostics so far; the outlier probabilities' se and the number of modules are added.
+    """
+    member, mixed = predictive(pop, kept, rng, n_predictive)
+    hyper_si = pop.to_si(kept)  # each (n_keep, W)
+    hyper = {k: np.ascontiguousarray(v.T) for k, v in hyper_si.items()}
+    diag = dict(diag)
+    diag["outlier_prob_mcse"] = {mid: float(s) for mid, s in zip(ids, mcse)}
+    diag["n_modules"] = len(ids)
+    return PopulationResult(
+        module_ids=ids,
+        outlier_prob={mid: float(p) for mid, p in zip(ids, p_out)},
+        predictive=member,
+        hyper=hyper,
+        diagnostics=diag,
+        predictive_with_outliers=mixed,
+    )

@@ -1,0 +1,1 @@
+"""Small helpers every stage shares: seed streams, even thinning, version provenance."""
