@@ -34,7 +34,7 @@ import json
 import os
 import time
 import warnings
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -751,7 +751,8 @@ def _calibrate_module(
         resume=resume,
         progress_bar=progress_bar,
     )
-    diag = _diagnostics(st.run, prob.space.names, psis, resumed, state.get("map_nfev"), levels, timings)
+    post = _posterior(prob, st, levels)
+    diag = _diagnostics(st.run, prob.space.names, psis, resumed, state.get("map_nfev"), levels, timings, post)
     if not diag.converged:
         warnings.warn(
             f"{module.id}: not converged (sampler converged: {st.run.converged} after {st.run.steps} steps, R-hat "
@@ -760,8 +761,6 @@ def _calibrate_module(
             RuntimeWarning,
             stacklevel=3,
         )
-    post = _posterior(prob, st, levels)
-    diag = replace(diag, discrepancy=post.discrepancy, adequacy=post.adequacy)
     timings["total_s"] = time.perf_counter() - t_start
     data = prob.data
     x_centre = np.array(state["x_map"])
@@ -841,8 +840,8 @@ def _posterior(prob, st, levels) -> _Posterior:
     return _Posterior(draws, step_ll.reshape(nw, nk, -1), sel, discrepancy, adequacy.to_json())
 
 
-def _diagnostics(run, names, psis, resumed, map_nfev, levels, timings) -> ModuleDiagnostics:
-    """The sampling record of the final run (the discrepancy and adequacy are filled in later)."""
+def _diagnostics(run, names, psis, resumed, map_nfev, levels, timings, post) -> ModuleDiagnostics:
+    """The sampling record of the final run, with the posterior's discrepancy and adequacy records."""
     n_laws = len(MODULE_PARAMETERS)
     return ModuleDiagnostics(
         rhat=dict(zip(names, map(float, run.rhat))),
@@ -867,8 +866,8 @@ def _diagnostics(run, names, psis, resumed, map_nfev, levels, timings) -> Module
         # largest response to a hold level outside the two windows kept, in
         # noise sds per level sd (the tridiagonal approximation's neglect)
         level_band_neglected=levels.neglected,
-        discrepancy={"method": "none"},
-        adequacy={},
+        discrepancy=post.discrepancy,
+        adequacy=post.adequacy,
         timings=timings,
     )
 

@@ -38,10 +38,8 @@ def exclusion_reason(diagnostics: ModuleDiagnostics) -> str | None:
     """
     if diagnostics.converged:
         return None
-    bits = diagnostics.reasons()
     return (
-        "not converged"
-        + (f" ({', '.join(bits)})" if bits else "")
+        f"not converged ({', '.join(diagnostics.reasons())})"
         + f" after {diagnostics.steps} steps; rerun with a larger --max-steps, or --keep-unconverged"
     )
 
