@@ -104,7 +104,7 @@ def main(argv=None):
         t_batch = time.perf_counter() - t0
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    print(f"tembayes, example batch end to end: {t_batch:.1f} s (converged {summ['converged']})", flush=True)
+    print(f"tembayes, example batch end to end: {t_batch:.1f} s (converged {summ.converged})", flush=True)
 
     # --- naive: emcee over solve_ivp of the whole run ---
     opt = CalibrationOptions()
@@ -150,7 +150,7 @@ def main(argv=None):
             "tembayes_converged": d["converged"],
             "nwalkers": nw,
             "example_batch_seconds": t_batch,
-            "example_batch_converged": summ["converged"],
+            "example_batch_converged": summ.converged,
             "naive_eval_seconds": times,
             "naive_steps_to_ess": steps,
             "naive_seconds_to_ess": t_naive,

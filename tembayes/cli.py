@@ -342,34 +342,33 @@ def _cmd_calibrate(args):
 
         _progress("figures")
         save_calibration_figures(args.out)
-    mods = summ["modules"]
+    mods = summ.modules
     shown = list(mods)
     if len(mods) > 20:  # a factory batch: the likeliest outliers and the failures, then the counts
-        shown = sorted(mods, key=lambda k: -(mods[k]["outlier_prob"] or 0.0))[:10]
+        shown = sorted(mods, key=lambda k: -(mods[k].outlier_prob or 0.0))[:10]
     for mid in shown:
         m = mods[mid]
-        op = m["outlier_prob"]
+        law = m.laws
         print(
-            f"{mid}: R0 {m['R0_ohm']['mean']:.4f}+-{m['R0_ohm']['sd']:.4f} ohm  "
-            f"S0 {1e3 * m['S0_V_per_K']['mean']:.3f}+-{1e3 * m['S0_V_per_K']['sd']:.3f} mV/K  "
-            f"K {m['K_W_per_K']['mean']:.4f}+-{m['K_W_per_K']['sd']:.4f} W/K  "
-            f"outlier_prob {'-' if op is None else f'{op:.2f}'}  "
-            f"{'converged' if m['diagnostics']['converged'] else 'NOT CONVERGED'}"
+            f"{mid}: R0 {law['R0_ohm'].mean:.4f}+-{law['R0_ohm'].sd:.4f} ohm  "
+            f"S0 {1e3 * law['S0_V_per_K'].mean:.3f}+-{1e3 * law['S0_V_per_K'].sd:.3f} mV/K  "
+            f"K {law['K_W_per_K'].mean:.4f}+-{law['K_W_per_K'].sd:.4f} W/K  "
+            f"outlier_prob {'-' if m.outlier_prob is None else f'{m.outlier_prob:.2f}'}  "
+            f"{'converged' if m.converged else 'NOT CONVERGED'}"
         )
-        adequacy = m["diagnostics"].get("adequacy", {})
-        if adequacy.get("verdict") == "does_not_fit":
+        if m.adequacy_failed:
             print(
                 f"  {mid}: the model does not fit its identification run: "
-                + "; ".join(adequacy["reasons"])
+                + "; ".join(m.adequacy_reasons)
                 + f". The laws rest on it: run `tembayes gap {args.out} {args.batch}` to find what is missing"
             )
     if len(shown) < len(mods):
-        n_conv = sum(bool(m["diagnostics"]["converged"]) for m in mods.values())
+        n_conv = sum(m.converged for m in mods.values())
         print(f"... the {len(shown)} likeliest outliers of {len(mods)} calibrated modules shown; {n_conv} converged")
-    for mid, why in (summ.get("population_excluded") or {}).items():
+    for mid, why in summ.population_excluded.items():
         print(f"{mid}: left out of the population: {why}")
     print(f"wrote {args.out / 'summary.json'} and {args.out / 'posterior.nc'}")
-    return 0 if summ["converged"] else 1
+    return 0 if summ.converged else 1
 
 
 def _write_result(args, name, doc, figures):
@@ -602,6 +601,7 @@ def _cmd_gap(args):
     )
     from tembayes.data import write_json
     from tembayes.data.write import atomic_directory
+    from tembayes.gap.ranking import RECALIBRATED
     from tembayes.gap.recalibrated import write_recalibrated_run
     from tembayes.plots.gap import save_gap_figures
 
@@ -623,22 +623,24 @@ def _cmd_gap(args):
     if diag.gap_in:
         print(f"  gap in: {', '.join(diag.gap_in)}")
     for r in diag.screen[:3]:
-        if r.get("log_bayes_factor") is not None:
+        if r.log_bayes_factor is not None:
+            base_chi2 = diag.base.refits[r.refit.module_id].chi2_total
             print(
-                f"  screen: {r['effect']:20s} log Bayes factor {r['log_bayes_factor']:+.4g} on the identification "
-                f"run (chi2 per sample {r['chi2']:.3f}; the base model's {diag.base['refits'][r['module']]['chi2']:.3f})"
+                f"  screen: {r.effect:20s} log Bayes factor {r.log_bayes_factor:+.4g} on the identification "
+                f"run (chi2 per sample {r.refit.chi2_total:.3f}; the base model's {base_chi2:.3f})"
             )
     scale, unit = (1e3, "mK") if diag.primary == "validation" else (1.0, "noise sd (identification windows)")
     for r in diag.ranking:
-        if r.get("evidence") is None:
-            print(f"  {r['effect']:20s} failed: {r.get('failed')}")
-        elif r.get("evidence_kind") == "heldout_elpd":
+        if r.evidence is None:
+            print(f"  {r.effect:20s} failed: {r.failed}")
+        elif r.kind == RECALIBRATED:
+            before, after = r.gaps.on()
             print(
-                f"  {r['effect']:20s} evidence {r['evidence']:+.4g} +- {r['evidence_se']:.3g} nats  "
-                f"gap {scale * r['gap_before']:.3g} -> {scale * r['gap_after']:.3g} {unit} (shrink {r['shrink']:.0%})"
+                f"  {r.effect:20s} evidence {r.evidence.value:+.4g} +- {r.evidence.se:.3g} nats  "
+                f"gap {scale * before:.3g} -> {scale * after:.3g} {unit} (shrink {r.gaps.shrink():.0%})"
             )
-        elif r.get("dropped"):
-            print(f"  {r['effect']:20s} dropped: {r['dropped']}")
+        elif r.dropped:
+            print(f"  {r.effect:20s} dropped: {r.dropped}")
     if diag.best and diag.recalibration:
         print(f"  recalibrated with {diag.best}: {args.out / 'run'} (predict, report and export take it)")
     print(f"wrote {args.out / 'gap.json'}")

@@ -42,7 +42,7 @@ def test_every_check_names_its_worst_channel_and_the_verdict_follows_the_limits(
 
 def test_a_model_that_is_the_rig_fits_its_run(run3):
     _, summ, _ = run3
-    for mid, m in summ["modules"].items():
-        a = m["diagnostics"]["adequacy"]
+    for mid, m in summ.modules.items():
+        a = m.diagnostics["adequacy"]
         assert a["verdict"] == "fits", (mid, a["reasons"])
         json.dumps(a)  # summary.json takes it as it is

@@ -53,19 +53,20 @@ def batch1(tmp_path_factory):
 
 def test_recovers_the_bench_truth_and_converges(run3):
     out, summ, truth = run3
-    for mid, m in summ["modules"].items():
-        assert m["diagnostics"]["converged"], mid
-        assert m["diagnostics"]["rhat_max"] <= 1.01 and m["diagnostics"]["ess_bulk_min"] >= 1000
-        assert m["diagnostics"]["chain_over_tau"] >= 50
-        assert m["diagnostics"]["psis_k"] < 0.7
+    for mid, m in summ.modules.items():
+        assert m.converged, mid
+        assert m.diagnostics["rhat_max"] <= 1.01 and m.diagnostics["ess_bulk_min"] >= 1000
+        assert m.diagnostics["chain_over_tau"] >= 50
+        assert m.diagnostics["psis_k"] < 0.7
         for k in MODULE_PARAMETERS:
-            z = (m[k]["mean"] - truth["modules"][mid][k]) / m[k]["sd"]
+            law = m.laws[k]
+            z = (law.mean - truth["modules"][mid][k]) / law.sd
             # the coverage study puts the standardised error at ~N(0, 1);
             # |z| < 3.5 fails by chance once in ~2000 parameters
             assert abs(z) < 3.5, (mid, k, z)
-            assert m[k]["q05"] < m[k]["mean"] < m[k]["q95"]
+            assert law.q05 < law.mean < law.q95
         # the posterior is far narrower than the datasheet prior
-        assert m["R0_ohm"]["sd"] / m["R0_ohm"]["mean"] < 0.01
+        assert m.laws["R0_ohm"].sd / m.laws["R0_ohm"].mean < 0.01
 
 
 @pytest.mark.xfail(
@@ -75,7 +76,7 @@ def test_recovers_the_bench_truth_and_converges(run3):
 )
 def test_flags_the_outlier_of_three(run3):
     out, summ, truth = run3
-    probs = {mid: m["outlier_prob"] for mid, m in summ["modules"].items()}
+    probs = {mid: m.outlier_prob for mid, m in summ.modules.items()}
     assert max(probs, key=probs.get) == truth["outlier"]
     assert probs[truth["outlier"]] > 0.5
     assert all(p < 0.3 for mid, p in probs.items() if mid != truth["outlier"])
@@ -94,16 +95,14 @@ def test_population_table_reaches_the_population_stage(run3, batch3, tmp_path):
     run = tmp_path / "run"
     shutil.copytree(out / "modules", run / "modules")
     again = calibrate_batch(load_batch(stated), run, seed=0, resume=True)
-    assert again["population_prior"]["spread_S0_rel"] == {"median": 0.01, "log_sd": 0.3}
-    for mid in summ["modules"]:  # the modules were reused as they were
-        assert again["modules"][mid]["R0_ohm"] == summ["modules"][mid]["R0_ohm"]
+    assert again.to_json()["population_prior"]["spread_S0_rel"] == {"median": 0.01, "log_sd": 0.3}
+    for mid in summ.modules:  # the modules were reused as they were
+        assert again.modules[mid].laws == summ.modules[mid].laws
     # the stated 1 % holds the population's S0 spread near it (the default
     # hyperprior is centred on 2 % with log-sd 1), and the next batch can
     # state what this one learned
-    assert (
-        again["population_spreads"]["spread_S0_rel"]["median"] < summ["population_spreads"]["spread_S0_rel"]["median"]
-    )
-    assert set(again["population_spreads"]) == {
+    assert again.population_spreads["spread_S0_rel"]["median"] < summ.population_spreads["spread_S0_rel"]["median"]
+    assert set(again.population_spreads) == {
         "spread_R0_rel",
         "spread_R1_ohm_per_K",
         "spread_S0_rel",

@@ -136,8 +136,8 @@ def test_export_moments_and_noise_are_those_of_the_run_and_the_sensors(export1, 
     # the laws' moments are the posterior's (the anchoring moves the rig, not R and S)
     summ = load_run(run3[0]).module_summary("TEM1")
     for j, k in enumerate(names[:4]):
-        assert m.mean[j] == pytest.approx(summ[k]["mean"], abs=0.1 * summ[k]["sd"])
-        assert np.sqrt(m.cov[j, j]) == pytest.approx(summ[k]["sd"], rel=0.1)
+        assert m.mean[j] == pytest.approx(summ.laws[k].mean, abs=0.1 * summ.laws[k].sd)
+        assert np.sqrt(m.cov[j, j]) == pytest.approx(summ.laws[k].sd, rel=0.1)
     # bench sensor noise: 4 mK on the temperatures, 1 mV on the voltage (truth.json)
     sd = np.sqrt(np.diag(m.measurement_noise_cov))
     noise = run3[2]["noise_rms"]

@@ -178,11 +178,11 @@ def test_report_content_matches_the_run(report, run3):
     _, html, doc = report
     _, summ, truth = run3
     # every module's R0 posterior mean as in summary.json, in the laws table
-    for _mid, m in summ["modules"].items():
-        assert f"{m['R0_ohm']['mean']:.5g} ± {m['R0_ohm']['sd']:.2g}" in html
-        assert f"{m['outlier_prob']:.3f}" in html
+    for _mid, m in summ.modules.items():
+        assert f"{m.laws['R0_ohm'].mean:.5g} ± {m.laws['R0_ohm'].sd:.2g}" in html
+        assert f"{m.outlier_prob:.3f}" in html
     # the datasheet-derived value and the calibration command are shown
-    assert "R = 1.752 Ω" in html and f"emcee {summ['calibration']['versions']['emcee']}" in html
+    assert "R = 1.752 Ω" in html and f"emcee {summ.calibration['versions']['emcee']}" in html
     # validation: only TEM1 has a run; its metrics are the contract's five channels
     assert [(v["module"], v["experiment"]) for v in doc["validation"]] == [("TEM1", "validation.csv")]
     assert set(doc["validation"][0]["channels"]) == {"T1_C", "T2_C", "T3_C", "T4_C", "voltage_V"}
@@ -203,14 +203,14 @@ def test_acceptance_fails_a_tolerance_the_posterior_misses_and_passes_a_wide_one
     for m in doc["modules"]:
         checks = {c["check"]: c for c in m["acceptance"]["checks"]}
         s0 = checks["S0=0.1%"]
-        sd = summ["modules"][m["id"]]["S0_V_per_K"]["sd"]
+        sd = summ.modules[m["id"]].laws["S0_V_per_K"].sd
         assert 2 * 0.001 * 0.0483 < 2 * 1.645 * sd  # the premise
         assert not s0["passed"] and s0["p_inside"] < 0.95
-        r0, post = checks["R0=5%"], summ["modules"][m["id"]]["R0_ohm"]
+        r0, post = checks["R0=5%"], summ.modules[m["id"]].laws["R0_ohm"]
         ref = doc["overview"]["datasheet_derived"]["R_ohm"]
-        margin = min(abs(post["mean"] - 0.95 * ref), abs(post["mean"] - 1.05 * ref)) / post["sd"]
+        margin = min(abs(post.mean - 0.95 * ref), abs(post.mean - 1.05 * ref)) / post.sd
         if margin > 4:  # clearly inside or outside: the check must say which
-            assert r0["passed"] == (0.95 * ref < post["mean"] < 1.05 * ref)
+            assert r0["passed"] == (0.95 * ref < post.mean < 1.05 * ref)
         assert doc["passed"][m["id"]] is False and m["acceptance"]["passed"] is False
     assert html.count(">FAIL<") == 3 and "0 of 3 modules pass" in html
 

@@ -374,7 +374,7 @@ def test_a_run_records_where_its_batch_is_and_refuses_a_changed_one(run3, tmp_pa
 
     out, summ, _ = run3
     run = load_run(out)
-    rec = summ["batch"]
+    rec = summ.batch
     assert os.path.isabs(rec["path"]) and set(rec["inputs"]) >= {"batch.toml", "TEM1/identification.csv"}
     assert json.loads((out / MARKER).read_text())["kind"] == "calibrate"
     moved = tmp_path / "moved"

@@ -94,7 +94,7 @@ def test_two_workers_and_a_scheduler_give_the_serial_bits(batch4, serial4, tmp_p
     from distributed import LocalCluster
 
     out_ref, summ = serial4
-    assert summ["population"] is not None and not summ["population_excluded"]
+    assert summ.population is not None and not summ.population_excluded
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         calibrate_batch(
@@ -111,7 +111,7 @@ def test_two_workers_and_a_scheduler_give_the_serial_bits(batch4, serial4, tmp_p
                 scheduler=cl.scheduler_address,
                 keep_unconverged=True,
             )
-    assert s["calibration"]["executor"]["scheduler"].startswith("tcp://")
+    assert s.calibration["executor"]["scheduler"].startswith("tcp://")
     _same_run(out_ref, tmp_path / "sch")
 
 
@@ -208,13 +208,13 @@ def test_a_failing_or_unconverged_module_does_not_sink_the_batch(batch4, serial4
     out = tmp_path / "run"
     with pytest.warns(RuntimeWarning, match=r"TEM5: calibration failed"):
         summ = calibrate_batch(load_batch(b, lazy=True), out, seed=5, options=CHEAP, workers=2)
-    assert "TEM5" in summ["failed_modules"] and "TEM5" not in summ["modules"]
-    assert json.loads((out / "modules" / "TEM5.failed.json").read_text())["error"] == summ["failed_modules"]["TEM5"]
-    assert summ["converged"] is False
+    assert "TEM5" in summ.failed_modules and "TEM5" not in summ.modules
+    assert json.loads((out / "modules" / "TEM5.failed.json").read_text())["error"] == summ.failed_modules["TEM5"]
+    assert summ.converged is False
     # the cheap budget converges nobody: all four left out, each with its reason, no population
-    assert set(summ["population_excluded"]) == {"TEM1", "TEM2", "TEM3", "TEM4", "TEM5"}
-    assert "bulk ESS" in summ["population_excluded"]["TEM1"] and "--max-steps" in summ["population_excluded"]["TEM1"]
-    assert summ["population"] is None
+    assert set(summ.population_excluded) == {"TEM1", "TEM2", "TEM3", "TEM4", "TEM5"}
+    assert "bulk ESS" in summ.population_excluded["TEM1"] and "--max-steps" in summ.population_excluded["TEM1"]
+    assert summ.population is None
     assert load_run(out).module_ids == ("TEM1", "TEM2", "TEM3", "TEM4")
     # mark two of them converged: the population is fitted on those two only
     for mid in ("TEM2", "TEM4"):
@@ -223,9 +223,9 @@ def test_a_failing_or_unconverged_module_does_not_sink_the_batch(batch4, serial4
         r = dataclasses.replace(r, diagnostics=dataclasses.replace(r.diagnostics, sampler_converged=True, psis=passed))
         res.write_netcdf(res.to_inference_data([r]), out / "modules" / f"{mid}.nc")
     summ = finish_run(load_batch(b, lazy=True), out, seed=5, options=CHEAP)
-    assert set(summ["population_excluded"]) == {"TEM1", "TEM3", "TEM5"}
-    assert summ["population"] is not None
-    ops = {m: e["outlier_prob"] for m, e in summ["modules"].items()}
+    assert set(summ.population_excluded) == {"TEM1", "TEM3", "TEM5"}
+    assert summ.population is not None
+    ops = {m: e.outlier_prob for m, e in summ.modules.items()}
     assert ops["TEM1"] is None and ops["TEM3"] is None and ops["TEM2"] is not None and ops["TEM4"] is not None
     pop = load_run(out).idata.population.attrs["outlier_prob"]
     assert set(json.loads(pop)) == {"TEM2", "TEM4"}

@@ -39,6 +39,7 @@ from tembayes.calibrate.module import CalibrationOptions, module_seed
 from tembayes.calibrate.moduledigest import read_digest, write_digest
 from tembayes.calibrate.priors import law_priors
 from tembayes.calibrate.runfolder import RunFolder, module_usable
+from tembayes.calibrate.runsummary import RunSummary
 from tembayes.common.provenance import versions
 from tembayes.common.seeds import spawned
 from tembayes.data.digest import batch_inputs
@@ -92,7 +93,7 @@ def calibrate_batch(
     scheduler: str | None = None,
     client: Client | None = None,
     keep_unconverged: bool = False,
-) -> dict:
+) -> RunSummary:
     """Calibrate every module of a batch and the batch population.
 
     Parameters
@@ -137,8 +138,8 @@ def calibrate_batch(
 
     Returns
     -------
-    dict
-        The summary (also written to ``RUN/summary.json``).
+    RunSummary
+        ``RUN/summary.json``, typed.
     """
     say = progress or (lambda msg: None)
     workers = int(workers)
@@ -289,7 +290,7 @@ def finish_run(
     seconds: float | None = None,
     executor: dict | None = None,
     batch_record: dict | None = None,
-) -> dict:
+) -> RunSummary:
     """The batch stage of a run whose modules are in ``RUN/modules``.
 
     Reads the module files one at a time (their summary entries and thinned
@@ -303,8 +304,8 @@ def finish_run(
 
     Returns
     -------
-    dict
-        The summary.
+    RunSummary
+        ``summary.json``, typed.
 
     Raises
     ------
@@ -405,4 +406,4 @@ def finish_run(
         progress=say,
     )
     write_json(out / "summary.json", summ)
-    return summ
+    return RunSummary.from_json(summ)

@@ -15,7 +15,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from tembayes.constants import KELVIN, MODULE_PARAMETERS, T_REF
+from tembayes.calibrate.runsummary import ModuleSummary, RunSummary
+from tembayes.constants import MODULE_PARAMETERS
 from tembayes.errors import DataError
 
 if TYPE_CHECKING:
@@ -36,15 +37,15 @@ class CalibrationRun:
         The run folder.
     idata : arviz.InferenceData
         ``posterior.nc`` (groups in :mod:`tembayes.calibrate.results`).
-    summary : dict
-        ``summary.json``.
+    summary : RunSummary
+        ``summary.json``, typed.
     module_ids : tuple of str
         Modules in ``posterior.nc`` order.
     """
 
     path: Path
     idata: object
-    summary: dict
+    summary: RunSummary
     module_ids: tuple
     _meta: dict = field(default_factory=dict, repr=False)
 
@@ -57,7 +58,7 @@ class CalibrationRun:
     @property
     def tref_C(self) -> float:
         """Reference temperature of the laws [degC]."""
-        return float(self.summary.get("tref_C", T_REF - KELVIN))
+        return self.summary.tref_C
 
     def _check(self, module_id):
         if module_id not in self.module_ids:
@@ -66,21 +67,21 @@ class CalibrationRun:
             )
 
     # -- per-module summary facts -----------------------------------------
-    def module_summary(self, module_id: str) -> dict:
+    def module_summary(self, module_id: str) -> ModuleSummary:
         """The module's entry of ``summary.json``."""
         self._check(module_id)
-        return self.summary["modules"][module_id]
+        return self.summary.modules[module_id]
 
     def outlier_prob(self, module_id: str) -> float | None:
         """Posterior probability that the module is off the population, or None without a population fit."""
-        p = self.module_summary(module_id).get("outlier_prob")
+        p = self.module_summary(module_id).outlier_prob
         if p is None and self.has_population:
             p = _json_attr(self.idata.population.attrs, "outlier_prob", {}).get(module_id)
         return None if p is None or not np.isfinite(float(p)) else float(p)
 
     def diagnostics(self, module_id: str) -> dict:
         """The module's ``diagnostics`` (``rhat_max``, ``ess_bulk_min``, ``converged``, ...)."""
-        return self.module_summary(module_id).get("diagnostics") or {}
+        return dict(self.module_summary(module_id).diagnostics)
 
     def converged(self, module_id: str) -> bool | None:
         """True/False as recorded, None if the run did not record it."""
@@ -103,11 +104,11 @@ class CalibrationRun:
 
     def hysteresis(self, module_id: str) -> dict:
         """``{"R_ohm": {"estimate", "sd", "z"}, "S_V_per_K": {...}}`` (up - down, SI), or {}."""
-        return self.module_summary(module_id).get("hysteresis") or {}
+        return dict(self.module_summary(module_id).hysteresis)
 
     def options(self) -> dict:
         """The calibration options recorded in ``summary.json`` (``model`` is ``"paper"`` for runs that predate it)."""
-        return {"model": "paper", **((self.summary.get("calibration") or {}).get("options") or {})}
+        return {"model": "paper", **(self.summary.calibration.get("options") or {})}
 
     def rig_for(self, batch: Batch) -> RigDescription:
         """The calibration rig of this run on ``batch``, after checking the batch holds every module.
@@ -328,7 +329,7 @@ def load_run(run_dir: Path | str) -> CalibrationRun:
             "The two files come from different runs; rerun the calibration.",
         )
     meta = {m: _json_attr(idata.posterior.attrs, f"module_{m}", {}) for m in mods}
-    return CalibrationRun(path=run, idata=idata, summary=summary, module_ids=mods, _meta=meta)
+    return CalibrationRun(path=run, idata=idata, summary=RunSummary.from_json(summary), module_ids=mods, _meta=meta)
 
 
 def load_run_batch(run: CalibrationRun, path: Path | str | None = None) -> tuple:
@@ -358,7 +359,7 @@ def load_run_batch(run: CalibrationRun, path: Path | str | None = None) -> tuple
     from tembayes.data import load_batch
     from tembayes.data.digest import batch_inputs, compare_inputs
 
-    rec = run.summary.get("batch") or {}
+    rec = run.summary.batch
     recorded = rec.get("path")
     notes = []
     if path is None:

@@ -289,11 +289,10 @@ def _no_gap(plan, base, t_start):
         screen=[],
         conflicts=plan.conflicts,
         suspects=plan.suspects,
-        base=base.to_json(),
+        base=base,
         excluded=plan.excluded,
         seconds=time.perf_counter() - t_start,
         seed=int(plan.setting.seed),
-        evaluations={"base": base.evals},
     )
 
 
@@ -360,17 +359,16 @@ def _rank(plan, base, lead, screen, chosen, outcome, t_start):
     return GapDiagnosis(
         verdict=said.verdict,
         where=base.where_validation + base.where_identification + base.parameter_gaps,
-        ranking=ranking.to_json(),
+        ranking=list(ranking.rows),
         best=said.best,
         best_group=said.best_group,
-        screen=[r.to_json() for r in screen],
+        screen=list(screen),
         conflicts=plan.conflicts,
         suspects=plan.suspects,
-        base=base.to_json(),
+        base=base,
         excluded=plan.excluded,
         seconds=time.perf_counter() - t_start,
         seed=int(plan.setting.seed),
-        evaluations={"base": base.evals},
         primary=base.primary,
         gap_in=tuple(base.gapped) + (("parameters",) if base.parameter_gaps else ()),
         # the best explanation's recalibrated modules: the run gap hands back

@@ -67,9 +67,13 @@ class GapChange:
     validation: tuple
     identification: tuple
 
+    def on(self, dataset=None):
+        """``(before, after)`` on ``dataset`` (default the primary)."""
+        return getattr(self, dataset or self.primary)
+
     def shrink(self, dataset=None):
         """The relative shrink of the gap on ``dataset`` (default the primary)."""
-        return _shrink(*getattr(self, dataset or self.primary))
+        return _shrink(*self.on(dataset))
 
     def to_json(self):
         """The gap keys of a ``gap.json`` row."""

@@ -11,6 +11,7 @@ population, ``summary.json``, ``posterior.nc``) -- which ``predict``,
 from __future__ import annotations
 
 import os
+from dataclasses import asdict
 from pathlib import Path
 
 from tembayes.calibrate import results as res
@@ -55,8 +56,8 @@ def write_recalibrated_run(diag, run, batch, folder, *, seed=0, progress=None):
     opt = diag.recalibration_options
     summ = finish_run(batch, folder, seed=seed, options=opt, progress=progress, batch_record=record, argv=None)
     atomic_write_text(folder / MARKER, marker("calibrate", complete=True, seed=int(seed), batch=record))
-    before = {m: {p: e[p] for p in MODULE_PARAMETERS} for m, e in run.summary["modules"].items()}
-    after = {m: {p: e[p] for p in MODULE_PARAMETERS} for m, e in summ["modules"].items()}
+    before = {m: {p: asdict(e.laws[p]) for p in MODULE_PARAMETERS} for m, e in run.summary.modules.items()}
+    after = {m: {p: asdict(e.laws[p]) for p in MODULE_PARAMETERS} for m, e in summ.modules.items()}
     return {
         "effects": list(opt.effects),
         "run": folder.name,

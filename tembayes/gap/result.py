@@ -4,8 +4,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from tembayes.gap.baseline import Baseline
 from tembayes.gap.evidence import ALPHA, BLOCK_S, EVIDENCE_Z, GAP_METRIC, ID_GAP_METRIC
-from tembayes.gap.ranking import EXPLAINED_SHRINK, PARTIAL_SHRINK
+from tembayes.gap.ranking import EXPLAINED_SHRINK, PARTIAL_SHRINK, RankingRow
+from tembayes.gap.screen import ScreenRow
 
 __all__ = ["GapDiagnosis"]
 
@@ -27,31 +29,28 @@ class GapDiagnosis:
     where : list of dict
         Significant gap-map cells of the base model, worst first:
         ``{"channel", "regime", "score", "module", "run", "p"}``.
-    ranking : list of dict
-        Recalibrated candidates, best first: ``{"effect", "evidence",
-        "evidence_se", "gap_before", "gap_after", "shrink", "size",
-        "remaining_cells", "converged"}`` (evidence: held-out ELPD difference
-        to the base model [nats]); without a gap the screen's ranking
-        (:meth:`tembayes.gap.ranking.RankingRow.to_json`).
+    ranking : list of RankingRow
+        The candidates, best first: recalibrated on every module, then
+        dropped by the race or failed, then only screened (empty without a
+        gap).  ``gap.json`` holds :meth:`RankingRow.to_json
+        <tembayes.gap.ranking.RankingRow.to_json>` of each.
     best : str or None
     best_group : list of str
         The candidates the data cannot tell from the best.
-    screen : list of dict
-        The screen's refits, best first (:meth:`tembayes.gap.screen.ScreenRow.to_json`).
+    screen : list of ScreenRow
+        The screen's refits on the lead module, best first.
     conflicts : dict
         Module -> rig parameters outside their documented range.
     suspects : list of str
         Effects the conflicts point at.
-    base : dict
-        The base model's held-out gap, ELPD and residual tests per run
-        (:meth:`tembayes.gap.baseline.Baseline.to_json`).
+    base : Baseline
+        The base model on the held-out data: its evaluations (with the
+        predictions, for figures), refits and range conflicts.
     excluded : list of str
         Effects withheld from the diagnosis.
     seconds : float
         Wall time [s].
     seed : int
-    evaluations : dict
-        ``"base"`` -> list of RunEvaluation (with the predictions, for figures).
     primary : str
         The held-out data whose gap ``gap_before``/``gap_after`` report:
         ``"validation"`` or ``"identification"``.
@@ -70,17 +69,16 @@ class GapDiagnosis:
 
     verdict: str
     where: list
-    ranking: list
+    ranking: list[RankingRow]
     best: str | None
     best_group: list
-    screen: list
+    screen: list[ScreenRow]
     conflicts: dict
     suspects: list
-    base: dict
+    base: Baseline
     excluded: list
     seconds: float
     seed: int
-    evaluations: dict
     primary: str = "validation"
     gap_in: tuple = ()
     recalibration: dict = field(default_factory=dict)
@@ -91,7 +89,7 @@ class GapDiagnosis:
         return {
             "verdict": self.verdict,
             "where": self.where,
-            "ranking": self.ranking,
+            "ranking": [r.to_json() for r in self.ranking],
             "best": self.best,
             "best_group": self.best_group,
             "metric": GAP_METRIC if self.primary == "validation" else ID_GAP_METRIC,
@@ -99,10 +97,10 @@ class GapDiagnosis:
             "gap_in": list(self.gap_in),
             "metrics": {"validation": GAP_METRIC, "identification": ID_GAP_METRIC},
             "evidence": EVIDENCE_NOTE,
-            "screen": self.screen,
+            "screen": [r.to_json() for r in self.screen],
             "conflicts": self.conflicts,
             "suspects": self.suspects,
-            "base": self.base,
+            "base": self.base.to_json(),
             "excluded": self.excluded,
             "settings": {
                 "alpha": ALPHA,

@@ -1,7 +1,8 @@
 """Figures of the gap diagnosis: the gap map as a heat map, residual patterns.
 
-They read :class:`~tembayes.gap.where.GapMap` and
-:class:`~tembayes.predict.predictive.Prediction` objects only.
+They read :class:`~tembayes.gap.where.GapMap`,
+:class:`~tembayes.predict.predictive.Prediction` and
+:class:`~tembayes.gap.result.GapDiagnosis` objects only.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
 
 from tembayes.constants import KELVIN
+from tembayes.gap.ranking import RECALIBRATED
 
 if TYPE_CHECKING:
     from tembayes.gap.result import GapDiagnosis
@@ -107,25 +109,23 @@ def plot_ranking(diag: GapDiagnosis, *, fig: Figure | None = None) -> Figure:
     """
     fig = fig or Figure(figsize=(10, 3.8), layout="constrained")
     ax1, ax2 = fig.subplots(1, 2)
-    rows = [r for r in diag.ranking if r.get("evidence") is not None]
-    names = [r["effect"] for r in rows][::-1]
+    rows = [r for r in diag.ranking if r.evidence is not None]
+    names = [r.effect for r in rows][::-1]
     y = np.arange(len(names))
-    if rows and rows[0].get("evidence_kind") == "heldout_elpd":
-        ev = np.array([r["evidence"] for r in rows][::-1])
-        se = np.array([r.get("evidence_se", 0.0) for r in rows][::-1])
+    if rows and rows[0].kind == RECALIBRATED:
+        ev = np.array([r.evidence.value for r in rows][::-1])
+        se = np.array([r.evidence.se for r in rows][::-1])
         # recalibrated on every module (blue, the best green); on the lead module only, or only
         # screened (its refit's Laplace posterior): grey
-        colour = [
-            "C2" if r["effect"] == diag.best else "C0" if r["evidence_kind"] == "heldout_elpd" else "0.65" for r in rows
-        ][::-1]
+        colour = ["C2" if r.effect == diag.best else "C0" if r.kind == RECALIBRATED else "0.65" for r in rows][::-1]
         ax1.barh(y, ev, xerr=2 * se, color=colour)
         ax1.set_xlabel(
             "held-out ELPD difference to the base model [nats], ±2 se\n"
             "(grey: the lead module only, recalibrated or screened)"
         )
         ax1.set_xscale("symlog", linthresh=max(1.0, float(np.min(np.abs(se[se > 0])) if np.any(se > 0) else 1.0)))
-        before = np.array([r["gap_before"] for r in rows][::-1]) * 1e3
-        after = np.array([r["gap_after"] for r in rows][::-1]) * 1e3
+        before = np.array([r.gaps.on()[0] for r in rows][::-1]) * 1e3
+        after = np.array([r.gaps.on()[1] for r in rows][::-1]) * 1e3
         ax2.barh(y + 0.2, before, height=0.4, color="0.6", label="base model")
         ax2.barh(y - 0.2, after, height=0.4, color="C1", label="with the effect")
         ax2.set_xlabel("held-out gap (excess RMSE over T1..T4) [mK]")
@@ -151,7 +151,7 @@ def save_gap_figures(diag: GapDiagnosis, out_dir: Path | str) -> list[Path]:
 
     out = Path(out_dir)
     written = [_save_png(plot_ranking(diag), out / "ranking.png")]
-    for ev in diag.evaluations["base"]:
+    for ev in diag.base.evals:
         tag = f"{ev.module_id}_{Path(ev.source).stem}"
         written.append(_save_png(plot_gap_map(ev.gap_map), out / f"gap_map_{tag}.png"))
         if ev.prediction is not None:

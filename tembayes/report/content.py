@@ -15,7 +15,7 @@ import datetime as _dt
 import json
 import platform
 import time as _time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -105,9 +105,9 @@ def step_estimates(run: CalibrationRun, batch: Batch, module_id: str) -> dict:
     from tembayes.physics.rig import rig_from_config
 
     rig = rig_from_config(batch.rig_config, leg_cells=0)
-    nu = run.module_summary(module_id).get("nuisance", {})
-    vals = {k: v["mean"] for k, v in nu.items() if k in rig.parameter_names}
-    sds = {k: v["sd"] for k, v in nu.items() if k in rig.parameter_names}
+    nu = run.module_summary(module_id).nuisance
+    vals = {k: v.mean for k, v in nu.items() if k in rig.parameter_names}
+    sds = {k: v.sd for k, v in nu.items() if k in rig.parameter_names}
     return _steps(batch.modules[module_id].identification, rig, vals, sds)
 
 
@@ -215,8 +215,8 @@ def build_report(
     ]
     summ = run.summary
     population = None
-    if summ.get("population"):
-        population = {"params": summ["population"], "diagnostics": summ.get("population_diagnostics", {})}
+    if summ.population:
+        population = {"params": summ.population, "diagnostics": dict(summ.population_diagnostics)}
     # modules with their own figures: the likeliest outliers first, then in batch order
     order = sorted(ids, key=lambda m: -(run.outlier_prob(m) or 0.0))
     shown = [m for m in ids if m in order[:max_figure_modules]]
@@ -239,7 +239,7 @@ def build_report(
             else "No validation bands: --no-validation and no --predict folder"
         )
     gap = _gap_sections(gaps, figs)
-    provenance = _provenance(summ.get("calibration", {}), command, seed, t0)
+    provenance = _provenance(dict(summ.calibration), command, seed, t0)
     return BatchReport(
         _overview(run, batch),
         _quality(batch, ids),
@@ -257,7 +257,7 @@ def build_report(
 
 def _overview(run, batch):
     """The report's first section: module type, datasheet, what was calibrated with which model, dates."""
-    ds, cal = batch.datasheet, run.summary.get("calibration", {})
+    ds, cal = batch.datasheet, run.summary.calibration
     ids = list(run.module_ids)
     return {
         "module_type": ds.name,
@@ -298,10 +298,10 @@ def _module_row(run, mid):
     ms = run.module_summary(mid)
     return {
         "id": mid,
-        "params": {p: ms[p] for p in MODULE_PARAMETERS},
-        "outlier_prob": ms.get("outlier_prob"),
-        "diagnostics": ms.get("diagnostics", {}),
-        "hysteresis": ms.get("hysteresis", {}),
+        "params": {p: asdict(ms.laws[p]) for p in MODULE_PARAMETERS},
+        "outlier_prob": ms.outlier_prob,
+        "diagnostics": dict(ms.diagnostics),
+        "hysteresis": dict(ms.hysteresis),
     }
 
 
