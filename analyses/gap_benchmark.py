@@ -18,6 +18,14 @@ the withheld rows not called ``explained``, the shrink of the gap when the
 true effect is recalibrated, and the effect's size recovered against the
 bench's (from the catalogue's defaults, the same numbers ``simulate`` used).
 
+The same cases answer whether the laws stay honest with an effect the model
+does not have: each case's ``laws.json`` holds the base run's 90 % intervals,
+its adequacy verdict, and the intervals of the gap's recalibration (the best
+effect added) against ``truth.json``; summarised per effect as the coverage,
+the share covered *or* flagged by the adequacy verdict, and the coverage after
+the gap (targets: both >= 0.80).  Effects the default model contains
+(``thomson``, ``sensor_lag``, ``k_temperature``) are in-model rows.
+
 Stated before the runs (physics, not results):
 
 - confusable groups: ``sensor_lag`` / ``contact_resistance`` (both delay the
@@ -129,9 +137,62 @@ def _case(work, effect, seed, withheld, compute=True):
             diag = diagnose(load_run(run), load_batch(batch), exclude=exclude, seed=seed, cache=cache)
             doc = diag.to_json()
             doc["wall_s"] = time.perf_counter() - t0
+            if tag == "gap":
+                write_json(d / "laws.json", _laws(d, diag))
             write_json(f, doc)
         out[tag] = json.loads(f.read_text())
     return out
+
+
+def _laws(d, diag):
+    """The laws against the bench's truth: the base run's (with its adequacy verdict) and the gap's recalibration's."""
+    from tembayes.calibrate.results import stats
+    from tembayes.calibrate.run import load_run
+    from tembayes.constants import MODULE_PARAMETERS
+
+    truth = json.loads((d / "batch" / "truth.json").read_text())
+    base = load_run(d / "run").summary
+    out = {}
+    for mid, m in base.modules.items():
+        recal = diag.recalibration.get(mid)
+        out[mid] = {
+            "truth": {k: truth["modules"][mid][k] for k in MODULE_PARAMETERS},
+            "base": {k: {"q05": m.laws[k].q05, "q95": m.laws[k].q95} for k in MODULE_PARAMETERS},
+            "adequacy_flagged": m.adequacy_failed,
+            "converged": m.converged,
+            "recalibrated_with": diag.best if recal is not None else None,
+            "recalibrated": None if recal is None else {k: stats(recal.draws[k]) for k in MODULE_PARAMETERS},
+        }
+    return out
+
+
+def law_coverage(work, cases):
+    """Per effect: the base laws' 90 % coverage, the share covered or flagged, the coverage after the gap's recalibration."""
+    from tembayes.constants import MODULE_PARAMETERS
+
+    per = {}
+    for effect, seed in cases:
+        f = work / f"{effect or 'null'}_s{seed}" / "laws.json"
+        if not f.is_file():
+            continue
+        for m in json.loads(f.read_text()).values():
+            after = m["recalibrated"] or m["base"]
+            for k in MODULE_PARAMETERS:
+                t = m["truth"][k]
+                inside = m["base"][k]["q05"] <= t <= m["base"][k]["q95"]
+                row = per.setdefault(effect or "null", {"inside": [], "inside_or_flagged": [], "after": []})
+                row["inside"].append(inside)
+                row["inside_or_flagged"].append(inside or m["adequacy_flagged"])
+                row["after"].append(after[k]["q05"] <= t <= after[k]["q95"])
+    return {
+        e: {
+            "modules": len(r["inside"]) // len(MODULE_PARAMETERS),
+            "coverage90": float(np.mean(r["inside"])),
+            "covered_or_flagged": float(np.mean(r["inside_or_flagged"])),
+            "coverage90_after_gap": float(np.mean(r["after"])),
+        }
+        for e, r in per.items()
+    }
 
 
 def _called(doc):
@@ -252,6 +313,20 @@ def _markdown(s):
         )
         size = f"{sz['median']:.2f} ({sz['min']:.2f}-{sz['max']:.2f})" if sz else "–"
         lines.append(f"| {k} | {cell} | {size} |")
+    if s.get("law_coverage"):
+        lines += [
+            "",
+            "The laws against the bench's truth (90 % intervals of the five law parameters; "
+            "target: covered or flagged by the adequacy verdict, and covered after the gap's recalibration, >= 0.80):",
+            "",
+            "| true effect | modules | coverage | covered or flagged | coverage after gap |",
+            "|---|---|---|---|---|",
+        ]
+        lines += [
+            f"| {k} | {v['modules']} | {v['coverage90']:.2f} | {v['covered_or_flagged']:.2f} "
+            f"| {v['coverage90_after_gap']:.2f} |"
+            for k, v in s["law_coverage"].items()
+        ]
     lines += [
         "",
         f"- diagnosis time per batch: median {s['diagnosis_seconds']['median']:.0f} s, "
@@ -302,6 +377,7 @@ def main(argv=None):
             msg += f"; withheld: {_called(docs['gap_withheld'])}"
         print(msg + f" ({time.perf_counter() - t0:.0f} s)", flush=True)
     s = summarise(cases)
+    s["law_coverage"] = law_coverage(args.work, cases)
     if n_shard > 1 and not args.summarise:
         print(_markdown(s))  # this shard's cases; `--summarise` writes the whole table
         return

@@ -33,6 +33,8 @@ from scipy.stats import binom
 
 ROOT = Path(__file__).resolve().parent.parent
 PARAMS = ("R0_ohm", "R1_ohm_per_K", "S0_V_per_K", "S1_V_per_K2", "K_W_per_K")
+#: The sd of a sensor's depth offset on the out-of-model bench (uniform within +-0.25 mm) [mm].
+DEPTH_SD_MM = 0.5 / np.sqrt(12.0)
 #: The two module types: TEC1-12706 class and a 3 ohm, 3.9 A class.
 TYPES = {
     "TEC1-12706": '[module_type]\nname = "TEC1-12706"\nth_C = 25.0\nimax_A = 6.4\nvmax_V = 14.4\ndtmax_K = 66.0\n'
@@ -124,16 +126,50 @@ def rows(work, args):
                 rb = truth["modules"][mid]["rig_bench"]
                 dx_mm = 10.0 / 18
                 row["depth_offset_mm"] = {c: sides[c] * rb[f"v_{c}"] * dx_mm for c in ("T2", "T3")}
+            held = (m["diagnostics"].get("discrepancy") or {}).get("held_sd_over_posterior_sd") or {}
             for p in PARAMS:
                 tv = truth["modules"][mid][p]
                 e = m[p]
+                # each held rig value's share of the law's sd, over the sd before they were carried over
+                share = {q: held[q][p] for q in held}
                 row[p] = {
                     "err_pct": 100 * (e["mean"] / tv - 1),
                     "z": (e["mean"] - tv) / e["sd"],
+                    "z_core": (e["mean"] - tv) / e["sd"] * float(np.sqrt(1.0 + sum(v * v for v in share.values()))),
+                    "held_share": share,
                     "width_pct": 100 * (e["q95"] - e["q05"]) / abs(tv),
                     "inside": e["q05"] <= tv <= e["q95"],
                 }
             out.append(row)
+    return out
+
+
+def depth_response(off):
+    """How the laws' errors follow the sensors' true depth offsets, against what the calibration carried over.
+
+    Per law: the error in sds of the posterior before the held rig values were
+    carried over (``z_core``) regressed on the T2 and T3 offsets in units of
+    the uniform draw's sd (``DEPTH_SD_MM``); the slopes are what the bench's
+    offsets did to the laws, ``held_*`` the median share the calibration gave
+    each held depth (the same units: core sds per draw sd), and ``resid_sd``
+    what is left (1 for an honest core).
+    """
+    out = {}
+    for p in PARAMS:
+        X = np.column_stack(
+            [np.ones(len(off))] + [[x["depth_offset_mm"][c] / DEPTH_SD_MM for x in off] for c in ("T2", "T3")]
+        )
+        zc = np.array([x[p]["z_core"] for x in off])
+        beta, *_ = np.linalg.lstsq(X, zc, rcond=None)
+        out[p] = {
+            "slope_T2": float(beta[1]),
+            "slope_T3": float(beta[2]),
+            "held_T2": float(np.median([x[p]["held_share"].get("depth_T2", 0.0) for x in off])),
+            "held_T3": float(np.median([x[p]["held_share"].get("depth_T3", 0.0) for x in off])),
+            "held_ceramic": float(np.median([x[p]["held_share"].get("g_ceramic", 0.0) for x in off])),
+            "sd_z_core": float(np.std(zc)),
+            "resid_sd": float(np.std(zc - X @ beta)),
+        }
     return out
 
 
@@ -157,8 +193,17 @@ def summarise(r):
             }
             for p in ("R0_ohm", "S0_V_per_K", "K_W_per_K")
         }
+    if len(off) > 5 and all(x[PARAMS[0]]["held_share"] for x in off):
+        doc["depth_response"] = depth_response(off)
+    batches = sorted({x["batch"] for x in r})
+    boot = np.random.default_rng(0).integers(0, len(batches), size=(2000, len(batches)))
     for p in PARAMS:
+        # a batch's modules share its rig (the sensors' depths): resample batches, not modules
+        per = [[x[p]["inside"] for x in r if x["batch"] == b] for b in batches]
+        hits, counts = np.array([sum(v) for v in per]), np.array([len(v) for v in per])
+        cov = hits[boot].sum(axis=1) / counts[boot].sum(axis=1)
         doc[p] = {
+            "coverage90_batch_bootstrap95": [float(np.quantile(cov, 0.025)), float(np.quantile(cov, 0.975))],
             "coverage90": float(np.mean([x[p]["inside"] for x in r])),
             "median_abs_err_pct": float(np.median([abs(x[p]["err_pct"]) for x in r])),
             "median_width90_pct": float(np.median([x[p]["width_pct"] for x in r])),
@@ -206,13 +251,15 @@ def main():
         f"{s['n_modules']} modules ({s['converged']} converged, {s['adequacy_fits'] if s['adequacy_fits'] is not None else 'no verdict:'} whose model fits), 90 % band "
         f"[{s['band90'][0]:.3f}, {s['band90'][1]:.3f}]; median {s['median_seconds']} s per module",
         "",
-        "| | coverage 90 % | median abs error % | median 90 % width % | median abs z | max abs z |",
-        "|---|---|---|---|---|---|",
+        "| | coverage 90 % | its 95 % interval (batches resampled) | median abs error % | median 90 % width % "
+        "| median abs z | max abs z |",
+        "|---|---|---|---|---|---|---|",
     ]
     for p in PARAMS:
         q = s[p]
+        lo, hi = q["coverage90_batch_bootstrap95"]
         lines.append(
-            f"| {p} | {q['coverage90']:.3f} | {q['median_abs_err_pct']:.3f} | {q['median_width90_pct']:.3f} "
+            f"| {p} | {q['coverage90']:.3f} | {lo:.3f}–{hi:.3f} | {q['median_abs_err_pct']:.3f} | {q['median_width90_pct']:.3f} "
             f"| {q['median_abs_z']:.2f} | {q['max_abs_z']:.1f} |"
         )
     if "corr_z_with_depth_offset" in s:
@@ -224,6 +271,22 @@ def main():
             "|---|---|---|",
         ]
         lines += [f"| {p} | {c['T2']:+.2f} | {c['T3']:+.2f} |" for p, c in s["corr_z_with_depth_offset"].items()]
+    if "depth_response" in s:
+        lines += [
+            "",
+            "The errors against the sensors' true depth offsets: each law's error in sds of the posterior before the "
+            "held rig values were carried over, regressed on the T2 and T3 offsets (per sd of the offsets' uniform "
+            "draw); beside each slope the median share the calibration carried over for that depth (and for the "
+            "ceramic); the sd of the errors before and after the regression:",
+            "",
+            "| | slope T2 | carried T2 | slope T3 | carried T3 | carried ceramic | sd | sd after |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        lines += [
+            f"| {p} | {d['slope_T2']:+.2f} | {d['held_T2']:.2f} | {d['slope_T3']:+.2f} | {d['held_T3']:.2f} "
+            f"| {d['held_ceramic']:.2f} | {d['sd_z_core']:.2f} | {d['resid_sd']:.2f} |"
+            for p, d in s["depth_response"].items()
+        ]
     (res / f"law_coverage_{label(args)}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
