@@ -11,7 +11,10 @@ method chosen here), and each module's posterior compared with its truth:
 - the median z (error in posterior sds) and the worst ones.
 
 Resumable: every batch and run is cached under ``--work``; rerun to continue,
-``--summarise`` to print and record what is there.
+``--summarise`` to print and record what is there. A study continued on
+another machine runs its remaining batches (``--first-batch``) and summarises
+with ``--keep-recorded``: the recorded results' modules of the batches that
+have no run under ``--work`` are kept.
 
     python analyses/law_coverage.py --fidelity high --model full --discrepancy window-sandwich --batches 13
     python analyses/law_coverage.py --fidelity standard --physics full --model full --batches 13
@@ -220,6 +223,15 @@ def main():
     ap.add_argument("--model", choices=("paper", "full"), default="full")
     ap.add_argument("--discrepancy", choices=("none", "window-sandwich", "robust"), default="robust")
     ap.add_argument("--batches", type=int, default=13, help="batches per module type")
+    ap.add_argument(
+        "--first-batch", type=int, default=0, help="run batches from this index on (the others are not run)"
+    )
+    ap.add_argument(
+        "--keep-recorded",
+        action="store_true",
+        help="summarise with the recorded results' modules of batches that have no run under --work "
+        "(a study continued on another machine)",
+    )
     ap.add_argument("--modules", type=int, default=4, help="modules per batch")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--work", type=Path, default=Path("/tmp/tembayes-law-coverage"))
@@ -230,19 +242,23 @@ def main():
     args.work.mkdir(parents=True, exist_ok=True)
     if not args.summarise:
         k, n = (int(x) for x in args.shard.split("/"))
-        jobs = [(t, b) for b in range(args.batches) for t in TYPES]
+        jobs = [(t, b) for b in range(args.first_batch, args.batches) for t in TYPES]
         for i, (t, b) in enumerate(jobs):
             if i % n == k:
                 one_batch(args, args.work, t, b)
                 print(f"done {t} batch {b}", flush=True)
     r = rows(args.work, args)
+    res = ROOT / "analyses" / "results"
+    recorded = res / f"law_coverage_{label(args)}.json"
+    if args.keep_recorded and recorded.exists():
+        here = {x["batch"] for x in r}
+        r = [x for x in json.loads(recorded.read_text())["modules"] if x["batch"] not in here] + r
     doc = {
         "label": label(args),
         "settings": {k: str(v) for k, v in vars(args).items()},
         "summary": summarise(r),
         "modules": r,
     }
-    res = ROOT / "analyses" / "results"
     (res / f"law_coverage_{label(args)}.json").write_text(json.dumps(doc, indent=1) + "\n")
     s = doc["summary"]
     lines = [

@@ -279,6 +279,7 @@ def _cmd_calibrate(args):
     from tembayes.calibrate.runfolder import bytes_needed
     from tembayes.data import load_batch
     from tembayes.data.outputs import check_output
+    from tembayes.data.preflight import raise_first_error
 
     workers = args.workers
     if workers < 1:  # before anything is touched
@@ -322,6 +323,7 @@ def _cmd_calibrate(args):
     )
     # every file validated, then only paths kept: memory independent of the batch size
     batch = load_batch(args.batch, lazy=True)  # refused input: nothing is written
+    raise_first_error(batch.findings, command="calibrate")
     _say_findings(batch.findings)
     summ = calibrate_batch(
         batch,

@@ -83,6 +83,35 @@ def _time_ms(c, a):
     return a
 
 
+def _short_gap_reversed(c, a):
+    """Current and voltage negated, and 18 s lost in the middle of a hold (a warning only)."""
+    t, i = a[:, c["time_s"]], a[:, c["current_A"]]
+    mid = t[np.flatnonzero(np.abs(np.diff(i)) > 0.1)[3] + 1] + 200.0  # inside the fourth step's hold
+    return _negate("current_A", "voltage_V")(c, a[~((t > mid) & (t < mid + 18.0))])
+
+
+def _time_min(c, a):
+    a[:, c["time_s"]] /= 60.0
+    return a
+
+
+def _columns(*pairs):
+    """Columns read from other columns: ``("T1_C", "T2_C")`` puts T2's values in T1."""
+
+    def change(c, a):
+        b = a.copy()
+        for to, frm in pairs:
+            b[:, c[to]] = a[:, c[frm]]
+        return b
+
+    return change
+
+
+def _logger_order_negated(c, a):
+    """The sensors in a logger's order (T1 <- T2, T2 <- T3, T3 <- T1), the polarity 'fixed' by negating."""
+    return _negate("current_A", "voltage_V")(c, _columns(("T1_C", "T2_C"), ("T2_C", "T3_C"), ("T3_C", "T1_C"))(c, a))
+
+
 def _degf(cols, rows=None):
     def change(c, a):
         a = a if rows is None else a[:rows]
@@ -120,12 +149,38 @@ DATA_CASES = {
         "Negate current_A",
         "column 'current_A'",
     ),
+    "polarity_reversed_with_a_short_gap": (
+        lambda r, n: _mutated(r, n, _short_gap_reversed),
+        "Negate current_A and voltage_V",
+        "column 'current_A'",
+    ),
     "polarity_voltage_only": (
         lambda r, n: _mutated(r, n, _negate("voltage_V")),
         "Negate voltage_V",
         "column 'voltage_V'",
     ),
     "time_in_ms": (lambda r, n: _mutated(r, n, _time_ms), "looks like milliseconds", "column 'time_s'"),
+    "time_in_minutes": (lambda r, n: _mutated(r, n, _time_min), "looks like minutes", "column 'time_s'"),
+    "T1_T2_swapped": (
+        lambda r, n: _mutated(r, n, _columns(("T1_C", "T2_C"), ("T2_C", "T1_C"))),
+        "not the order of the heat path",
+        "column 'T2_C'",
+    ),
+    "T3_T4_swapped": (
+        lambda r, n: _mutated(r, n, _columns(("T3_C", "T4_C"), ("T4_C", "T3_C"))),
+        "not the order of the heat path",
+        "column 'T3_C'",
+    ),
+    "T2_T3_swapped": (
+        lambda r, n: _mutated(r, n, _columns(("T2_C", "T3_C"), ("T3_C", "T2_C"))),
+        "a swap across the module",
+        "column 'T3_C'",
+    ),
+    "sensors_in_logger_order_polarity_negated": (
+        lambda r, n: _mutated(r, n, _logger_order_negated),
+        "not the order of the heat path",
+        "column 'T3_C'",
+    ),
     "degF_whole_file": (lambda r, n: _mutated(r, n, _degf(ALL_T)), "look like degF", "identification.csv"),
     "degF_whole_file_cool_run": (
         lambda r, n: _mutated(r, n, _degf(ALL_T, COOL_ROWS)),

@@ -58,3 +58,37 @@ def test_summary_of_loaded_file(data_factory):
 def test_noise_estimate_edge_cases():
     assert np.isnan(noise_estimate([1.0]))
     assert noise_estimate([1.0, 1.0, 1.0]) == 0.0
+
+
+def _lagged(t, x, tau):
+    """First-order response [same unit as x] with time constant ``tau`` [s]."""
+    y = np.zeros_like(x)
+    for k in range(1, len(t)):
+        a = np.exp(-(t[k] - t[k - 1]) / tau)
+        y[k] = a * y[k - 1] + (1 - a) * x[k - 1]
+    return y
+
+
+def _rig_run(hold, rng):
+    """A seconds-stamped run of steps every ``hold`` s: the bottom block answers in 150 s, the top in 3 s."""
+    t = np.arange(0.0, 60.0 + 40 * hold, 0.2)
+    level = np.where(t < 60.0, 0.0, 0.2 * (1 + ((t - 60.0) // hold) % 4))
+    cur = level + rng.normal(0, 1e-3, t.size)
+    top, bottom = _lagged(t, level, 3.0), _lagged(t, level, 150.0)
+    tw, ta = np.full(t.size, 20.0 + KELVIN), np.full(t.size, 22.0 + KELVIN)
+    t3 = ta - 6.0 * bottom
+    sensors = np.array([tw + 0.5 * top, tw + 1.0 * top, t3, t3 + 0.05 * (ta - t3)]) + rng.normal(0, 0.004, (4, t.size))
+    return experiment_from_arrays(t, cur, 2.0 * cur, sensors, tw, ta)
+
+
+def test_short_holds_are_not_read_as_minutes():
+    """Holds of 12 s cut the bottom block's 150 s response short: its 63 % time then measures the hold."""
+    from tembayes.data.preflight import check_experiment
+
+    found = check_experiment(_rig_run(12.0, np.random.default_rng(0)))
+    assert not [f for f in found if f.column == "time_s"], [f.problem for f in found]
+    minutes = _rig_run(900.0, np.random.default_rng(0))
+    minutes = experiment_from_arrays(
+        minutes.time / 60.0, minutes.current, minutes.voltage, minutes.sensors, minutes.t_water, minutes.t_amb
+    )
+    assert [f.column for f in check_experiment(minutes) if f.severity == "error"] == ["time_s"]

@@ -116,3 +116,17 @@ def test_shown_command_is_a_valid_invocation(argv):
     except SystemExit as exit_:
         pytest.fail(f"`tembayes {' '.join(argv)}` does not parse (exit {exit_.code})")
     assert callable(getattr(args, "func", None))
+
+
+def test_csv_examples_match_the_shipped_files():
+    """A block of CSV lines after 'The first lines of `data/...csv`' is that file's start."""
+    shown = 0
+    for path in DOCS:
+        text = path.read_text(encoding="utf-8")
+        for m in re.finditer(r"first lines of `(data/[^`]+\.csv)`.*?\n```[a-z]*\n(.*?)^```", text, re.S | re.M):
+            lines = m.group(2).splitlines()
+            with open(REPO / m.group(1), encoding="utf-8") as f:
+                head = [f.readline().rstrip("\n") for _ in lines]
+            assert lines == head, f"{path.name}: the lines shown for {m.group(1)} differ from the file; copy them again"
+            shown += 1
+    assert shown >= 1, "docs/data-format.md no longer shows the example's first lines"

@@ -15,7 +15,7 @@ import shutil
 
 import numpy as np
 import pytest
-from corpus import DATA_CASES, EXAMPLE, colliding_ids, good_batch
+from corpus import DATA_CASES, EXAMPLE, colliding_ids, good_batch, read_csv, write_csv
 
 from tembayes.calibrate.runfolder import module_usable, partial_path
 from tembayes.cli import main
@@ -75,6 +75,32 @@ def test_inspect_lists_every_problem_and_the_clean_example_has_none(tmp_path, ca
     assert doc["findings"][0]["path"].endswith("validation.csv")
     assert main(["inspect", str(EXAMPLE)]) == 0
     assert "no problems found" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    ("keep", "words", "refusal"),
+    [
+        (lambda t, first: t < first + 1000.0, "calibrate refuses it (it needs at least 4", "calibrate refuses it"),
+        (
+            lambda t, first: t > first - 10.0,
+            "calibrate refuses the run (it needs at least 30 s at rest",
+            "calibrate refuses the run",
+        ),
+    ],
+    ids=["two_steps", "ten_seconds_of_rest"],
+)
+def test_inspect_warns_of_runs_calibrate_refuses(keep, words, refusal, tmp_path, capsys):
+    batch = good_batch(tmp_path, "b", validation=False)
+    csv = batch / "TEM1" / "identification.csv"
+    header, a = read_csv(csv)
+    t, i = a[:, header.index("time_s")], a[:, header.index("current_A")]
+    first = t[np.flatnonzero(np.abs(np.diff(i)) > 0.1)[0] + 1]  # the first step
+    write_csv(csv, header, a[keep(t, first)])
+    assert main(["inspect", str(batch), "--json"]) == 0  # a warning: identify may still use the run
+    doc = json.loads(capsys.readouterr().out)
+    assert any(words in f["problem"] for f in doc["findings"] if f["severity"] == "warning"), doc["findings"]
+    refused(capsys, ["calibrate", batch, "--out", tmp_path / "run", "--workers", "1"], refusal)
+    assert listing(tmp_path) == ["b"]  # refused before any work: no run folder
 
 
 def test_colliding_module_ids_are_refused(tmp_path, capsys):

@@ -162,6 +162,7 @@ def _workers(pid):
     ]
 
 
+@pytest.mark.slow  # three cluster runs, one with a worker killed and one killed whole: ~5 min
 def test_a_killed_worker_is_replaced_and_a_killed_run_resumes_with_the_missing_modules(batch4, serial4, tmp_path):
     out_ref, _ = serial4
     # 1. a worker killed mid-module: Dask reruns its module, the batch finishes with the same bits

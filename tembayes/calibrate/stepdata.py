@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from tembayes.data.quality import noise_estimate
-from tembayes.data.steps import current_noise, detect_steps
+from tembayes.data.steps import CALIBRATE_LEAD_S, CALIBRATE_MIN_STEPS, current_noise, detect_steps
 from tembayes.errors import DataError
 
 if TYPE_CHECKING:
@@ -248,8 +248,8 @@ def step_data(
     dense: float = 2.0,
     per_decade: int = 16,
     pre: float = 1.0,
-    lead: float = 30.0,
-    min_steps: int = 4,
+    lead: float = CALIBRATE_LEAD_S,
+    min_steps: int = CALIBRATE_MIN_STEPS,
     smooth: float = 10.0,
 ) -> StepData:
     """Cut an identification experiment into step-response windows.

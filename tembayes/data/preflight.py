@@ -35,7 +35,7 @@ import numpy as np
 from ..constants import KELVIN, SENSOR_CHANNELS
 from ..errors import DataError
 from .quality import noise_estimate
-from .steps import current_noise, detect_steps
+from .steps import CALIBRATE_LEAD_S, CALIBRATE_MIN_STEPS, current_noise, detect_steps
 
 if TYPE_CHECKING:  # batch.py and experiment.py import this module
     from collections.abc import Iterable, Mapping
@@ -80,9 +80,23 @@ JUMP_RATE_K_PER_S = 5.0
 COLD_MARGIN_K = 5.0
 
 #: Sensor settling (63 % of the response after a current step) outside this range [s]
-#: means the time stamps are not seconds.
+#: means the time stamps are not seconds: a rig's blocks take minutes (the reference rig
+#: about 150 s), so a file in minutes reads a few time units and one in hours a few hundredths.
 SETTLE_MAX_S = 6 * 3600.0
-SETTLE_MIN_S = 0.3
+SETTLE_MIN_S = 10.0
+#: The slower sensor's 63 % time is sure when it comes within this fraction of its median hold.
+SETTLE_HOLD_FRACTION = 0.5
+#: The lower limit when only one of the two sensors responded, or no hold was long enough [s].
+SETTLE_MIN_UNSURE_S = 0.3
+
+#: Heat paths from a boundary to a module face through the rig's sensors, in order: in every
+#: settled hold one heat flow crosses each path, so the steps along it rise and fall together.
+SERIES_PATHS = (("T_water_C", "T1_C", "T2_C"), ("T_amb_C", "T4_C", "T3_C"))
+#: A path is out of order when its two steps, over the settled holds, anti-correlate below
+#: this and the first step spans at least SERIES_MIN_SPAN_K.
+SERIES_MAX_CORR = -0.8
+SERIES_MIN_SPAN_K = 0.2
+SERIES_MIN_HOLDS = 4
 
 #: Zero-current holds this many settling times long are used for the maximum principle ...
 ZERO_HOLD_SETTLINGS = 2.0
@@ -121,6 +135,9 @@ class Finding:
         The file line (header = line 1).
     column : str, optional
         The column.
+    refused_by : tuple of str
+        Commands that refuse the input on this warning (``"calibrate"`` for
+        an identification run it cannot use).
     """
 
     severity: str
@@ -129,6 +146,7 @@ class Finding:
     hint: str
     line: int | None = None
     column: str | None = None
+    refused_by: tuple[str, ...] = ()
 
     def error(self) -> DataError:
         """The finding as the :class:`~tembayes.errors.DataError` that refuses the input."""
@@ -138,7 +156,7 @@ class Finding:
         return str(self.error())
 
     def to_json(self) -> dict:
-        """JSON-ready dict of the finding (severity, path, line, column, problem, hint)."""
+        """JSON-ready dict of the finding (severity, path, line, column, problem, hint, refused_by)."""
         return {
             "severity": self.severity,
             "path": str(self.path),
@@ -146,13 +164,17 @@ class Finding:
             "column": self.column,
             "problem": self.problem,
             "hint": self.hint,
+            "refused_by": list(self.refused_by),
         }
 
 
-def raise_first_error(findings: Iterable[Finding]) -> None:
-    """Raise the first error-level finding as a DataError (nothing to do without one)."""
+def raise_first_error(findings: Iterable[Finding], *, command: str | None = None) -> None:
+    """Raise the first error-level finding as a DataError (nothing to do without one).
+
+    With ``command``, also the first warning that command refuses on.
+    """
     for f in findings:
-        if f.severity == ERROR:
+        if f.severity == ERROR or (command is not None and command in f.refused_by):
             raise f.error()
 
 
@@ -174,19 +196,22 @@ def check_experiment(exp: Experiment, *, datasheet: Datasheet | None = None, ide
         Errors first.
     """
     steps = detect_steps(exp.time, exp.current)
-    settle = _settling_time(exp, steps)
-    found = [*_gaps(exp), *_time_unit(exp, settle), *_stuck(exp), *_jumps(exp), *_polarity(exp)]
+    settle, slow, sure = _settling_time(exp, steps)
+    found = [*_gaps(exp), *_time_unit(exp, slow, sure), *_stuck(exp), *_jumps(exp)]
     if datasheet is not None:
         found += _below_pumping(exp, datasheet)
-    if not found:  # a broken sensor or clock would confound the physics below
-        found += _zero_current_range(exp, steps, settle)
+    # each check below reads physics a broken sensor or clock (or the one before) would confound:
+    # a column in another unit breaks the heat paths, and swapped sensors reverse the polarity test
+    for check in (_zero_current_range, _sensor_order, _polarity):
+        if not any(f.severity == ERROR for f in found):
+            found += check(exp, steps, settle)
     if identification:
         found += _identifiability(exp, steps, settle)
     return sorted(found, key=lambda f: f.severity != ERROR)
 
 
-def _finding(severity, exp, problem, hint, i=None, column=None):
-    return Finding(severity, exp.path, problem, hint, None if i is None else exp.line(i), column)
+def _finding(severity, exp, problem, hint, i=None, column=None, refused_by=()):
+    return Finding(severity, exp.path, problem, hint, None if i is None else exp.line(i), column, refused_by)
 
 
 # -- time ---------------------------------------------------------------------
@@ -227,27 +252,49 @@ def _gaps(exp):
 
 
 def _settling_time(exp, steps):
-    """Median time [s] for the sensors next to the module to cover 63 % of their move after a current step.
+    """How long the sensors next to the module take to cover 63 % of their move after a current step.
 
-    NaN without a clear response.
+    Returns
+    -------
+    settle : float
+        The median over every step and both sensors [s]: the scale of the
+        holds the physics checks read.  NaN without a clear response.
+    slow : float
+        The slower sensor's median [s], for the time unit: the top sensor of
+        a water-cooled rig moves little and fast while the bottom block
+        takes minutes.  NaN without a clear response.
+    sure : bool
+        Both sensors responded, and the slower one's holds last beyond
+        1/SETTLE_HOLD_FRACTION times ``slow`` (holds cut short of the
+        response measure the hold, not the rig).
     """
-    times = []
     noise = {c: noise_estimate(exp.channel(c)) for c in FACE_SENSORS}
-    for s in steps:
-        seg = slice(s.hold_start, s.hold_end)
-        for c in FACE_SENSORS:
-            y = exp.channel(c)[seg]
+    pooled, per_sensor = [], []
+    for c in FACE_SENSORS:
+        times, holds = [], []
+        for s in steps:
+            y = exp.channel(c)[s.hold_start : s.hold_end]
             move = y[-1] - y[0]
             if y.size < 5 or not abs(move) > max(50.0 * noise[c], 0.05):
                 continue
             reached = np.flatnonzero(np.abs(y - y[0]) >= 0.63 * abs(move))
             times.append(exp.time[s.hold_start + reached[0]] - s.t)
-    return float(np.median(times)) if len(times) >= 2 else math.nan
+            holds.append(exp.time[s.hold_end - 1] - s.t)
+        pooled += times
+        if len(times) >= 2:
+            per_sensor.append((float(np.median(times)), float(np.median(holds))))
+    settle = float(np.median(pooled)) if len(pooled) >= 2 else math.nan
+    if not per_sensor:
+        return settle, math.nan, False
+    slow, hold = max(per_sensor)
+    return settle, slow, len(per_sensor) == len(FACE_SENSORS) and slow < SETTLE_HOLD_FRACTION * hold
 
 
-def _time_unit(exp, settle):
+def _time_unit(exp, settle, sure):
     if not math.isfinite(settle):
         return []
+    # one sensor responding (the other stuck or flat) may be the fast one, and short holds cut the response
+    low = SETTLE_MIN_S if sure else SETTLE_MIN_UNSURE_S
     if settle > SETTLE_MAX_S:
         return [
             _finding(
@@ -260,14 +307,14 @@ def _time_unit(exp, settle):
                 column="time_s",
             )
         ]
-    if settle < SETTLE_MIN_S:
+    if settle < low:
         return [
             _finding(
                 ERROR,
                 exp,
                 f"the sensors settle {settle:.3g} time units after a current step, but a "
                 "rig's blocks take minutes: time_s looks like minutes or hours",
-                "Convert the time column to seconds",
+                "Convert the time column to seconds (minutes: multiply by 60; hours: by 3600)",
                 column="time_s",
             )
         ]
@@ -385,7 +432,7 @@ def _slope(x, y):
     return b, math.sqrt(float(resid @ resid) / max(len(x) - 2, 1) / sxx)
 
 
-def _polarity(exp):
+def _polarity(exp, *_):
     i = exp.current
     span = float(i.max() - i.min())
     if span < 0.1:
@@ -452,22 +499,62 @@ def _polarity(exp):
 # -- temperature units --------------------------------------------------------
 
 
-def _zero_holds(exp, steps, settle):
-    """``(a, b)`` sample ranges of the settled last part of zero-current holds."""
+def _settled_holds(exp, steps, settle, *, zero):
+    """``(a, b)`` sample ranges of holds at least ZERO_HOLD_SETTLINGS settling times long.
+
+    Only the holds at zero current (``zero=True``) or only the others.
+    """
     bounds = [(0, steps[0].index if steps else exp.n)] + [(s.hold_start, s.hold_end) for s in steps]
     sigma = max(current_noise(exp.current), 1e-3)
     need = ZERO_HOLD_SETTLINGS * settle if math.isfinite(settle) else math.inf
     out = []
     for a, b in bounds:
-        if b - a < 10 or abs(float(np.median(exp.current[a:b]))) > 5 * sigma:
+        if b - a < 10 or (abs(float(np.median(exp.current[a:b]))) > 5 * sigma) == zero:
             continue
         if exp.time[b - 1] - exp.time[a] >= need:
             out.append((a, b))
     return out
 
 
+def _sensor_order(exp, steps, settle):
+    """Sensors out of their place on a heat path (swapped columns), from the settled holds.
+
+    Along a path boundary -> far sensor -> face sensor one heat flow crosses
+    both steps, so across holds the two differences are proportional with a
+    positive factor; a swap makes one of them change sign.  Slopes across
+    holds, not levels, so constant sensor offsets do not matter.
+    """
+    holds = _settled_holds(exp, steps, settle, zero=False)
+    if len(holds) < SERIES_MIN_HOLDS:
+        return []
+    for path in SERIES_PATHS:
+        levels = np.array([[np.median(exp.channel(c)[a + int(0.8 * (b - a)) : b]) for c in path] for a, b in holds])
+        first, second = np.diff(levels, axis=1).T
+        if np.ptp(first) < SERIES_MIN_SPAN_K or np.ptp(second) == 0.0:
+            continue
+        r = float(np.corrcoef(first, second)[0, 1])
+        if r < SERIES_MAX_CORR:
+            a, b = holds[int(np.argmax(np.abs(first)))]
+            shown = ", ".join(f"{c} {v - KELVIN:.4g}" for c, v in zip(path, levels[int(np.argmax(np.abs(first)))]))
+            return [
+                _finding(
+                    ERROR,
+                    exp,
+                    f"{path[0]} -> {path[1]} -> {path[2]} is not the order of the heat path: over "
+                    f"{len(holds)} settled holds {path[1]} - {path[0]} and {path[2]} - {path[1]} move in "
+                    f"opposite directions (correlation {r:+.2f}; at {exp.where(b - 1)}: {shown} degC)",
+                    "Check which column is which sensor: T1 top block by the water cooler, T2 top block by "
+                    "the module, T3 bottom block by the module, T4 bottom block by its bottom face; a swap "
+                    "across the module (T2 and T3) shows on this path too (docs/data-format.md, 'The reference rig')",
+                    b - 1,
+                    path[2],
+                )
+            ]
+    return []
+
+
 def _zero_current_range(exp, steps, settle):
-    for a, b in _zero_holds(exp, steps, settle):
+    for a, b in _settled_holds(exp, steps, settle, zero=True):
         tail = slice(a + int(0.8 * (b - a)), b)
         lo = min(float(np.median(exp.t_water[tail])), float(np.median(exp.t_amb[tail])))
         hi = max(float(np.median(exp.t_water[tail])), float(np.median(exp.t_amb[tail])))
@@ -544,12 +631,39 @@ def _identifiability(exp, steps, settle):
             _finding(
                 WARNING,
                 exp,
-                "the current has no steps: R and S cannot be identified from this run",
+                "the current has no steps: R and S cannot be identified from this run (calibrate refuses it)",
                 hint,
                 column="current_A",
+                refused_by=("calibrate",),
             )
         ]
     out = []
+    if len(steps) < CALIBRATE_MIN_STEPS:
+        out.append(
+            _finding(
+                WARNING,
+                exp,
+                f"the run has {len(steps)} current step(s): calibrate refuses it (it needs at least "
+                f"{CALIBRATE_MIN_STEPS}; identify works from 3)",
+                hint,
+                column="current_A",
+                refused_by=("calibrate",),
+            )
+        )
+    rest = float(exp.time[steps[0].index] - exp.time[0])
+    if rest < CALIBRATE_LEAD_S:
+        out.append(
+            _finding(
+                WARNING,
+                exp,
+                f"the first current step comes {rest:.1f} s after the start: calibrate refuses the run "
+                f"(it needs at least {CALIBRATE_LEAD_S:.0f} s at rest before the first step)",
+                "Record the rig at rest before the first step",
+                steps[0].index,
+                "current_A",
+                refused_by=("calibrate",),
+            )
+        )
     directions = {s.direction for s in steps}
     if directions != {"up", "down"}:
         missing = ({"up", "down"} - directions).pop()

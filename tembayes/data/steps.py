@@ -15,6 +15,10 @@ from dataclasses import dataclass
 import numpy as np
 
 _MAD_TO_SD = 1.4826
+#: What the calibration needs of an identification run: this many steps, and this long [s]
+#: at rest before the first one (the model starts from the steady state at the first sample).
+CALIBRATE_MIN_STEPS = 4
+CALIBRATE_LEAD_S = 30.0
 
 
 @dataclass(frozen=True)
