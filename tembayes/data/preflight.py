@@ -268,14 +268,15 @@ def _settling_time(exp, steps):
         1/SETTLE_HOLD_FRACTION times ``slow`` (holds cut short of the
         response measure the hold, not the rig).
     """
-    noise = {c: noise_estimate(exp.channel(c)) for c in FACE_SENSORS}
     pooled, per_sensor = [], []
     for c in FACE_SENSORS:
+        x = exp.channel(c)
+        noise = noise_estimate(x)
         times, holds = [], []
         for s in steps:
-            y = exp.channel(c)[s.hold_start : s.hold_end]
+            y = x[s.hold_start : s.hold_end]
             move = y[-1] - y[0]
-            if y.size < 5 or not abs(move) > max(50.0 * noise[c], 0.05):
+            if y.size < 5 or not abs(move) > max(50.0 * noise, 0.05):
                 continue
             reached = np.flatnonzero(np.abs(y - y[0]) >= 0.63 * abs(move))
             times.append(exp.time[s.hold_start + reached[0]] - s.t)
@@ -516,6 +517,11 @@ def _settled_holds(exp, steps, settle, *, zero):
     return out
 
 
+def _tail(a, b):
+    """The settled last fifth of the sample range ``a:b``."""
+    return slice(a + int(0.8 * (b - a)), b)
+
+
 def _sensor_order(exp, steps, settle):
     """Sensors out of their place on a heat path (swapped columns), from the settled holds.
 
@@ -528,14 +534,16 @@ def _sensor_order(exp, steps, settle):
     if len(holds) < SERIES_MIN_HOLDS:
         return []
     for path in SERIES_PATHS:
-        levels = np.array([[np.median(exp.channel(c)[a + int(0.8 * (b - a)) : b]) for c in path] for a, b in holds])
+        columns = [exp.channel(c) for c in path]
+        levels = np.array([[np.median(x[_tail(a, b)]) for x in columns] for a, b in holds])
         first, second = np.diff(levels, axis=1).T
         if np.ptp(first) < SERIES_MIN_SPAN_K or np.ptp(second) == 0.0:
             continue
         r = float(np.corrcoef(first, second)[0, 1])
         if r < SERIES_MAX_CORR:
-            a, b = holds[int(np.argmax(np.abs(first)))]
-            shown = ", ".join(f"{c} {v - KELVIN:.4g}" for c, v in zip(path, levels[int(np.argmax(np.abs(first)))]))
+            k = int(np.argmax(np.abs(first)))  # the hold shown: the largest step
+            b = holds[k][1]
+            shown = ", ".join(f"{c} {v - KELVIN:.4g}" for c, v in zip(path, levels[k]))
             return [
                 _finding(
                     ERROR,
@@ -555,7 +563,7 @@ def _sensor_order(exp, steps, settle):
 
 def _zero_current_range(exp, steps, settle):
     for a, b in _settled_holds(exp, steps, settle, zero=True):
-        tail = slice(a + int(0.8 * (b - a)), b)
+        tail = _tail(a, b)
         lo = min(float(np.median(exp.t_water[tail])), float(np.median(exp.t_amb[tail])))
         hi = max(float(np.median(exp.t_water[tail])), float(np.median(exp.t_amb[tail])))
         for j, c in enumerate(SENSOR_CHANNELS):
