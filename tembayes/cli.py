@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 import tembayes
+from tembayes.common.heap import keep_short_lived_blocks_on_the_heap
 from tembayes.errors import DataError, TembayesError
 
 _EPILOG_SIMULATE = """\
@@ -1053,6 +1054,7 @@ def _add_inspect(sub):
 
 def main(argv=None):
     """Entry point of the ``tembayes`` command; returns the exit status."""
+    keep_short_lived_blocks_on_the_heap()
     parser = build_parser()
     argv = list(sys.argv[1:] if argv is None else argv)
     args = parser.parse_args(argv)

@@ -53,6 +53,7 @@ from tembayes.calibrate.priors import ParameterPrior, effect_priors, law_priors,
 from tembayes.calibrate.stepdata import step_data
 from tembayes.common.arvizlib import az
 from tembayes.common.draws import even_indices
+from tembayes.common.heap import keep_short_lived_blocks_on_the_heap
 from tembayes.common.seeds import spawned, stream
 from tembayes.constants import MODULE_PARAMETERS
 from tembayes.data.write import atomic_write_text
@@ -506,6 +507,7 @@ def calibrate_module(module: Module | LazyModule, datasheet: Datasheet, **kw) ->
     -------
     ModuleCalibration
     """
+    keep_short_lived_blocks_on_the_heap()
     # one BLAS thread throughout: OpenBLAS picks other kernels (other
     # rounding) with more threads, and the same seed must give the same bits
     with threadpool_limits(limits=1, user_api="blas"):
