@@ -284,6 +284,7 @@ def test_another_module_type_needs_no_code_change(tmp_path):
     assert r.priors["R0_ohm"]["center"] == pytest.approx(ds.resistance())
 
 
+@pytest.mark.slow  # three calibrations with their expansions: ~2 min
 def test_an_expansion_off_early_is_rebuilt_at_once_and_a_passing_probe_changes_nothing(batch4, monkeypatch):
     """The early PSIS probe of a rebuildable stage: forced to fail, the stage is cut at the first check
     past ``psis_probe`` steps and the expansion rebuilt; passing, the draws are those without a probe."""

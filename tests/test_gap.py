@@ -509,6 +509,7 @@ def test_a_run_that_misses_a_sensor_lag_says_its_model_does_not_fit_though_uncon
     assert m["diagnostics"]["adequacy"]["reasons"]
 
 
+@pytest.mark.slow  # a screen and a recalibration in one process: ~3 min (fast tier: the no-gap path, the recalibrated run)
 def test_a_gap_is_screened_and_recalibrated_in_this_process_with_the_runs_own_options(lag_case):
     """jobs=1 and one effect screened: the short path through screen and recalibration (the whole
     diagnosis is the slow tier's). Its options are the run's, not the base metrics'."""
