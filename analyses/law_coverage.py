@@ -259,7 +259,7 @@ def main():
         "summary": summarise(r),
         "modules": r,
     }
-    (res / f"law_coverage_{label(args)}.json").write_text(json.dumps(doc, indent=1) + "\n")
+    recorded.write_text(json.dumps(doc, indent=1) + "\n")
     s = doc["summary"]
     lines = [
         f"# Law coverage: {label(args)}",

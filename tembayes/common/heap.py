@@ -12,7 +12,7 @@ and a module 1.5-2 times slower on a virtual machine.
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
+import functools
 import os
 
 # mallopt parameters (malloc.h)
@@ -24,8 +24,9 @@ MMAP_THRESHOLD = 32 * 1024 * 1024
 TRIM_THRESHOLD = 2 * MMAP_THRESHOLD
 
 
+@functools.cache
 def keep_short_lived_blocks_on_the_heap() -> bool:
-    """Raise glibc's mmap and trim thresholds in this process.
+    """Raise glibc's mmap and trim thresholds in this process (once; later calls return the first answer).
 
     Returns
     -------
@@ -34,11 +35,9 @@ def keep_short_lived_blocks_on_the_heap() -> bool:
     """
     if os.name != "posix":
         return False
-    name = ctypes.util.find_library("c")
     try:
-        libc = ctypes.CDLL(name)
-        mallopt = libc.mallopt
-    except (OSError, AttributeError, TypeError):
+        mallopt = ctypes.CDLL(None).mallopt  # the C library the process already has loaded
+    except (OSError, AttributeError):
         return False
     mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
     return bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)) and bool(mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD))

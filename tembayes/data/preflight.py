@@ -291,29 +291,29 @@ def _settling_time(exp, steps):
     return settle, slow, len(per_sensor) == len(FACE_SENSORS) and slow < SETTLE_HOLD_FRACTION * hold
 
 
-def _time_unit(exp, settle, sure):
-    if not math.isfinite(settle):
+def _time_unit(exp, slow, sure):
+    if not math.isfinite(slow):
         return []
     # one sensor responding (the other stuck or flat) may be the fast one, and short holds cut the response
     low = SETTLE_MIN_S if sure else SETTLE_MIN_UNSURE_S
-    if settle > SETTLE_MAX_S:
+    if slow > SETTLE_MAX_S:
         return [
             _finding(
                 ERROR,
                 exp,
-                f"the sensors take {settle / 3600:.3g} h (in the file's time unit) to settle "
+                f"the sensors take {slow / 3600:.3g} h (in the file's time unit) to settle "
                 "after a current step, but a rig's blocks settle in minutes: time_s looks like "
                 "milliseconds",
                 "Convert the time column to seconds (divide by 1000)",
                 column="time_s",
             )
         ]
-    if settle < low:
+    if slow < low:
         return [
             _finding(
                 ERROR,
                 exp,
-                f"the sensors settle {settle:.3g} time units after a current step, but a "
+                f"the sensors settle {slow:.3g} time units after a current step, but a "
                 "rig's blocks take minutes: time_s looks like minutes or hours",
                 "Convert the time column to seconds (minutes: multiply by 60; hours: by 3600)",
                 column="time_s",
