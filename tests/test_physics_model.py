@@ -12,6 +12,8 @@ import numpy as np
 import pytest
 from typical import PAPER, TA, TW  # noqa: E402
 
+from tembayes.bench.hifi import hifi_rig
+from tembayes.bench.outside import outside_rig
 from tembayes.constants import MODULE_PARAMETERS, T_REF
 from tembayes.errors import ModelError
 from tembayes.physics import CATALOGUE, REFERENCE, Inputs, RigDescription, RigParameter, rig_from_config, simulate
@@ -371,6 +373,38 @@ def test_network_effects_by_hand():
     assert amb.sum() == pytest.approx(amb0.sum() + 0.15, rel=1e-14)
     np.testing.assert_allclose(amb, amb0 * (1.0 + 0.15 / amb0.sum()), rtol=1e-14)
     np.testing.assert_array_equal(net.Gb[0, :, 0], base.Gb[0, :, 0])  # water side untouched
+
+
+@pytest.mark.parametrize(
+    "rig",
+    [reference_rig(layers=True), hifi_rig(layers=True), outside_rig()],
+    ids=["reference-layers", "bench-hifi-layers", "bench-outside"],
+)
+def test_a_contact_resistance_lies_between_the_modules_outer_face_and_its_block(rig):
+    """With the plates in layers the module's face is its alumina: the catalogue's "module face to
+    block" contact goes on the alumina's link to the block, not between the junctions' copper and
+    the alumina inside the module (where it hid part of the plate's heat capacity behind it)."""
+    params = {**PAPER, **rig.nominal()}
+    base = build(params, rig)["network"]
+    net = build({**params, "contact_R_cold_K_per_W": 0.06, "contact_R_hot_K_per_W": 0.02}, rig)["network"]
+    changed = {
+        tuple(sorted((rig.node_names[i], rig.node_names[j])))
+        for i, j in zip(*np.nonzero(~np.isclose(net.G[0], base.G[0], rtol=1e-15, atol=0.0)))
+    }
+    hot, cold = rig.module_faces
+    assert hot != rig.hot and cold != rig.cold
+    block = {n for a, b, _ in rig.links for n in (a, b) if n in rig.node_names} - {*rig.tem_chain, hot, cold}
+    expected = {
+        tuple(sorted((f, n)))
+        for f in (hot, cold)
+        for a, b, _ in rig.links
+        for n in (a, b)
+        if f in (a, b) and n in block
+    }
+    assert changed == expected and len(expected) == 2, changed
+    for (a, b), r in zip(sorted(expected, key=lambda e: cold not in e), (0.06, 0.02)):
+        g = base.G[0, base.index(a), base.index(b)]
+        assert net.G[0, net.index(a), net.index(b)] == pytest.approx(1.0 / (1.0 / g + r), rel=1e-14)
 
 
 def test_current_offset_inverts_the_measurement():

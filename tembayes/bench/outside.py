@@ -144,6 +144,7 @@ def outside_rig(depth_sides: Mapping[str, int] | None = None) -> RigDescription:
         cold="cold_copper",
         sensors={f"{s}_C": f"sensor_{s}" for s in sensor_cell},
         legs=tuple(legs),
+        faces=("hot_ceramic", "cold_ceramic"),
     )
 
 

@@ -138,20 +138,24 @@ def _input_current(P, params):
 
 
 def _module_links(rig, node):
-    """Links from a module plate to the rig (not to the module's own chain)."""
-    chain = {rig.hot, rig.cold, *rig.legs}
+    """Links from a module face to the rig (not to the module's own nodes)."""
+    chain = {*rig.tem_chain, *rig.module_faces}
+    nodes = set(rig.node_names)
     out = []
     for a, b, _ in rig.links:
         if node in (a, b):
             other = b if a == node else a
-            if other not in chain:
+            # a leak from the face to a boundary is no contact with the rig
+            if other not in chain and other in nodes:
                 out.append(other)
     return out
 
 
 def _network_contact(net, rig, params):
     nd = net.C.shape[0]
-    for side, node in (("cold", rig.cold), ("hot", rig.hot)):
+    # between the module's outer face and the block: with layered plates, outside the alumina
+    hot, cold = rig.module_faces
+    for side, node in (("cold", cold), ("hot", hot)):
         r = _get(params, f"contact_R_{side}_K_per_W", nd, nonnegative=True)
         if not np.any(r):
             continue

@@ -161,6 +161,10 @@ class RigDescription:
     depths : mapping of str to SensorDepth
         Sensors whose depth is a parameter (read between two nodes, see
         :meth:`readout`); the others read their node.
+    faces : tuple of str
+        ``(hot face, cold face)``: the module's outer nodes, where it meets the
+        rig, for plates resolved into layers (the alumina outside the
+        junctions' copper); empty when the plates are the faces.
     """
 
     name: str
@@ -173,6 +177,7 @@ class RigDescription:
     legs: tuple = ()
     physics: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
     depths: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
+    faces: tuple = ()
 
     def __post_init__(self):
         names = [p.name for p in self.parameters]
@@ -194,6 +199,8 @@ class RigDescription:
         for node in (self.hot, self.cold):
             if node not in known:
                 raise ModelError(f"rig '{self.name}': module node '{node}' is not a node")
+        if self.faces and (len(self.faces) != 2 or not set(self.faces) <= known):
+            raise ModelError(f"rig '{self.name}': faces must be two nodes (hot, cold), got {self.faces}")
         for node in self.legs:
             if node not in known or node in (self.hot, self.cold):
                 raise ModelError(f"rig '{self.name}': leg node '{node}' is not a separate node")
@@ -247,6 +254,11 @@ class RigDescription:
                 + f"; rig '{self.name}' has {', '.join(self.parameter_names)}"
             )
         return dataclasses.replace(self, parameters=tuple(params))
+
+    @property
+    def module_faces(self) -> tuple[str, str]:
+        """``(hot, cold)`` outer nodes of the module: :attr:`faces`, or the plates."""
+        return tuple(self.faces) or (self.hot, self.cold)
 
     @property
     def tem_chain(self) -> tuple[str, ...]:
@@ -562,6 +574,7 @@ def reference_rig(leg_cells: int = 0, block_cells: int = 2, layers: bool = False
         cold="cold_plate",
         sensors={"T1_C": top[k], "T2_C": top[nb - 1 - k], "T3_C": bottom[k], "T4_C": bottom[nb - 1 - k]},
         legs=legs,
+        faces=(hot_face, cold_face) if layers else (),
         depths={
             ch: SensorDepth(deeper, f"depth_{ch[:2]}", SENSOR_DEPTH, 0.010 / nb)
             for ch, deeper in (
