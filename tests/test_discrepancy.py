@@ -91,13 +91,14 @@ def test_a_held_parameter_moves_the_mode_as_its_linear_response_says():
             return {"a": X[:, 0], "b": X[:, 1], "q": np.full(len(X), 2.0)}
 
     class Model:
-        def predict(self, P):
+        def predict(self, P, strict=True):
             a, b, q = (np.asarray(P[k], float)[:, None] for k in ("a", "b", "q"))
             return (a * t + b + 0.3 * np.log(q) * t**2)[:, None, :]
 
     J = np.stack([t, np.ones_like(t)])[:, None, :]  # (p, nc, n)
     held = {"q": RigParameter("q", 2.0, 2.0 * np.exp(-0.4), 2.0 * np.exp(0.4), "1")}
     spread = held_nuisance_spread(Model(), Space(), np.array([1.0, 0.5]), J, np.array([0.01]), held)
+    assert spread.not_carried == ()
     y_true = 1.0 * t + 0.5 + 0.3 * (np.log(2.0) + 0.2) * t**2
     y_held = 1.0 * t + 0.5 + 0.3 * np.log(2.0) * t**2
     A = np.column_stack([t, np.ones_like(t)])
@@ -106,3 +107,38 @@ def test_a_held_parameter_moves_the_mode_as_its_linear_response_says():
     np.testing.assert_allclose(spread.log_sd, [0.8 / np.sqrt(12.0)])  # uniform over the log range
     X = spread.apply(np.zeros((20000, 2)), np.random.default_rng(0))
     np.testing.assert_allclose(X.std(axis=0), np.abs(spread.shift[:, 0]) * 0.8 / np.sqrt(12.0), rtol=0.03)
+
+
+def test_a_held_parameter_the_model_cannot_simulate_is_named_not_fatal():
+    """A posterior centre the exact model cannot simulate for one held parameter's probes (NaN, as
+    ``predict(strict=False)`` returns them): that parameter is listed as not carried over, with no
+    shift, and the other's shift is its known linear response, as without it."""
+    from types import SimpleNamespace
+
+    from tembayes.calibrate.discrepancy import held_nuisance_spread
+    from tembayes.physics.rig import RigParameter
+
+    t = np.linspace(0.0, 1.0, 50)
+
+    class Space:
+        priors = (SimpleNamespace(kind="uniform", scale=1.0),) * 2
+        fixed = {"q": 2.0, "r": 3.0}
+
+        def params(self, X):
+            return {"a": X[:, 0], "b": X[:, 1], "q": np.full(len(X), 2.0), "r": np.full(len(X), 3.0)}
+
+    class Model:
+        def predict(self, P, strict=True):
+            assert not strict  # a failed probe must come back as NaN, not raise
+            a, b, q, r = (np.asarray(P[k], float)[:, None] for k in ("a", "b", "q", "r"))
+            y = (a * t + b + 0.3 * np.log(q) * t**2)[:, None, :]
+            return np.where((r != 3.0)[:, :, None], np.nan, y)  # any probe of r fails
+
+    J = np.stack([t, np.ones_like(t)])[:, None, :]
+    held = {n: RigParameter(n, v, v * np.exp(-0.4), v * np.exp(0.4), "1") for n, v in (("q", 2.0), ("r", 3.0))}
+    spread = held_nuisance_spread(Model(), Space(), np.array([1.0, 0.5]), J, np.array([0.01]), held)
+    assert spread.not_carried == ("r",)
+    assert np.all(spread.shift[:, 1] == 0.0)
+    A = np.column_stack([t, np.ones_like(t)])
+    move = np.linalg.lstsq(A, 0.3 * 0.2 * t**2, rcond=None)[0]
+    np.testing.assert_allclose(spread.shift[:, 0] * 0.2, -move, rtol=1e-6)

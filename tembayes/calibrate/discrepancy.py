@@ -135,11 +135,15 @@ class HeldSpread:
         Their uncertainty (log scale: the sd of a uniform draw over their documented range).
     shift : ndarray, shape (p, m)
         Shift of the posterior mode's coordinates per unit of each one's log.
+    not_carried : tuple of str
+        Held parameters whose response could not be simulated at the posterior's centre (their
+        shift is zero: nothing is carried over for them).
     """
 
     names: tuple
     log_sd: np.ndarray
     shift: np.ndarray
+    not_carried: tuple = ()
 
     def apply(self, X: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """``X`` ``(n, >= p)`` with every draw moved by the held parameters' drawn deviations (in place: a copy)."""
@@ -200,6 +204,9 @@ def held_nuisance_spread(
     Returns
     -------
     HeldSpread
+        A parameter whose two probes the model cannot simulate (a posterior
+        centre outside the rig's physical range, where only the expansion
+        went) is listed in ``not_carried`` instead of failing the module.
     """
     names = tuple(held)
     m = len(names)
@@ -210,8 +217,10 @@ def held_nuisance_spread(
         v[2 * i] *= np.exp(h)
         v[2 * i + 1] *= np.exp(-h)
         params[q] = v
-    Y = model.predict(params)
-    D = (Y[0::2] - Y[1::2]) / (2.0 * h)  # (m, nc, n)
+    Y = model.predict(params, strict=False)
+    ok = np.all(np.isfinite(Y), axis=(1, 2))
+    ok = ok[0::2] & ok[1::2]
+    D = np.where(ok[:, None, None], (Y[0::2] - Y[1::2]) / (2.0 * h), 0.0)  # (m, nc, n)
     w = 1.0 / np.asarray(noise, float) ** 2
     JtWJ = np.einsum("icn,jcn,c->ij", J, J, w)
     prec = np.array([0.0 if p.kind == "uniform" else 1.0 / p.scale**2 for p in space.priors])
@@ -219,4 +228,5 @@ def held_nuisance_spread(
     shift = -np.linalg.solve(JtWJ + np.diag(prec), JtWD)
     # a documented range read as uniform: sd = width / sqrt(12)
     log_sd = np.array([np.log(held[q].high / held[q].low) / np.sqrt(12.0) for q in names])
-    return HeldSpread(names=names, log_sd=log_sd, shift=shift)
+    failed = tuple(q for q, good in zip(names, ok) if not good)
+    return HeldSpread(names=names, log_sd=log_sd, shift=shift, not_carried=failed)

@@ -836,6 +836,15 @@ def _posterior(prob, st, levels) -> _Posterior:
         )
         flat = spread.apply(flat, st.rng)
         discrepancy["held_sd_over_posterior_sd"] = spread.to_json(space.names, laws, law_sd)
+        if spread.not_carried:
+            discrepancy["held_not_carried"] = list(spread.not_carried)
+            warnings.warn(
+                f"{prob.module_id}: the exact model cannot be simulated at the posterior's centre, so the range of "
+                f"{', '.join(spread.not_carried)} is not carried over to the laws; the posterior lies where only "
+                "the model's expansion reaches (see the expansion check, psis_k)",
+                RuntimeWarning,
+                stacklevel=4,
+            )
     if opt.discrepancy != "none":
         step_ll = st.like.pointwise(flat)
     draws = {k: v.reshape(nw, nk) for k, v in space.values(flat).items()}
