@@ -73,31 +73,49 @@ def test_windows_that_disagree_are_covered_by_the_sandwich_not_by_the_posterior(
     assert lo - 0.03 <= wide <= hi  # the sandwich is honest (24 windows estimate V with some scatter)
 
 
-def test_a_held_parameter_moves_the_mode_as_its_linear_response_says():
-    """Known answer on a linear model: y = a t + b + 0.3 log(q) t^2, q held at 2 while the data's is
-    2 e^0.2: the least-squares fit of (a, b) moves by exactly the computed shift times 0.2."""
+T_LINEAR = np.linspace(0.0, 1.0, 50)
+
+
+def _linear_problem(held_values, fails=()):
+    """The known-answer problem ``y = a t + b + 0.3 log(q) t^2`` with rig values held at ``held_values``
+    (only ``q`` enters ``y``); a probe that moves a held value named in ``fails`` comes back as NaN,
+    as ``predict(strict=False)`` returns a simulation that failed.  Returns ``(model, space, J, held)``."""
     from types import SimpleNamespace
 
-    from tembayes.calibrate.discrepancy import held_nuisance_spread
     from tembayes.physics.rig import RigParameter
 
-    t = np.linspace(0.0, 1.0, 50)
+    t = T_LINEAR
 
     class Space:
         priors = (SimpleNamespace(kind="uniform", scale=1.0),) * 2
-        fixed = {"q": 2.0}
+        fixed = dict(held_values)
 
         def params(self, X):
-            return {"a": X[:, 0], "b": X[:, 1], "q": np.full(len(X), 2.0)}
+            return {"a": X[:, 0], "b": X[:, 1], **{k: np.full(len(X), v) for k, v in held_values.items()}}
 
     class Model:
         def predict(self, P, strict=True):
+            assert not strict  # a failed probe must come back as NaN, not raise
             a, b, q = (np.asarray(P[k], float)[:, None] for k in ("a", "b", "q"))
-            return (a * t + b + 0.3 * np.log(q) * t**2)[:, None, :]
+            y = (a * t + b + 0.3 * np.log(q) * t**2)[:, None, :]
+            moved = np.zeros(len(y), bool)
+            for k in fails:
+                moved |= np.asarray(P[k]) != held_values[k]
+            return np.where(moved[:, None, None], np.nan, y)
 
     J = np.stack([t, np.ones_like(t)])[:, None, :]  # (p, nc, n)
-    held = {"q": RigParameter("q", 2.0, 2.0 * np.exp(-0.4), 2.0 * np.exp(0.4), "1")}
-    spread = held_nuisance_spread(Model(), Space(), np.array([1.0, 0.5]), J, np.array([0.01]), held)
+    held = {k: RigParameter(k, v, v * np.exp(-0.4), v * np.exp(0.4), "1") for k, v in held_values.items()}
+    return Model(), Space(), J, held
+
+
+def test_a_held_parameter_moves_the_mode_as_its_linear_response_says():
+    """Known answer on a linear model: y = a t + b + 0.3 log(q) t^2, q held at 2 while the data's is
+    2 e^0.2: the least-squares fit of (a, b) moves by exactly the computed shift times 0.2."""
+    from tembayes.calibrate.discrepancy import held_nuisance_spread
+
+    t = T_LINEAR
+    model, space, J, held = _linear_problem({"q": 2.0})
+    spread = held_nuisance_spread(model, space, np.array([1.0, 0.5]), J, np.array([0.01]), held)
     assert spread.not_carried == ()
     y_true = 1.0 * t + 0.5 + 0.3 * (np.log(2.0) + 0.2) * t**2
     y_held = 1.0 * t + 0.5 + 0.3 * np.log(2.0) * t**2
@@ -113,30 +131,11 @@ def test_a_held_parameter_the_model_cannot_simulate_is_named_not_fatal():
     """A posterior centre the exact model cannot simulate for one held parameter's probes (NaN, as
     ``predict(strict=False)`` returns them): that parameter is listed as not carried over, with no
     shift, and the other's shift is its known linear response, as without it."""
-    from types import SimpleNamespace
-
     from tembayes.calibrate.discrepancy import held_nuisance_spread
-    from tembayes.physics.rig import RigParameter
 
-    t = np.linspace(0.0, 1.0, 50)
-
-    class Space:
-        priors = (SimpleNamespace(kind="uniform", scale=1.0),) * 2
-        fixed = {"q": 2.0, "r": 3.0}
-
-        def params(self, X):
-            return {"a": X[:, 0], "b": X[:, 1], "q": np.full(len(X), 2.0), "r": np.full(len(X), 3.0)}
-
-    class Model:
-        def predict(self, P, strict=True):
-            assert not strict  # a failed probe must come back as NaN, not raise
-            a, b, q, r = (np.asarray(P[k], float)[:, None] for k in ("a", "b", "q", "r"))
-            y = (a * t + b + 0.3 * np.log(q) * t**2)[:, None, :]
-            return np.where((r != 3.0)[:, :, None], np.nan, y)  # any probe of r fails
-
-    J = np.stack([t, np.ones_like(t)])[:, None, :]
-    held = {n: RigParameter(n, v, v * np.exp(-0.4), v * np.exp(0.4), "1") for n, v in (("q", 2.0), ("r", 3.0))}
-    spread = held_nuisance_spread(Model(), Space(), np.array([1.0, 0.5]), J, np.array([0.01]), held)
+    t = T_LINEAR
+    model, space, J, held = _linear_problem({"q": 2.0, "r": 3.0}, fails=("r",))
+    spread = held_nuisance_spread(model, space, np.array([1.0, 0.5]), J, np.array([0.01]), held)
     assert spread.not_carried == ("r",)
     assert np.all(spread.shift[:, 1] == 0.0)
     A = np.column_stack([t, np.ones_like(t)])

@@ -139,14 +139,14 @@ def _input_current(P, params):
 
 def _module_links(rig, node):
     """Links from a module face to the rig (not to the module's own nodes)."""
-    chain = {*rig.tem_chain, *rig.module_faces}
+    own = {*rig.tem_chain, *rig.module_faces}
     nodes = set(rig.node_names)
     out = []
     for a, b, _ in rig.links:
         if node in (a, b):
             other = b if a == node else a
             # a leak from the face to a boundary is no contact with the rig
-            if other not in chain and other in nodes:
+            if other not in own and other in nodes:
                 out.append(other)
     return out
 
