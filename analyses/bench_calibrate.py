@@ -2,10 +2,11 @@
 
 - **tembayes**: ``calibrate_module`` on one module of the example batch, to
   convergence (50 autocorrelation times, R-hat <= 1.01, bulk ESS >= 1000 for
-  every law parameter, the expansion checked by PSIS); target <= 30 s on 2
-  cores.  Then the whole example batch (3 modules and the population,
-  ``calibrate_batch`` with figures, modules in two worker processes as the
-  CLI runs them) end to end; target <= 2 min.
+  every law parameter, the expansion checked by PSIS) with the default model
+  (full form, robust discrepancy); target <= 60 s on 2 cores.  Then the
+  whole example batch (3 modules and the population, ``calibrate_batch``
+  with figures, modules in two worker processes as the CLI runs them) end to
+  end; target <= 3 min.
 - **naive**: emcee over a ``scipy.integrate.solve_ivp`` simulation of the
   whole identification run (75 000 samples) with the same rig model and the
   same priors, white noise at the measured level.  One log-likelihood costs
@@ -134,9 +135,9 @@ def main(argv=None):
         f"\nnaive: {steps:.0f} steps x {nw} walkers x {t_eval:.1f} s / {threads} cores = {t_naive / 3600:.1f} h "
         f"to a bulk ESS of {ESS_TARGET:.0f} (tau {tau:.0f} steps)"
     )
-    print(f"tembayes: {t_module:.1f} s to a bulk ESS of {d['ess_bulk_min']:.0f} (target <= 30 s)")
+    print(f"tembayes: {t_module:.1f} s to a bulk ESS of {d['ess_bulk_min']:.0f} (target <= 60 s)")
     print(f"ratio of time to the same ESS (naive / tembayes): {ratio:,.0f}x")
-    print(f"example batch end to end: {t_batch:.1f} s (target <= 120 s)")
+    print(f"example batch end to end: {t_batch:.1f} s (target <= 180 s)")
     write_json(
         RESULTS,
         {
@@ -155,7 +156,7 @@ def main(argv=None):
             "naive_steps_to_ess": steps,
             "naive_seconds_to_ess": t_naive,
             "ratio_time_to_same_ess": ratio,
-            "targets": {"module_s": 30, "batch_s": 120},
+            "targets": {"module_s": 60, "batch_s": 180},
         },
     )
     print(f"wrote {RESULTS}")

@@ -152,12 +152,12 @@ def negative_control(work):
     draws, space, run = sample_prior_only(m, b.datasheet, rig_config=b.rig_config, seed=0)
     out = {}
     for pr in space.priors:
-        x = pr.to_unconstrained(draws[pr.name]).ravel()
-        x = x[:: max(1, len(x) // 1000)]  # ~independent draws (as the test does)
         if pr.kind == "uniform":
-            ref = stats.uniform(pr.center - pr.scale, 2 * pr.scale)
+            x, ref = np.ravel(draws[pr.name]), stats.uniform(pr.center - pr.scale, 2 * pr.scale)
         else:
-            ref = stats.norm(np.log(pr.center) if pr.kind == "lognormal" else pr.center, pr.scale)
+            # the value's standard score under its prior (its log, logit or itself) is N(0, 1)
+            x, ref = np.ravel(pr.z(draws[pr.name])), stats.norm()
+        x = x[:: max(1, len(x) // 1000)]  # ~independent draws (as the test does)
         out[pr.name] = {"ks_pvalue": float(stats.kstest(x, ref.cdf).pvalue), "sd_ratio": float(np.std(x) / ref.std())}
     return {
         "converged": bool(run.converged),

@@ -148,6 +148,54 @@ def test_rig_prior_spans_the_documented_range():
     assert 2 * 2 * pr.scale == pytest.approx(np.log(p.high / p.low))
 
 
+def test_a_share_gets_a_logit_normal_prior_that_never_leaves_zero_to_one():
+    p = next(q for q in REFERENCE.parameters if q.name == "tab_share")
+    pr = rig_prior(p)
+    assert pr.kind == "logitnormal"
+    # +-2 sd of the logit span the documented range, centred on the nominal value
+    assert 4 * pr.scale == pytest.approx(np.log(p.high / (1 - p.high)) - np.log(p.low / (1 - p.low)))
+    assert pr.coordinate_center == pytest.approx(np.log(p.nominal / (1 - p.nominal)))
+    # a coordinate far out on either side is still a share
+    assert np.all(
+        (pr.from_unconstrained(np.array([-40.0, 5.2, 40.0])) >= 0)
+        & (pr.from_unconstrained(np.array([-40.0, 5.2, 40.0])) <= 1)
+    )
+    # the density of the value: the logit's normal density times the Jacobian, zero outside (0, 1)
+    x = np.array([0.1, 0.5, 0.93])
+    z = (np.log(x / (1 - x)) - pr.coordinate_center) / pr.scale
+    want = stats.norm.logpdf(z) - np.log(pr.scale) - np.log(x * (1 - x))
+    assert np.allclose(pr.logpdf(x), want)
+    assert np.all(pr.logpdf(np.array([0.0, 1.0, 1.5])) == -np.inf)
+    # and it integrates to one
+    grid = np.linspace(1e-6, 1 - 1e-6, 200001)
+    assert np.trapezoid(np.exp(pr.logpdf(grid)), grid) == pytest.approx(1.0, abs=1e-4)
+    # a heat capacity stays log-normal
+    assert rig_prior(next(q for q in REFERENCE.parameters if q.name == "c_plate_hot")).kind == "lognormal"
+
+
+def test_a_conductance_is_sampled_as_its_resistance_under_the_same_log_normal_prior():
+    p = next(q for q in REFERENCE.parameters if q.name == "g_paste_hot")
+    pr = rig_prior(p)
+    assert pr.kind == "reciprocal"
+    lognormal = ParameterPrior(p.name, "lognormal", pr.center, pr.scale)
+    g = np.array([22.0, 35.0, 48.0])
+    # the same density of the conductance
+    assert np.allclose(pr.logpdf(g), lognormal.logpdf(g))
+    # in the coordinate u = 1/g: that density times |dg/du| = 1/u^2
+    u = pr.to_unconstrained(g)
+    assert np.allclose(u, 1.0 / g) and np.allclose(pr.from_unconstrained(u), g)
+    assert np.allclose(pr.logpdf_unconstrained(u), lognormal.logpdf(g) - 2.0 * np.log(u))
+    # the space's vectorised log prior agrees, and refuses a resistance <= 0
+    sp = ParameterSpace((pr, ParameterPrior("shift", "uniform", 0.0, 0.1)))
+    X = np.column_stack([np.append(u, [0.0, -0.01]), np.zeros(5)])
+    want = np.append(pr.logpdf_unconstrained(u), [-np.inf, -np.inf]) - np.log(0.2)
+    assert np.allclose(sp.log_prior(X), want)
+    # prior draws are the log-normal's: their log has the prior's centre and sd
+    lg = np.log(pr.sample(np.random.default_rng(1), 200_000))
+    assert np.mean(lg) == pytest.approx(np.log(pr.center), abs=4 * pr.scale / np.sqrt(2e5))
+    assert np.std(lg) == pytest.approx(pr.scale, rel=0.01)
+
+
 def test_parameter_space_round_trip_and_clip():
     sp = ParameterSpace(tuple(law_priors(TEC1_12706)) + (ParameterPrior("shift", "uniform", 0.0, 0.1),))
     vals = {

@@ -80,14 +80,13 @@ def _linear_problem(held_values, fails=()):
     """The known-answer problem ``y = a t + b + 0.3 log(q) t^2`` with rig values held at ``held_values``
     (only ``q`` enters ``y``); a probe that moves a held value named in ``fails`` comes back as NaN,
     as ``predict(strict=False)`` returns a simulation that failed.  Returns ``(model, space, J, held)``."""
-    from types import SimpleNamespace
-
+    from tembayes.calibrate.priors import ParameterPrior
     from tembayes.physics.rig import RigParameter
 
     t = T_LINEAR
 
     class Space:
-        priors = (SimpleNamespace(kind="uniform", scale=1.0),) * 2
+        priors = (ParameterPrior("a", "uniform", 0.0, 1.0), ParameterPrior("b", "uniform", 0.0, 1.0))
         fixed = dict(held_values)
 
         def params(self, X):

@@ -181,7 +181,7 @@ def held_nuisance_spread(
     the mode would move if it were ``e^d`` times its value is the weighted
     least-squares response ``-(J^T W J + P)^-1 J^T W df/dd`` of the mode to
     the prediction's change ``df/dd`` (``J`` the prediction's slopes in the
-    sampled coordinates, ``W`` the noise weights, ``P`` the prior precision);
+    sampled coordinates, ``W`` the noise weights, ``P`` the prior's curvature at ``x``);
     adding that shift times a draw of ``d`` to every posterior draw is the
     posterior marginalised over the held parameter, to first order.
 
@@ -223,7 +223,7 @@ def held_nuisance_spread(
     D = np.where(ok[:, None, None], (Y[0::2] - Y[1::2]) / (2.0 * h), 0.0)  # (m, nc, n)
     w = 1.0 / np.asarray(noise, float) ** 2
     JtWJ = np.einsum("icn,jcn,c->ij", J, J, w)
-    prec = np.array([0.0 if p.kind == "uniform" else 1.0 / p.scale**2 for p in space.priors])
+    prec = np.array([p.coordinate_precision(xj) for p, xj in zip(space.priors, x)])
     JtWD = np.einsum("icn,qcn,c->iq", J, D, w)
     shift = -np.linalg.solve(JtWJ + np.diag(prec), JtWD)
     # a documented range read as uniform: sd = width / sqrt(12)

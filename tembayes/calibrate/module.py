@@ -54,8 +54,9 @@ from tembayes.calibrate.stepdata import step_data
 from tembayes.common.arvizlib import az
 from tembayes.common.draws import even_indices
 from tembayes.common.heap import keep_short_lived_blocks_on_the_heap
+from tembayes.common.lstsq import design_covariance
 from tembayes.common.seeds import spawned, stream
-from tembayes.constants import MODULE_PARAMETERS
+from tembayes.constants import KELVIN, MODULE_PARAMETERS, T_REF
 from tembayes.data.write import atomic_write_text
 from tembayes.errors import ModelError
 from tembayes.physics.effects import EFFECT_PARAMETERS
@@ -67,7 +68,7 @@ if TYPE_CHECKING:
     from scipy.optimize import OptimizeResult
 
     from tembayes.calibrate.stepdata import StepData
-    from tembayes.data import Datasheet, LazyModule, Module
+    from tembayes.data import Datasheet, Experiment, LazyModule, Module
     from tembayes.physics.rig import RigDescription
 
 #: Resolution of the calibration model: legs in 4 cells, blocks in 6.  The
@@ -297,22 +298,27 @@ def _prior_residuals(space, X):
     for j, p in enumerate(space.priors):
         if p.kind == "uniform":
             continue
-        m = np.log(p.center) if p.kind == "lognormal" else p.center
-        cols.append((X[:, j] - m) / p.scale)
+        if p.kind == "reciprocal":
+            with np.errstate(divide="ignore", invalid="ignore"):
+                cols.append((np.log(X[:, j]) - np.log(p.coordinate_center)) / p.scale)
+        else:
+            cols.append((X[:, j] - p.coordinate_center) / p.scale)
     return np.column_stack(cols)
 
 
 def _prior_sd(space):
     """Prior sd of every coordinate (a uniform's half-width / sqrt 3)."""
-    return np.array([p.scale / np.sqrt(3.0) if p.kind == "uniform" else p.scale for p in space.priors])
+    return np.array([p.coordinate_sd for p in space.priors])
 
 
 def fd_steps(space: ParameterSpace) -> np.ndarray:
     """Finite-difference steps per coordinate (~0.1-1 % of a prior width)."""
     h = []
     for p in space.priors:
-        if p.kind == "lognormal":
+        if p.kind in ("lognormal", "logitnormal"):
             h.append(1e-3)
+        elif p.kind == "reciprocal":
+            h.append(1e-3 * p.coordinate_center)
         elif p.kind == "uniform":
             h.append(0.02 * p.scale)
         else:
@@ -360,16 +366,18 @@ def fit_map(
         if p.kind == "uniform":
             lo[j], hi[j] = p.center - 0.98 * p.scale, p.center + 0.98 * p.scale
             scale[j] = 0.5 * p.scale
-        elif p.kind == "lognormal":
+        elif p.kind in ("lognormal", "logitnormal"):
             scale[j] = 0.01
+        elif p.kind == "reciprocal":
+            lo[j] = 0.1 * p.coordinate_center
+            scale[j] = 0.01 * p.coordinate_center
         else:
             scale[j] = 0.1 * p.scale
     x0 = np.clip(x0, lo + 1e-12, hi - 1e-12)
     sol = least_squares(
         lambda x: resid(x[None])[0], x0, jac=jac, bounds=(lo, hi), x_scale=scale, method="trf", max_nfev=max_nfev
     )
-    J = sol.jac
-    cov = np.linalg.pinv(J.T @ J)
+    cov = design_covariance(sol.jac)
     return sol.x, cov, sol
 
 
@@ -464,7 +472,7 @@ def hysteresis(
         Aw = np.vstack([np.hstack([Aw, Gw]), np.hstack([np.zeros((nh, A.shape[1])), np.diag(1.0 / data.level_sd)])])
         rw = np.concatenate([rw, np.zeros(nh)])
     coef, *_ = np.linalg.lstsq(Aw, rw, rcond=None)
-    cov = np.linalg.pinv(Aw.T @ Aw)
+    cov = design_covariance(Aw)
     out = {}
     k0 = A.shape[1]
     for name, k in (("R_ohm", k0 - 2), ("S_V_per_K", k0 - 1)):
@@ -535,6 +543,8 @@ class _Problem:
     """One module's calibration problem: its step data, the model, the sampled space and the likelihood pieces."""
 
     module_id: str
+    experiment: Experiment
+    rig_config: dict
     data: object
     rig: object
     model: StepResponseModel
@@ -548,7 +558,8 @@ class _Problem:
 
 def _problem(module, datasheet, rig_config, opt, effects, seed) -> _Problem:
     emcee_seed, rng = module_seed(seed, module.id)
-    data = step_data(module.identification)
+    experiment = module.identification
+    data = step_data(experiment)
     rig = calibration_rig(rig_config, opt)
     model = StepResponseModel(data, rig)
     effects = tuple(dict.fromkeys((*effects, *opt.effects)))  # the run's own and the gap's candidate
@@ -558,6 +569,8 @@ def _problem(module, datasheet, rig_config, opt, effects, seed) -> _Problem:
         raise ModelError(f"nwalkers must be at least 2 x {space.ndim} parameters, got {nwalkers}")
     return _Problem(
         module.id,
+        experiment,
+        dict(rig_config or {}),
         data,
         rig,
         model,
@@ -570,6 +583,32 @@ def _problem(module, datasheet, rig_config, opt, effects, seed) -> _Problem:
     )
 
 
+def step_method_laws(experiment: Experiment, rig_config: Mapping | None) -> dict[str, float]:
+    """R0, R1, S0 and S1 of the step method at the rig's nominal values, or ``{}`` when it cannot give them.
+
+    R from the voltage jumps, S from the hold ends
+    (:func:`~tembayes.identify.pipeline.step_estimates`): within a few % of
+    the posterior, where the datasheet is ~20 % off, so the mode search
+    starts near its end (on the example it needs 22 Jacobians instead of 37).
+    A run or rig the step method cannot read leaves the search at the prior
+    centre.
+    """
+    from tembayes.identify.pipeline import step_estimates
+
+    try:
+        e = step_estimates(experiment, rig_from_config(rig_config or {}))
+    except (ModelError, ValueError, np.linalg.LinAlgError):
+        return {}
+    okR, okS = np.isfinite(e["R_ohm"]), np.isfinite(e["S_V_per_K"])
+    if okR.sum() < 3 or okS.sum() < 3:
+        return {}
+    R1, R0 = np.polyfit(e["Tavg_R_C"][okR] + KELVIN - T_REF, e["R_ohm"][okR], 1)
+    S1, S0 = np.polyfit(e["Tavg_S_C"][okS] + KELVIN - T_REF, e["S_V_per_K"][okS], 1)
+    if not (R0 > 0 and S0 > 0):
+        return {}
+    return {"R0_ohm": float(R0), "R1_ohm_per_K": float(R1), "S0_V_per_K": float(S0), "S1_V_per_K2": float(S1)}
+
+
 def _start_state(prob, state_file, resume, start, say) -> dict:
     """The resume state, or a new one at the posterior mode (written to ``state_file``)."""
     if resume and state_file and os.path.exists(state_file):
@@ -577,7 +616,8 @@ def _start_state(prob, state_file, resume, start, say) -> dict:
         if state is not None:
             return state
     say(f"{prob.module_id}: posterior mode")
-    x0 = start_point(prob.model_space, {k: v for k, v in (start or {}).items() if k != SHIFT})
+    start = {**step_method_laws(prob.experiment, prob.rig_config), **(start or {})}
+    x0 = start_point(prob.model_space, {k: v for k, v in start.items() if k != SHIFT})
     x_map, cov, sol = fit_map(prob.model, prob.model_space, prob.data, x0)
     state = {
         "x_map": x_map.tolist(),
@@ -922,7 +962,8 @@ def sample_prior_only(
     """
     opt = options or CalibrationOptions()
     emcee_seed, rng = module_seed(seed, module.id)
-    data = step_data(module.identification)
+    experiment = module.identification
+    data = step_data(experiment)
     rig = calibration_rig(rig_config, opt)
     model = StepResponseModel(data, rig)
     _, space = parameter_space(rig, datasheet, data, model.shift_bound, form=opt.model)

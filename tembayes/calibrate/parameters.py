@@ -2,6 +2,7 @@
 
 The sampler works in unconstrained-ish coordinates ``x``: the log of every
 positive parameter (R0, S0, K and the rig's conductances and capacitances),
+the logit of a share, the reciprocal of a conductance sampled as a resistance,
 the slopes and the step shift as they are.  :class:`ParameterSpace` maps a
 batch of coordinate vectors ``X`` of shape ``(nw, p)`` to the parameter
 mapping the models take and gives the prior's log density (Jacobian
@@ -73,28 +74,42 @@ class ParameterSpace:
 
     @cached_property
     def _prior_arrays(self):
-        gauss = np.array([p.kind != "uniform" for p in self.priors])
-        centre = np.array([np.log(p.center) if p.kind == "lognormal" else p.center for p in self.priors])
-        return gauss, centre, np.array([p.scale for p in self.priors])
+        kinds = np.array([p.kind for p in self.priors])
+        gauss = np.isin(kinds, ("normal", "lognormal", "logitnormal"))
+        recip = kinds == "reciprocal"
+        centre = np.array([p.coordinate_center for p in self.priors])
+        return gauss, recip, centre, np.array([p.scale for p in self.priors])
 
     def log_prior(self, X: np.ndarray) -> np.ndarray:
         """Log prior density of coordinate vectors ``(nw, p)`` -> ``(nw,)``."""
         X = np.atleast_2d(X)
-        gauss, centre, scale = self._prior_arrays
+        gauss, recip, centre, scale = self._prior_arrays
         z = (X[:, gauss] - centre[gauss]) / scale[gauss]
         out = (-0.5 * z * z).sum(axis=1) - np.sum(np.log(scale[gauss]) + 0.5 * np.log(2.0 * np.pi))
-        if np.any(~gauss):
-            inside = np.all(np.abs(X[:, ~gauss] - centre[~gauss]) < scale[~gauss], axis=1)
-            out = np.where(inside, out - np.sum(np.log(2.0 * scale[~gauss])), -np.inf)
+        if np.any(recip):
+            # a log-normal conductance sampled as its resistance u: log-normal in u
+            u = X[:, recip]
+            positive = np.all(u > 0, axis=1)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                lu = np.log(np.where(u > 0, u, 1.0))
+            z = (lu - np.log(centre[recip])) / scale[recip]
+            r = (-0.5 * z * z - lu).sum(axis=1) - np.sum(np.log(scale[recip]) + 0.5 * np.log(2.0 * np.pi))
+            out = np.where(positive, out + r, -np.inf)
+        uni = ~(gauss | recip)
+        if np.any(uni):
+            inside = np.all(np.abs(X[:, uni] - centre[uni]) < scale[uni], axis=1)
+            out = np.where(inside, out - np.sum(np.log(2.0 * scale[uni])), -np.inf)
         return out
 
     def clip(self, X: np.ndarray) -> np.ndarray:
-        """Pull coordinates of bounded (uniform) parameters inside their bounds."""
+        """Pull coordinates inside their bounds: a uniform's interval, a resistance above a tenth of its prior centre."""
         X = np.array(X, dtype=float)
         for j, p in enumerate(self.priors):
             if p.kind == "uniform":
                 lim = p.scale * (1 - 1e-9)
                 X[..., j] = np.clip(X[..., j], p.center - lim, p.center + lim)
+            elif p.kind == "reciprocal":
+                X[..., j] = np.maximum(X[..., j], 0.1 * p.coordinate_center)
         return X
 
     def sample_prior(self, rng: np.random.Generator, n: int) -> np.ndarray:

@@ -16,7 +16,11 @@ Law parameters and K (weakly informative, documented in docs/methods.md):
   prior does not presume the sign.
 
 Rig nuisance parameters: log-normal around the rig's nominal value whose
-+-2 sd span the documented plausible range (``RigParameter.low/high``).
++-2 sd span the documented plausible range (``RigParameter.low/high``).  A
+share (a dimensionless parameter whose range lies inside (0, 1), e.g. the
+part of a leak through the tabs) is logit-normal instead: a log-normal lets
+it pass 1, where the leak it splits turns negative and the rig cannot be
+simulated (an unmodelled curvature drove the example's tab share to 180).
 """
 
 from __future__ import annotations
@@ -42,6 +46,17 @@ LEVEL_LOG_SD = 0.3
 SLOPE_REL_SD = 0.01
 
 
+def logit(x: ArrayLike) -> np.ndarray:
+    """``log(x / (1 - x))``."""
+    x = np.asarray(x, dtype=float)
+    return np.log(x) - np.log1p(-x)
+
+
+def expit(u: ArrayLike) -> np.ndarray:
+    """The inverse of :func:`logit`."""
+    return 0.5 * (1.0 + np.tanh(0.5 * np.asarray(u, dtype=float)))
+
+
 @dataclass(frozen=True)
 class ParameterPrior:
     """A one-dimensional prior.
@@ -50,11 +65,14 @@ class ParameterPrior:
     ----------
     name : str
     kind : str
-        ``"lognormal"`` (``log x ~ N(log center, scale)``), ``"normal"``
-        (``x ~ N(center, scale)``) or ``"uniform"`` (``center +- scale``).
+        ``"lognormal"`` (``log x ~ N(log center, scale)``), ``"reciprocal"``
+        (the same log-normal, sampled as ``1 / x``: a conductance as a
+        resistance), ``"logitnormal"`` (``logit x ~ N(logit center,
+        scale)``, for a share in (0, 1)), ``"normal"`` (``x ~ N(center,
+        scale)``) or ``"uniform"`` (``center +- scale``).
     center, scale : float
-        SI units (``scale`` is a log-sd for ``lognormal``, the half-width for
-        ``uniform``).
+        SI units (``scale`` is the sd of the log or logit for ``lognormal``,
+        ``reciprocal`` and ``logitnormal``, the half-width for ``uniform``).
     """
 
     name: str
@@ -63,14 +81,52 @@ class ParameterPrior:
     scale: float
 
     def to_unconstrained(self, x: ArrayLike) -> np.ndarray:
-        """Map a value to the sampler's coordinate (log for log-normal)."""
+        """Map a value to the sampler's coordinate (the log, reciprocal or logit for those kinds)."""
         x = np.asarray(x, dtype=float)
-        return np.log(x) if self.kind == "lognormal" else x
+        if self.kind == "lognormal":
+            return np.log(x)
+        if self.kind == "reciprocal":
+            return 1.0 / x
+        return logit(x) if self.kind == "logitnormal" else x
 
     def from_unconstrained(self, u: ArrayLike) -> np.ndarray:
-        """Map a sampler's coordinate back to the value (SI; exp for log-normal)."""
+        """Map a sampler's coordinate back to the value (SI)."""
         u = np.asarray(u, dtype=float)
-        return np.exp(u) if self.kind == "lognormal" else u
+        if self.kind == "lognormal":
+            return np.exp(u)
+        if self.kind == "reciprocal":
+            with np.errstate(divide="ignore"):
+                return 1.0 / u
+        return expit(u) if self.kind == "logitnormal" else u
+
+    @property
+    def coordinate_center(self) -> float:
+        """The prior's centre in the sampler's coordinate."""
+        return float(self.to_unconstrained(self.center))
+
+    @property
+    def coordinate_sd(self) -> float:
+        """The prior's sd in the sampler's coordinate (to first order for ``reciprocal``)."""
+        if self.kind == "uniform":
+            return self.scale / np.sqrt(3.0)
+        return self.scale / self.center if self.kind == "reciprocal" else self.scale
+
+    def z(self, x: ArrayLike) -> np.ndarray:
+        """Standard score of the value ``x`` (SI) under the prior: its log or logit (as the kind has it), centred and scaled."""
+        x = np.asarray(x, dtype=float)
+        if self.kind in ("lognormal", "reciprocal"):
+            return (np.log(x) - np.log(self.center)) / self.scale
+        if self.kind == "logitnormal":
+            return (logit(x) - logit(self.center)) / self.scale
+        return (x - self.center) / (self.scale / np.sqrt(3.0) if self.kind == "uniform" else self.scale)
+
+    def coordinate_precision(self, u: float) -> float:
+        """The prior's curvature (Gauss-Newton) at the coordinate ``u``: 1 / its local sd squared (0 for a uniform)."""
+        if self.kind == "uniform":
+            return 0.0
+        # log-normal in the resistance u: its log's sd is a relative sd of u
+        sd = self.scale * float(u) if self.kind == "reciprocal" else self.scale
+        return 1.0 / sd**2
 
     def logpdf_unconstrained(self, u: ArrayLike) -> np.ndarray:
         """Log density in the sampler's coordinate (Jacobian included)."""
@@ -78,25 +134,36 @@ class ParameterPrior:
         if self.kind == "uniform":
             inside = np.abs(u - self.center) < self.scale
             return np.where(inside, -np.log(2.0 * self.scale), -np.inf)
-        m = np.log(self.center) if self.kind == "lognormal" else self.center
-        z = (u - m) / self.scale
+        if self.kind == "reciprocal":
+            # 1/x of a log-normal x is log-normal: its density in u itself
+            return ParameterPrior(self.name, "lognormal", 1.0 / self.center, self.scale).logpdf(u)
+        z = (u - self.coordinate_center) / self.scale
         return -0.5 * z * z - np.log(self.scale) - 0.5 * np.log(2.0 * np.pi)
 
     def logpdf(self, x: ArrayLike) -> np.ndarray:
         """Log density of the value ``x`` (SI)."""
         x = np.asarray(x, dtype=float)
+        if self.kind == "reciprocal":
+            return ParameterPrior(self.name, "lognormal", self.center, self.scale).logpdf(x)
         if self.kind == "lognormal":
             with np.errstate(divide="ignore", invalid="ignore"):
                 out = self.logpdf_unconstrained(np.log(np.where(x > 0, x, np.nan))) - np.log(x)
             return np.where(x > 0, out, -np.inf)
+        if self.kind == "logitnormal":
+            inside = (x > 0) & (x < 1)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                xi = np.where(inside, x, 0.5)
+                out = self.logpdf_unconstrained(logit(xi)) - np.log(xi) - np.log1p(-xi)
+            return np.where(inside, out, -np.inf)
         return self.logpdf_unconstrained(x)
 
     def sample(self, rng: np.random.Generator, n: int) -> np.ndarray:
         """Draw ``n`` values (SI) from the prior with the generator ``rng``."""
         if self.kind == "uniform":
             return self.center + self.scale * rng.uniform(-1.0, 1.0, n)
-        m = np.log(self.center) if self.kind == "lognormal" else self.center
-        return self.from_unconstrained(m + self.scale * rng.standard_normal(n))
+        if self.kind == "reciprocal":
+            return self.center * np.exp(self.scale * rng.standard_normal(n))
+        return self.from_unconstrained(self.coordinate_center + self.scale * rng.standard_normal(n))
 
     def to_dict(self) -> dict[str, str | float]:
         """JSON-ready dict of the prior's kind, center and scale."""
@@ -141,11 +208,21 @@ def law_log_prior(datasheet: Datasheet) -> Callable[[ArrayLike], np.ndarray]:
 
 
 def rig_prior(parameter: RigParameter) -> ParameterPrior:
-    """Log-normal prior of a :class:`~tembayes.physics.rig.RigParameter`.
+    """Prior of a :class:`~tembayes.physics.rig.RigParameter`.
 
-    Centred on the nominal value, its documented range spanning +-2 sd.
+    Centred on the nominal value, its documented range spanning +-2 sd of
+    the log, or of the logit for a share (unit ``"1"``, range inside (0, 1)).
+    A conductance (unit ``"W/K"``) is sampled as its resistance: the
+    junctions' temperature difference is linear in a series resistance and
+    curved in its log, and on the example's TEM2 that curvature (the hot
+    paste, posterior 31-94 W/K) was what kept independence proposals from
+    being accepted.
     """
-    return ParameterPrior(parameter.name, "lognormal", parameter.nominal, np.log(parameter.high / parameter.low) / 4.0)
+    if parameter.unit == "1" and 0.0 < parameter.low and parameter.high < 1.0:
+        span = float(np.diff(logit([parameter.low, parameter.high]))[0])
+        return ParameterPrior(parameter.name, "logitnormal", parameter.nominal, span / 4.0)
+    kind = "reciprocal" if parameter.unit == "W/K" else "lognormal"
+    return ParameterPrior(parameter.name, kind, parameter.nominal, np.log(parameter.high / parameter.low) / 4.0)
 
 
 def effect_priors(names: Sequence[str]) -> tuple[ParameterPrior, ...]:

@@ -56,8 +56,8 @@ def range_conflicts(draws, rig, *, level=0.90):
     list of dict
         One per rig parameter in ``draws``: ``{"parameter", "low", "high",
         "median", "q_low", "q_high", "outside_sd", "conflict"}``, the worst
-        first (``outside_sd``: log-distance of the median beyond the range in
-        prior log-sds; 0 inside).
+        first (``outside_sd``: distance of the median beyond the range in
+        prior sds of its log, or of its logit for a share; 0 inside).
     """
     out = []
     a = 0.5 - level / 2.0
@@ -70,11 +70,11 @@ def range_conflicts(draws, rig, *, level=0.90):
             continue
         med = float(np.median(x))
         qlo, qhi = (float(v) for v in np.quantile(x, [a, 1.0 - a]))
-        sd = rig_prior(p).scale
+        prior = rig_prior(p)
         if med > p.high:
-            dist = np.log(med / p.high) / sd
+            dist = float(prior.z(med) - prior.z(p.high))
         elif med < p.low:
-            dist = np.log(p.low / med) / sd
+            dist = float(prior.z(p.low) - prior.z(med))
         else:
             dist = 0.0
         out.append(

@@ -37,6 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
+from tembayes.calibrate.priors import ParameterPrior
 from tembayes.common.ou import fit_ou, innovations
 from tembayes.constants import MODULE_PARAMETERS
 from tembayes.data.quality import noise_estimate
@@ -131,9 +132,8 @@ def unpinned(draws, priors, rig, fraction=UNPINNED_FRACTION):
     for k in rig.parameter_names:
         if k not in draws or k not in priors or priors[k]["kind"] == "uniform":
             continue
-        x = np.asarray(draws[k], float)
-        sd = np.std(np.log(x)) if priors[k]["kind"] == "lognormal" else np.std(x)
-        if sd > fraction * float(priors[k]["scale"]):
+        prior = ParameterPrior(k, **priors[k])
+        if np.std(prior.to_unconstrained(draws[k])) > fraction * prior.coordinate_sd:
             out.append(k)
     return tuple(out)
 
