@@ -552,10 +552,13 @@ def test_screen_puts_the_true_effect_first_at_the_noise_floor(lag_gap):
     assert all(r["chi2"] > 1.5 for r in screen[1:])
 
 
-def test_gap_is_quiet_without_an_effect_and_refuses_a_batch_without_held_out_runs(batch3, run3, tmp_path):
+def test_gap_is_quiet_without_an_effect_and_refuses_a_batch_without_held_out_runs(
+    batch3, run3, tmp_path, monkeypatch, capsys
+):
     """Negative control: a correctly specified bench module (batch3's TEM1, calibrated with the base
     model) with a fresh held-out run gets no_gap, nothing recalibrated.  batch3 itself has no
-    validation runs: refused, nothing written."""
+    validation runs: refused, nothing written.  A module whose posterior the model cannot simulate
+    is refused by name, with what to do, nothing written."""
     import shutil
 
     from tembayes.bench import bench as B
@@ -586,6 +589,23 @@ def test_gap_is_quiet_without_an_effect_and_refuses_a_batch_without_held_out_run
     d = diagnose(load_run(run3[0]), load_batch(held), n_draws=80)
     assert d.verdict == "no_gap" and d.best is None and d.where == []
     assert d.ranking == [] and d.screen == []  # nothing screened without a gap
+
+    import importlib
+
+    from tembayes.errors import ModelError
+
+    G = importlib.import_module("tembayes.gap.diagnose")  # the package exports a function of that name
+
+    def unsimulatable(*args, **kw):
+        raise ModelError("the simulation failed for 11 of 11 draws")
+
+    monkeypatch.setattr(G, "posterior_draws", unsimulatable)
+    out = tmp_path / "unsimulatable"
+    capsys.readouterr()
+    assert main(["gap", str(run3[0]), str(held), "--out", str(out)]) != 0
+    err = capsys.readouterr().err
+    assert "TEM1: the base posterior cannot be simulated" in err and "--effect" in err
+    assert not out.exists()
 
 
 def lag_gap_batch(out):

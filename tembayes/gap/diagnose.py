@@ -49,7 +49,7 @@ import numpy as np
 from tembayes.calibrate.modelform import get_form
 from tembayes.common.seeds import stream
 from tembayes.constants import MODULE_PARAMETERS
-from tembayes.errors import DataError
+from tembayes.errors import DataError, ModelError
 from tembayes.gap.baseline import baseline
 from tembayes.gap.candidates import Setting, candidate_job, refit_job
 from tembayes.gap.conflicts import range_conflicts, suspect_start, suspects
@@ -248,7 +248,10 @@ def _where(plan, ex):
     for mid in plan.ids:
         module = plan.batch.modules[mid]
         say(f"{mid}: base model, anchoring on the identification run")
-        draws = posterior_draws(plan.raws[mid], plan.run.priors(mid), mid, module.identification, plan.rig)
+        try:
+            draws = posterior_draws(plan.raws[mid], plan.run.priors(mid), mid, module.identification, plan.rig)
+        except ModelError as exc:
+            raise _unsimulatable(plan, mid, exc) from exc
         for exp in module.validations:
             say(f"{mid}: held-out {Path(str(exp.path)).name}: predictive and gap map")
             evals.append(
@@ -272,6 +275,21 @@ def _where(plan, ex):
             "Check the run with tembayes inspect; the diagnosis needs the base model to simulate it.",
         )
     return baseline(evals, {mid: refits[("refit", mid, None)].refit for mid in plan.ids}, plan.conflicts, alpha=s.alpha)
+
+
+def _unsimulatable(plan, mid, exc) -> DataError:
+    """The refusal of a module whose base posterior the model cannot simulate, naming its rig values furthest out."""
+    out = [
+        f"{r['parameter']} {r['median']:.4g} {r['unit']} (range {r['low']:.4g} ... {r['high']:.4g})"
+        for r in plan.conflicts[mid][:3]
+    ]
+    return DataError(
+        plan.run.path,
+        f"{mid}: the base posterior cannot be simulated on the identification run ({exc})"
+        + (f"; its rig values furthest outside their documented ranges: {', '.join(out)}" if out else ""),
+        "The model does not fit this module: see its adequacy verdict in summary.json, recalibrate with a "
+        "catalogue effect that could explain it (tembayes calibrate --effect NAME) and diagnose that run.",
+    )
 
 
 def _no_gap(plan, base, t_start):
