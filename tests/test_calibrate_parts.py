@@ -190,6 +190,8 @@ def test_a_conductance_is_sampled_as_its_resistance_under_the_same_log_normal_pr
     X = np.column_stack([np.append(u, [0.0, -0.01]), np.zeros(5)])
     want = np.append(pr.logpdf_unconstrained(u), [-np.inf, -np.inf]) - np.log(0.2)
     assert np.allclose(sp.log_prior(X), want)
+    # clip holds a resistance pushed past zero (a carried-over shift) at a tenth of its prior centre
+    assert sp.clip(X)[:, 0] == pytest.approx(np.append(u, [0.1 / pr.center] * 2))
     # prior draws are the log-normal's: their log has the prior's centre and sd
     lg = np.log(pr.sample(np.random.default_rng(1), 200_000))
     assert np.mean(lg) == pytest.approx(np.log(pr.center), abs=4 * pr.scale / np.sqrt(2e5))

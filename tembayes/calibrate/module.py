@@ -874,7 +874,8 @@ def _posterior(prob, st, levels) -> _Posterior:
         spread = held_nuisance_spread(
             prob.model, prob.model_space, flat[:, :p].mean(axis=0), st.lin.J, prob.data.noise, held
         )
-        flat = spread.apply(flat, st.rng)
+        # a resistance shifted past zero would be a negative conductance: held at the coordinate's floor
+        flat = space.clip(spread.apply(flat, st.rng))
         discrepancy["held_sd_over_posterior_sd"] = spread.to_json(space.names, laws, law_sd)
         if spread.not_carried:
             discrepancy["held_not_carried"] = list(spread.not_carried)
