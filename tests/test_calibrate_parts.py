@@ -190,8 +190,8 @@ def test_a_conductance_is_sampled_as_its_resistance_under_the_same_log_normal_pr
     X = np.column_stack([np.append(u, [0.0, -0.01]), np.zeros(5)])
     want = np.append(pr.logpdf_unconstrained(u), [-np.inf, -np.inf]) - np.log(0.2)
     assert np.allclose(sp.log_prior(X), want)
-    # clip holds a resistance pushed past zero (a carried-over shift) at a tenth of its prior centre
-    assert sp.clip(X)[:, 0] == pytest.approx(np.append(u, [0.1 / pr.center] * 2))
+    # clip holds a resistance pushed past zero at its floor, 8 prior sds out
+    assert sp.clip(X)[:, 0] == pytest.approx(np.append(u, [np.exp(-8 * pr.scale) / pr.center] * 2))
     # prior draws are the log-normal's: their log has the prior's centre and sd
     lg = np.log(pr.sample(np.random.default_rng(1), 200_000))
     assert np.mean(lg) == pytest.approx(np.log(pr.center), abs=4 * pr.scale / np.sqrt(2e5))
@@ -500,3 +500,34 @@ def test_step_data_assumes_no_less_noise_than_the_data_and_the_model_resolve(mon
     rounded = step_data(coarse)
     assert rounded.noise[1] == pytest.approx(np.sqrt(2) * 0.01 / np.sqrt(12), rel=1e-6)
     assert rounded.noise[0] >= 1e-3 / np.sqrt(12)  # the voltage keeps moving with the temperatures
+
+
+def test_a_resume_state_of_other_coordinates_is_not_read_as_this_versions(tmp_path, monkeypatch):
+    """A state written when g was sampled as log g must not be resumed as 1/g: refused with a warning,
+    its chain chunks removed, the module started again from its mode; a state of the same coordinates resumes."""
+    import json
+    from types import SimpleNamespace
+
+    from tembayes.calibrate import module as M
+
+    space = ParameterSpace(
+        (
+            rig_prior(next(q for q in REFERENCE.parameters if q.name == "g_paste_hot")),
+            ParameterPrior("step_shift_s", "uniform", 0.0, 0.1),
+        )
+    )
+    prob = SimpleNamespace(
+        module_id="TEM1", space=space, model_space=space, model=None, data=None, experiment=None, rig_config={}
+    )
+    monkeypatch.setattr(M, "step_method_laws", lambda *a: {})
+    monkeypatch.setattr(M, "fit_map", lambda *a: (np.array([1 / 40, 0.0]), np.eye(2), SimpleNamespace(nfev=7)))
+    state_file, chunk = tmp_path / "TEM1.json", tmp_path / "TEM1.stage0.00000.npz"
+    old = {"coordinates": {"g_paste_hot": "lognormal", "step_shift_s": "uniform"}, "x_map": [3.56, 0.0], "stage": 1}
+    state_file.write_text(json.dumps(old))
+    chunk.write_bytes(b"chain in log g")
+    with pytest.warns(RuntimeWarning, match="samples other coordinates"):
+        state = M._start_state(prob, str(state_file), True, None, lambda msg: None)
+    assert state["x_map"] == [1 / 40, 0.0] and state["stage"] == 0 and not chunk.exists()
+    assert json.loads(state_file.read_text())["coordinates"] == {"g_paste_hot": "reciprocal", "step_shift_s": "uniform"}
+    # written by this version: resumed as stored
+    assert M._start_state(prob, str(state_file), True, None, lambda msg: None) == state

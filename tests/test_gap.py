@@ -190,6 +190,13 @@ def test_range_conflicts_flag_a_leak_far_above_the_enclosure_and_nothing_inside(
     # a posterior that straddles the edge is not (yet) a conflict
     draws["leak_bottom"] = 0.06 * np.exp(0.3 * rng.standard_normal(500))
     assert "leak_bottom" not in [r["parameter"] for r in range_conflicts(draws, rig) if r["conflict"]]
+    # a share is measured on its logit, and a run from before shares were bounded (median 1.5) stays finite
+    draws["tab_share"] = np.full(500, 0.99)
+    row = next(r for r in range_conflicts(draws, rig) if r["parameter"] == "tab_share")
+    # range 0.2-0.9: the logit's prior sd is (logit 0.9 - logit 0.2) / 4 = log(36) / 4
+    assert row["conflict"] and row["outside_sd"] == pytest.approx((np.log(99) - np.log(9)) / (np.log(36) / 4))
+    draws["tab_share"] = np.full(500, 1.5)
+    assert np.isfinite(next(r for r in range_conflicts(draws, rig) if r["parameter"] == "tab_share")["outside_sd"])
 
 
 # --- the whole diagnosis: which, how far, the verdict -----------------------------------------------------

@@ -441,3 +441,21 @@ def test_a_run_that_starts_settled_at_its_first_level_keeps_that_start(run3, val
     exp = validations["TEM1"]  # 300 s at 0 A, settled
     rm = RunModel(exp, RIG)
     assert abs(rm.fit_start(_truth_params(truth, "TEM1")) - rm.levels[0]) < 0.02
+
+
+def test_anchoring_coordinates_keep_a_share_inside_zero_to_one():
+    from tembayes.predict.anchor import from_coords, to_coords
+
+    draws = {
+        "tab_share": np.array([0.2, 0.5, 0.9]),
+        "g_cooler": np.array([10.0, 12.5, 15.0]),
+        "R1_ohm_per_K": np.array([-1e-3, 0.0, 1e-2]),
+    }
+    names = tuple(draws)
+    Z = to_coords(draws, names, frozenset({"tab_share"}))
+    back = from_coords(Z, names, frozenset({"tab_share"}))
+    for k in names:
+        np.testing.assert_allclose(back[k], draws[k], rtol=1e-12, atol=1e-15)
+    # a Gaussian update far out in the coordinate is still a share (and a positive conductance)
+    far = from_coords(Z + 8.0, names, frozenset({"tab_share"}))
+    assert np.all((far["tab_share"] > 0) & (far["tab_share"] < 1)) and np.all(far["g_cooler"] > 0)

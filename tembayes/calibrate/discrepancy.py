@@ -145,11 +145,21 @@ class HeldSpread:
     shift: np.ndarray
     not_carried: tuple = ()
 
-    def apply(self, X: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """``X`` ``(n, >= p)`` with every draw moved by the held parameters' drawn deviations (in place: a copy)."""
+    def apply(self, X: np.ndarray, rng: np.random.Generator, relative: Sequence[int] = ()) -> np.ndarray:
+        """``X`` ``(n, >= p)`` with every draw moved by the held parameters' drawn deviations (a copy).
+
+        The coordinates ``relative`` (positive ones, e.g. a resistance) move
+        by the same shift relative to their mean, ``x exp(dx / mean)``: the
+        same to first order, and never across zero.
+        """
         X = np.array(X, dtype=float)
         xi = rng.standard_normal((len(X), len(self.names))) * self.log_sd
-        X[:, : self.shift.shape[0]] += xi @ self.shift.T
+        dX = xi @ self.shift.T
+        rel = np.zeros(dX.shape[1], bool)
+        rel[list(relative)] = True
+        X[:, : len(rel)] += np.where(rel, 0.0, dX)
+        if rel.any():
+            X[:, rel] *= np.exp(dX[:, rel] / X[:, rel].mean(axis=0))
         return X
 
     def to_json(

@@ -30,6 +30,7 @@ on the order they run in.
 
 from __future__ import annotations
 
+import glob
 import json
 import os
 import time
@@ -369,7 +370,7 @@ def fit_map(
         elif p.kind in ("lognormal", "logitnormal"):
             scale[j] = 0.01
         elif p.kind == "reciprocal":
-            lo[j] = 0.1 * p.coordinate_center
+            lo[j] = p.coordinate_floor
             scale[j] = 0.01 * p.coordinate_center
         else:
             scale[j] = 0.1 * p.scale
@@ -609,17 +610,33 @@ def step_method_laws(experiment: Experiment, rig_config: Mapping | None) -> dict
     return {"R0_ohm": float(R0), "R1_ohm_per_K": float(R1), "S0_V_per_K": float(S0), "S1_V_per_K2": float(S1)}
 
 
+def _coordinates(space: ParameterSpace) -> dict[str, str]:
+    """What each sampled coordinate is (its prior's kind): a resume must read stored vectors the same way."""
+    return {p.name: p.kind for p in space.priors}
+
+
 def _start_state(prob, state_file, resume, start, say) -> dict:
     """The resume state, or a new one at the posterior mode (written to ``state_file``)."""
     if resume and state_file and os.path.exists(state_file):
         state = _read_state(state_file)
-        if state is not None:
+        if state is not None and state.get("coordinates") == _coordinates(prob.space):
             return state
+        if state is not None:
+            # another version's coordinates (e.g. log g where this one samples 1/g): its vectors mean other values
+            for f in glob.glob(glob.escape(state_file[: -len(".json")]) + ".stage*"):
+                os.remove(f)
+            warnings.warn(
+                f"{prob.module_id}: the resume state {state_file} was written by a version of tembayes that samples "
+                "other coordinates; the module starts again from its posterior mode",
+                RuntimeWarning,
+                stacklevel=3,
+            )
     say(f"{prob.module_id}: posterior mode")
     start = {**step_method_laws(prob.experiment, prob.rig_config), **(start or {})}
     x0 = start_point(prob.model_space, {k: v for k, v in start.items() if k != SHIFT})
     x_map, cov, sol = fit_map(prob.model, prob.model_space, prob.data, x0)
     state = {
+        "coordinates": _coordinates(prob.space),
         "x_map": x_map.tolist(),
         "cov": cov.tolist(),
         "x_lin": x_map.tolist(),
@@ -874,8 +891,8 @@ def _posterior(prob, st, levels) -> _Posterior:
         spread = held_nuisance_spread(
             prob.model, prob.model_space, flat[:, :p].mean(axis=0), st.lin.J, prob.data.noise, held
         )
-        # a resistance shifted past zero would be a negative conductance: held at the coordinate's floor
-        flat = space.clip(spread.apply(flat, st.rng))
+        # a resistance is shifted relatively, so it stays positive
+        flat = spread.apply(flat, st.rng, relative=[j for j, pr in enumerate(space.priors) if pr.kind == "reciprocal"])
         discrepancy["held_sd_over_posterior_sd"] = spread.to_json(space.names, laws, law_sd)
         if spread.not_carried:
             discrepancy["held_not_carried"] = list(spread.not_carried)

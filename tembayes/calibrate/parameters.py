@@ -102,14 +102,14 @@ class ParameterSpace:
         return out
 
     def clip(self, X: np.ndarray) -> np.ndarray:
-        """Pull coordinates inside their bounds: a uniform's interval, a resistance above a tenth of its prior centre."""
+        """Pull coordinates inside their bounds: a uniform's interval, a resistance above its floor (8 prior sds)."""
         X = np.array(X, dtype=float)
         for j, p in enumerate(self.priors):
             if p.kind == "uniform":
                 lim = p.scale * (1 - 1e-9)
                 X[..., j] = np.clip(X[..., j], p.center - lim, p.center + lim)
             elif p.kind == "reciprocal":
-                X[..., j] = np.maximum(X[..., j], 0.1 * p.coordinate_center)
+                X[..., j] = np.maximum(X[..., j], p.coordinate_floor)
         return X
 
     def sample_prior(self, rng: np.random.Generator, n: int) -> np.ndarray:

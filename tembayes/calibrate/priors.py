@@ -128,6 +128,11 @@ class ParameterPrior:
         sd = self.scale * float(u) if self.kind == "reciprocal" else self.scale
         return 1.0 / sd**2
 
+    @property
+    def coordinate_floor(self) -> float:
+        """The lowest coordinate a ``reciprocal`` prior allows: 8 prior sds above its centre's value (-inf otherwise)."""
+        return self.coordinate_center * float(np.exp(-8.0 * self.scale)) if self.kind == "reciprocal" else -np.inf
+
     def logpdf_unconstrained(self, u: ArrayLike) -> np.ndarray:
         """Log density in the sampler's coordinate (Jacobian included)."""
         u = np.asarray(u, dtype=float)
@@ -218,7 +223,7 @@ def rig_prior(parameter: RigParameter) -> ParameterPrior:
     paste, posterior 31-94 W/K) was what kept independence proposals from
     being accepted.
     """
-    if parameter.unit == "1" and 0.0 < parameter.low and parameter.high < 1.0:
+    if parameter.is_share:
         span = float(np.diff(logit([parameter.low, parameter.high]))[0])
         return ParameterPrior(parameter.name, "logitnormal", parameter.nominal, span / 4.0)
     kind = "reciprocal" if parameter.unit == "W/K" else "lognormal"

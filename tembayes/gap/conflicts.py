@@ -71,12 +71,15 @@ def range_conflicts(draws, rig, *, level=0.90):
         med = float(np.median(x))
         qlo, qhi = (float(v) for v in np.quantile(x, [a, 1.0 - a]))
         prior = rig_prior(p)
-        if med > p.high:
-            dist = float(prior.z(med) - prior.z(p.high))
-        elif med < p.low:
-            dist = float(prior.z(p.low) - prior.z(med))
-        else:
-            dist = 0.0
+        with np.errstate(invalid="ignore", divide="ignore"):
+            if med > p.high:
+                dist = float(prior.z(med) - prior.z(p.high))
+            elif med < p.low:
+                dist = float(prior.z(p.low) - prior.z(med))
+            else:
+                dist = 0.0
+        if not np.isfinite(dist):  # a share at or above 1 (a run from before shares were logit-normal)
+            dist = abs(float(np.log(med / (p.high if med > p.high else p.low)))) / prior.scale
         out.append(
             {
                 "parameter": p.name,

@@ -68,6 +68,11 @@ class RigParameter:
     doc: str = ""
     held: bool = False
 
+    @property
+    def is_share(self) -> bool:
+        """A share: dimensionless, its documented range inside (0, 1)."""
+        return self.unit == "1" and 0.0 < self.low and self.high < 1.0
+
 
 @dataclass(frozen=True)
 class SensorDepth:

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from tembayes.calibrate.priors import ParameterPrior
+from tembayes.calibrate.priors import ParameterPrior, expit, logit
 from tembayes.common.ou import fit_ou, innovations
 from tembayes.constants import MODULE_PARAMETERS
 from tembayes.data.quality import noise_estimate
@@ -53,17 +53,28 @@ LINEAR = ("R1_ohm_per_K", "S1_V_per_K2", *EFFECT_PARAMETERS)
 FD_STEP = 1.0
 
 
-def to_coords(draws, names):
-    """``(M, p)`` coordinates (log of positive parameters) of ``name -> (M,)`` draws."""
-    return np.column_stack(
-        [np.asarray(draws[k], float) if k in LINEAR else np.log(np.asarray(draws[k], float)) for k in names]
-    )
+def _coordinate(k, x, shares):
+    x = np.asarray(x, float)
+    if k in LINEAR:
+        return x
+    return logit(x) if k in shares else np.log(x)
 
 
-def from_coords(Z, names):
+def _value(k, z, shares):
+    if k in LINEAR:
+        return z
+    return expit(z) if k in shares else np.exp(z)
+
+
+def to_coords(draws, names, shares=frozenset()):
+    """``(M, p)`` coordinates (the log of positive parameters, the logit of ``shares``) of ``name -> (M,)`` draws."""
+    return np.column_stack([_coordinate(k, draws[k], shares) for k in names])
+
+
+def from_coords(Z, names, shares=frozenset()):
     """``name -> (M,)`` parameter values of coordinates ``Z`` ``(M, p)``."""
     Z = np.atleast_2d(Z)
-    return {k: Z[:, j] if k in LINEAR else np.exp(Z[:, j]) for j, k in enumerate(names)}
+    return {k: _value(k, Z[:, j], shares) for j, k in enumerate(names)}
 
 
 @dataclass(frozen=True)
@@ -132,8 +143,7 @@ def unpinned(draws, priors, rig, fraction=UNPINNED_FRACTION):
     for k in rig.parameter_names:
         if k not in draws or k not in priors or priors[k]["kind"] == "uniform":
             continue
-        prior = ParameterPrior(k, **priors[k])
-        if np.std(prior.to_unconstrained(draws[k])) > fraction * prior.coordinate_sd:
+        if np.std(ParameterPrior(k, **priors[k]).z(draws[k])) > fraction:
             out.append(k)
     return tuple(out)
 
@@ -219,7 +229,8 @@ def anchor_rig(model, draws, names, *, shift=None, fixed=None):
     if shift is None:
         shift = float(np.mean(draws["step_shift_s"])) if "step_shift_s" in draws else 0.0
     shift = float(np.clip(shift, -model.shift_bound, model.shift_bound)) if model.shift_bound > 0 else 0.0
-    Zg = to_coords(draws, given)
+    shares = frozenset(q.name for q in model.rig.parameters if q.is_share)
+    Zg = to_coords(draws, given, shares)
     M = Zg.shape[0]
     mg = Zg.mean(axis=0)
     p = len(names)
@@ -235,16 +246,16 @@ def anchor_rig(model, draws, names, *, shift=None, fixed=None):
     def simulate(Zu, Zgiven):
         n = len(Zu)
         params = {
-            **from_coords(np.broadcast_to(Zgiven, (n, len(given))), given),
+            **from_coords(np.broadcast_to(Zgiven, (n, len(given))), given, shares),
             **{k: np.full(n, val) for k, val in fixed.items()},
         }
         if p:
-            params.update(from_coords(Zu, names))
+            params.update(from_coords(Zu, names, shares))
         calls["n"] += 1
         return model.simulate(params, np.full(n, shift), at="grid")
 
     if p:
-        Zu = to_coords(draws, names)
+        Zu = to_coords(draws, names, shares)
         mu = Zu.mean(axis=0)
         # the updated parameters' step posterior given the others: a linear regression on the draws
         Dg, Du = Zg - mg, Zu - mu
@@ -298,7 +309,7 @@ def anchor_rig(model, draws, names, *, shift=None, fixed=None):
         Jeff = Jg + Ju @ np.linalg.solve(Lc, B) if len(given) else Jg
         U = u_star[None] - (Dg @ (P @ Ju.T @ Jeff).T) + Xi @ Lp.T
         Znew = mu[None] + Dg @ B.T + U @ Lc.T
-        new = from_coords(Znew, names)
+        new = from_coords(Znew, names, shares)
         prior_sd = dict(zip(names, np.sqrt(np.diag(np.atleast_2d(np.cov(Zu, rowvar=False)))).tolist()))
         posterior_sd = dict(zip(names, np.atleast_1d(Znew.std(axis=0)).tolist()))
         mode = (zu_star[None], mg)
