@@ -126,7 +126,10 @@ def test_a_held_parameter_moves_the_mode_as_its_linear_response_says():
     np.testing.assert_allclose(X.std(axis=0), np.abs(spread.shift[:, 0]) * 0.8 / np.sqrt(12.0), rtol=0.03)
     # a positive coordinate (a resistance) is moved relatively: the same spread, never across zero
     centre = 2.0 * X[:, 1].std()
-    R = spread.apply(np.column_stack([np.zeros(20000), np.full(20000, centre)]), np.random.default_rng(0), relative=[1])
+    # (X may carry more coordinates than the model's, e.g. the noise's: they are left alone)
+    Y = np.column_stack([np.zeros(20000), np.full(20000, centre), np.ones(20000)])
+    R = spread.apply(Y, np.random.default_rng(0), relative=[1])
+    assert np.all(R[:, 2] == 1.0)
     assert np.all(R[:, 1] > 0) and np.any(X[:, 1] < -centre)  # shifted linearly, 2 % of the draws would cross zero
     np.testing.assert_allclose(np.log(R[:, 1] / centre), X[:, 1] / centre, rtol=1e-9, atol=1e-12)
 

@@ -154,11 +154,11 @@ class HeldSpread:
         """
         X = np.array(X, dtype=float)
         xi = rng.standard_normal((len(X), len(self.names))) * self.log_sd
-        dX = xi @ self.shift.T
-        rel = np.zeros(dX.shape[1], bool)
-        rel[list(relative)] = True
-        X[:, : len(rel)] += np.where(rel, 0.0, dX)
-        if rel.any():
+        dX = xi @ self.shift.T  # (n, p): the model's coordinates, the first p of X
+        rel = np.asarray(list(relative), dtype=int)
+        lin = np.setdiff1d(np.arange(dX.shape[1]), rel)
+        X[:, lin] += dX[:, lin]
+        if len(rel):
             X[:, rel] *= np.exp(dX[:, rel] / X[:, rel].mean(axis=0))
         return X
 
