@@ -89,9 +89,9 @@ def main(argv=None):
     d = r.diagnostics
     print(
         f"tembayes, {args.module}: {t_module:.1f} s to a converged posterior "
-        f"(converged {d['converged']}, {d['steps']} steps, tau max {d['tau_max_steps']:.0f}, "
-        f"R-hat {d['rhat_max']:.4f}, ESS {d['ess_bulk_min']:.0f}, k_hat {d['psis'][-1]['k_hat']:.2f}); "
-        f"stages {', '.join(f'{k} {v:.1f}' for k, v in d['timings'].items())}",
+        f"(converged {d.converged}, {d.steps} steps, tau max {d.tau_max_steps:.0f}, "
+        f"R-hat {d.rhat_max:.4f}, ESS {d.ess_bulk_min:.0f}, k_hat {d.psis_k:.2f}); "
+        f"stages {', '.join(f'{k} {v:.1f}' for k, v in d.timings.items())}",
         flush=True,
     )
 
@@ -125,8 +125,8 @@ def main(argv=None):
             flush=True,
         )
     t_eval = float(np.median(times))
-    nw = d["nwalkers"]
-    tau = d["tau_max_steps"]
+    nw = d.nwalkers
+    tau = d.tau_max_steps
     steps = ESS_TARGET * tau / nw / 0.8  # + the same 20 % burn-in
     t_naive = steps * nw * t_eval / threads
     # tembayes reached more than the target ESS; its time to the target is at most t_module
@@ -135,7 +135,7 @@ def main(argv=None):
         f"\nnaive: {steps:.0f} steps x {nw} walkers x {t_eval:.1f} s / {threads} cores = {t_naive / 3600:.1f} h "
         f"to a bulk ESS of {ESS_TARGET:.0f} (tau {tau:.0f} steps)"
     )
-    print(f"tembayes: {t_module:.1f} s to a bulk ESS of {d['ess_bulk_min']:.0f} (target <= 60 s)")
+    print(f"tembayes: {t_module:.1f} s to a bulk ESS of {d.ess_bulk_min:.0f} (target <= 60 s)")
     print(f"ratio of time to the same ESS (naive / tembayes): {ratio:,.0f}x")
     print(f"example batch end to end: {t_batch:.1f} s (target <= 180 s)")
     write_json(
@@ -144,11 +144,11 @@ def main(argv=None):
             "module": args.module,
             "cores": threads,
             "tembayes_module_seconds": t_module,
-            "tembayes_stage_seconds": d["timings"],
-            "tembayes_steps": d["steps"],
+            "tembayes_stage_seconds": d.timings,
+            "tembayes_steps": d.steps,
             "tembayes_tau_max_steps": tau,
-            "tembayes_ess_bulk_min": d["ess_bulk_min"],
-            "tembayes_converged": d["converged"],
+            "tembayes_ess_bulk_min": d.ess_bulk_min,
+            "tembayes_converged": d.converged,
             "nwalkers": nw,
             "example_batch_seconds": t_batch,
             "example_batch_converged": summ.converged,

@@ -19,6 +19,7 @@ have no run under ``--work`` are kept.
     python analyses/law_coverage.py --fidelity high --model full --discrepancy window-sandwich --batches 13
     python analyses/law_coverage.py --fidelity standard --physics full --model full --batches 13
     python analyses/law_coverage.py ... --summarise
+    python analyses/law_coverage.py ... --tag s11 --summarise --compare-to high-paper-full-robust-nested
 
 Writes analyses/results/law_coverage_<label>.{json,md}.
 """
@@ -216,6 +217,47 @@ def summarise(r):
     return doc
 
 
+def paired(work, args, other):
+    """Module-by-module comparison with the runs of the label ``other`` on the same batches.
+
+    Per law: the shift of the posterior mean in the other run's sds, the ratio
+    of the sds, and how many intervals cover the truth in each; the steps per
+    module.  Measures a change of the sampler on identical data.
+    """
+    out = {p: {"shift": [], "sd_ratio": [], "covered": [0, 0]} for p in PARAMS}
+    steps = []
+    for bdir in sorted((work / "batches" / f"{args.fidelity}-{args.physics}").glob("*")):
+        a, b = (work / "runs" / lab / bdir.name / "summary.json" for lab in (other, label(args)))
+        if not (a.exists() and b.exists()):
+            continue
+        old, new = json.loads(a.read_text())["modules"], json.loads(b.read_text())["modules"]
+        truth = json.loads((bdir / "truth.json").read_text())["modules"]
+        for mid in set(old) & set(new):
+            steps.append((old[mid]["diagnostics"]["steps"], new[mid]["diagnostics"]["steps"]))
+            for p in PARAMS:
+                o, n, t = old[mid][p], new[mid][p], truth[mid][p]
+                out[p]["shift"].append((n["mean"] - o["mean"]) / o["sd"])
+                out[p]["sd_ratio"].append(n["sd"] / o["sd"])
+                out[p]["covered"][0] += o["q05"] <= t <= o["q95"]
+                out[p]["covered"][1] += n["q05"] <= t <= n["q95"]
+    lines = [
+        "",
+        f"Against `{other}` on the same {len(steps)} modules (steps per module, median: "
+        f"{np.median([x[0] for x in steps]) if steps else '-'} there, {np.median([x[1] for x in steps]) if steps else '-'} here):",
+        "",
+        "| | mean shift in its sds: median (max abs) | sd here / there: median [range] | covered there / here |",
+        "|---|---|---|---|",
+    ]
+    for p in PARAMS:
+        d, r = np.array(out[p]["shift"]), np.array(out[p]["sd_ratio"])
+        if len(d):
+            lines.append(
+                f"| {p} | {np.median(d):+.2f} ({np.max(np.abs(d)):.2f}) | {np.median(r):.3f} [{r.min():.2f}, {r.max():.2f}] "
+                f"| {out[p]['covered'][0]} / {out[p]['covered'][1]} |"
+            )
+    return lines
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--fidelity", choices=("standard", "high"), default="high")
@@ -238,6 +280,12 @@ def main():
     ap.add_argument("--shard", default="0/1", help="K/N: this process does every N-th batch from K")
     ap.add_argument("--summarise", action="store_true")
     ap.add_argument("--tag", default="", help="appended to the results' label (a variant of the code)")
+    ap.add_argument(
+        "--compare-to",
+        metavar="LABEL",
+        help="also compare module by module with the runs of another label under --work (e.g. the same study "
+        "before a change of the sampler)",
+    )
     args = ap.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
     if not args.summarise:
@@ -303,6 +351,8 @@ def main():
             f"| {d['held_ceramic']:.2f} | {d['sd_z_core']:.2f} | {d['resid_sd']:.2f} |"
             for p, d in s["depth_response"].items()
         ]
+    if args.compare_to:
+        lines += paired(args.work, args, args.compare_to)
     (res / f"law_coverage_{label(args)}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
