@@ -517,7 +517,14 @@ def test_a_resume_state_of_other_coordinates_is_not_read_as_this_versions(tmp_pa
         )
     )
     prob = SimpleNamespace(
-        module_id="TEM1", space=space, model_space=space, model=None, data=None, experiment=None, rig_config={}
+        module_id="TEM1",
+        space=space,
+        model_space=space,
+        model=None,
+        data=None,
+        experiment=None,
+        rig_config={},
+        options=M.CalibrationOptions(),
     )
     monkeypatch.setattr(M, "step_method_laws", lambda *a: {})
     monkeypatch.setattr(M, "fit_map", lambda *a: (np.array([1 / 40, 0.0]), np.eye(2), SimpleNamespace(nfev=7)))
