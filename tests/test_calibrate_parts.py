@@ -527,7 +527,7 @@ def test_a_resume_state_of_other_coordinates_is_not_read_as_this_versions(tmp_pa
         options=M.CalibrationOptions(),
     )
     monkeypatch.setattr(M, "step_method_laws", lambda *a: {})
-    monkeypatch.setattr(M, "fit_map", lambda *a: (np.array([1 / 40, 0.0]), np.eye(2), SimpleNamespace(nfev=7)))
+    monkeypatch.setattr(M, "fit_map", lambda *a, **kw: (np.array([1 / 40, 0.0]), np.eye(2), SimpleNamespace(nfev=7)))
     state_file, chunk = tmp_path / "TEM1.json", tmp_path / "TEM1.stage0.00000.npz"
     old = {"coordinates": {"g_paste_hot": "lognormal", "step_shift_s": "uniform"}, "x_map": [3.56, 0.0], "stage": 1}
     state_file.write_text(json.dumps(old))
