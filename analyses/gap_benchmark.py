@@ -86,7 +86,7 @@ def _tembayes(*args, check=True):
     )
 
 
-def _case(work, effect, seed, withheld, compute=True):
+def _case(work, effect, seed, withheld, compute=True, fidelity="standard"):
     from tembayes.calibrate.run import load_run
     from tembayes.data import load_batch
     from tembayes.data.write import write_json
@@ -111,6 +111,8 @@ def _case(work, effect, seed, withheld, compute=True):
             str(1000 + seed),
             "--validation-rate",
             "1",
+            "--fidelity",
+            fidelity,
             "--overwrite",
             *eff,
         )
@@ -356,6 +358,12 @@ def main(argv=None):
         metavar="I/N",
         help="run every N-th case from the I-th (two shards fill 2 cores while one calibrates)",
     )
+    ap.add_argument(
+        "--fidelity",
+        choices=("standard", "high"),
+        default="standard",
+        help="the bench: standard (the model's own structure) or high (out-of-model); use one --work per bench",
+    )
     ap.add_argument("--summarise", action="store_true", help="only summarise the cases already cached")
     ap.add_argument("--label", default="", help="results as gap_benchmark_LABEL.{json,md} (a partial rerun)")
     args = ap.parse_args(argv)
@@ -371,7 +379,7 @@ def main(argv=None):
         if k % n_shard != i_shard:
             continue
         t0 = time.perf_counter()
-        cases[(effect, seed)] = docs = _case(args.work, effect, seed, not args.no_withheld)
+        cases[(effect, seed)] = docs = _case(args.work, effect, seed, not args.no_withheld, fidelity=args.fidelity)
         msg = f"[{effect or 'null'} s{seed}] {_called(docs['gap'])}"
         if "gap_withheld" in docs:
             msg += f"; withheld: {_called(docs['gap_withheld'])}"
