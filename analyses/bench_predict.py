@@ -37,7 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from tembayes.calibrate.run import load_run  # noqa: E402
 from tembayes.data import load_batch, write_json  # noqa: E402
 from tembayes.physics import Inputs, simulate  # noqa: E402
-from tembayes.physics.rig import reference_rig  # noqa: E402
+from tembayes.physics.rigread import rig_from_config  # noqa: E402
 from tembayes.predict.predictive import module_draws, predict, simulate_predictive, subsample  # noqa: E402
 from tembayes.predict.runmodel import RunModel  # noqa: E402
 
@@ -76,7 +76,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
     run, batch = load_run(args.run), load_batch(args.batch)
     exp = batch.modules[args.module].validations[0]
-    rig = reference_rig(4, 6)
+    rig = rig_from_config(None, 4, 3)
     d = module_draws(run, args.module, batch.modules[args.module].identification, rig)
     draws = subsample(d, np.random.default_rng(0), args.draws)
     model = RunModel(exp, rig)

@@ -37,7 +37,7 @@ from tembayes.bench.protocols import identification_staircase
 from tembayes.data import write_json
 from tembayes.physics import Inputs, simulate
 from tembayes.physics.reference import simulate_reference
-from tembayes.physics.rig import REFERENCE
+from tembayes.physics.rigread import REFERENCE
 
 RESULTS = Path(__file__).parent / "results"
 

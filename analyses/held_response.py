@@ -39,10 +39,10 @@ import numpy as np
 
 import tembayes.calibrate.module as cm
 from tembayes.bench import BenchConfig, bench, outside, simulate_batch
+from tembayes.bench.hifi import SENSOR_DEPTH
 from tembayes.calibrate.discrepancy import held_nuisance_spread
 from tembayes.constants import MODULE_PARAMETERS
 from tembayes.data import load_batch
-from tembayes.physics.rig import SENSOR_DEPTH
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -26,7 +26,7 @@ from tembayes.bench import BenchConfig, simulate_batch
 from tembayes.constants import MODULE_PARAMETERS
 from tembayes.data import load_batch, write_json
 from tembayes.physics import Inputs, simulate
-from tembayes.physics.rig import reference_rig
+from tembayes.physics.rigread import rig_from_config
 
 RESULTS = Path(__file__).parent / "results"
 
@@ -48,7 +48,7 @@ def main(argv=None):
                 params = {k: t[k] for k in MODULE_PARAMETERS} | t["rig"]
                 for exp in (module.identification, *module.validations):
                     for legs in (0, 2):
-                        sim = simulate(Inputs.from_experiment(exp), params, rig=reference_rig(legs))
+                        sim = simulate(Inputs.from_experiment(exp), params, rig=rig_from_config(None, legs))
                         r = exp.sensors - sim.sensors[0]
                         rv = exp.voltage - sim.voltage[0]
                         rows.append(

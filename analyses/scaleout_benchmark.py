@@ -45,7 +45,7 @@ from pathlib import Path
 import numpy as np
 
 RESULTS = Path(__file__).resolve().parent / "results"
-CHEAP = dict(max_steps=1000, pilot=500, max_relinearise=1, psis_draws=100, leg_cells=2, block_cells=2)
+CHEAP = dict(max_steps=1000, pilot=500, max_relinearise=1, psis_draws=100, leg_cells=2, block_split=1)
 
 
 class MemoryWatch:

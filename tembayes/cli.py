@@ -225,7 +225,8 @@ def _cmd_inspect(args):
         json.dump(report, sys.stdout, indent=2)
         print()
         return 2 if errors else 0
-    print(f"batch {batch.path}  type {ds.name or '?'}  rig {batch.rig_config.get('preset', 'reference')}")
+    rig = batch.rig_config.get("file") or batch.rig_config.get("preset", "reference")
+    print(f"batch {batch.path}  type {ds.name or '?'}  rig {rig}")
     print(f"  datasheet -> S {ds.seebeck():.4g} V/K, R {ds.resistance():.4g} ohm, K {ds.conductance():.4g} W/K")
     for mid, files in report["modules"].items():
         for name, q in files.items():
@@ -248,9 +249,9 @@ def _cmd_identify(args):
     from tembayes.data import load_batch
     from tembayes.data.outputs import check_output
     from tembayes.identify.pipeline import identify_batch, to_json
-    from tembayes.physics.rig import reference_rig
+    from tembayes.physics.rigread import rig_from_config
 
-    reference_rig(args.leg_cells)  # refuse a bad option before any work
+    rig_from_config(None, args.leg_cells)  # refuse a bad option before any work
     check_output(args.out, kind="identify", inputs=[(args.batch, "batch folder")], overwrite=args.overwrite)
     batch = load_batch(args.batch)  # refused input: nothing is written
     _say_findings(batch.findings)
@@ -262,7 +263,7 @@ def _cmd_identify(args):
 
         save_identify_figures(results, batch, tmp)
 
-    _write_result(args, "identify.json", to_json(results, batch), figures)
+    _write_result(args, "identify.json", to_json(results, batch), None if args.no_figures else figures)
     for mid, r in results.items():
         f = r.fit
         print(
@@ -375,7 +376,7 @@ def _cmd_calibrate(args):
 
 
 def _write_result(args, name, doc, figures):
-    """``args.out/name`` (the command line and version added) and the figures, as one atomic folder."""
+    """``args.out/name`` (the command line and version added) and the figures (None: none), as one atomic folder."""
     from tembayes.data import write_json
     from tembayes.data.write import atomic_directory
 
@@ -383,7 +384,7 @@ def _write_result(args, name, doc, figures):
         doc["command"] = "tembayes " + " ".join(args.argv)
         doc["tembayes_version"] = tembayes.__version__
         write_json(tmp / name, doc)
-        if not args.no_figures:
+        if figures is not None:
             figures(tmp)
 
 
@@ -469,6 +470,36 @@ def _cmd_export(args):
         + ", ".join(f"{t:.4g} C/{i:.4g} A" for t, i in exp.meta["points"])
         + ")"
     )
+    return 0
+
+
+def _cmd_rig(args):
+    from tembayes.data.outputs import check_output
+    from tembayes.physics.rigread import read_rig_file, shipped_rig
+    from tembayes.physics.rigsummary import summarise_rig
+
+    is_file = args.rig.endswith(".toml") or Path(args.rig).is_file()
+    rig = read_rig_file(args.rig) if is_file else shipped_rig(args.rig)  # refused input: nothing is written
+    check_output(args.out, kind="rig", inputs=[(rig.path, "rig file")], overwrite=args.overwrite)
+    summary = summarise_rig(rig, args.module_k)
+
+    def figures(tmp):
+        from tembayes.plots.rig import save_rig_figure
+
+        save_rig_figure(summary, tmp / "rig.png")
+
+    _write_result(args, "rig.json", summary.to_json(), figures)
+    print(f"rig '{rig.name}': {rig.description}")
+    width = max(len(p.name) for p in rig.parameters)
+    for p in rig.parameters:
+        held = "  (held)" if p.held else ""
+        print(f"  {p.name:<{width}}  {p.nominal:<10.4g} [{p.low:.4g}, {p.high:.4g}] {p.unit:<4} {p.doc}{held}")
+    print("CSV columns: time_s, current_A, voltage_V, " + ", ".join([*rig.sensors, *rig.boundaries.values()]))
+    taus = ", ".join(f"{t:.0f} s" for t in summary.time_constants[:3])
+    print(f"slowest time constants (module K {summary.module_k:g} W/K): {taus}")
+    for share, t in summary.hold_times.items():
+        print(f"a staircase hold of {t / 60:.1f} min brings every sensor within {100 * share:g} % of its step's move")
+    print(f"wrote {args.out / 'rig.json'} and rig.png")
     return 0
 
 
@@ -677,6 +708,7 @@ def build_parser():
     _add_report(sub)
     _add_export(sub)
     _add_inspect(sub)
+    _add_rig(sub)
     return parser
 
 
@@ -1050,6 +1082,37 @@ def _add_inspect(sub):
     p.add_argument("batch", type=Path, help="batch folder")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.set_defaults(func=_cmd_inspect)
+
+
+_EPILOG_RIG = """\
+example:
+  tembayes rig reference --out rig_check              # a shipped rig
+  tembayes rig my_rig.toml --out rig_check --module-k 0.3
+"""
+
+
+def _add_rig(sub):
+    """The ``tembayes rig`` subcommand."""
+    p = sub.add_parser(
+        "rig",
+        help="check a rig file (or a shipped rig) and describe it before a test",
+        description="Read and check a rig file (docs/rigs.md) or a shipped rig by name, print its parameters and "
+        "the CSV columns a batch on it needs, and write rig.json and rig.png: the network drawn, its slowest time "
+        "constants and the hold a current staircase needs for the sensors to reach steady state.",
+        epilog=_EPILOG_RIG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("rig", help="a rig file (.toml) or a shipped rig's name (reference)")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder to create")
+    p.add_argument(
+        "--module-k",
+        type=float,
+        default=0.5,
+        metavar="W_PER_K",
+        help="the module's thermal conductance for the time constants (default 0.5 W/K, a 40 mm 6 A module)",
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace DIR if it is an earlier rig output")
+    p.set_defaults(func=_cmd_rig)
 
 
 def main(argv=None):

@@ -11,7 +11,7 @@ from tembayes.calibrate import sampler as smp
 from tembayes.calibrate.likelihood import LevelErrors, _ExpansionSums, _window_terms, window_loglike
 from tembayes.calibrate.parameters import ParameterSpace
 from tembayes.calibrate.priors import ParameterPrior, law_priors, rig_prior
-from tembayes.physics.rig import REFERENCE
+from tembayes.physics.rigread import REFERENCE
 
 
 def test_window_loglike_matches_multivariate_normal():

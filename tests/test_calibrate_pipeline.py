@@ -293,7 +293,7 @@ def test_an_expansion_off_early_is_rebuilt_at_once_and_a_passing_probe_changes_n
     b = load_batch(batch4)
     m = b.modules["TEM1"]
     opt = CalibrationOptions(
-        max_steps=3000, pilot=500, max_relinearise=2, psis_draws=100, leg_cells=2, block_cells=2, psis_probe=1000
+        max_steps=3000, pilot=500, max_relinearise=2, psis_draws=100, leg_cells=2, block_split=1, psis_probe=1000
     )
 
     def cal(**kw):

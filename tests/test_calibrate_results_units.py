@@ -33,7 +33,7 @@ from tembayes.calibrate.stepdata import CHANNELS  # noqa: E402
 from tembayes.constants import MODULE_PARAMETERS  # noqa: E402
 from tembayes.data import write_json  # noqa: E402
 from tembayes.physics.effects import CATALOGUE  # noqa: E402
-from tembayes.physics.rig import reference_rig  # noqa: E402
+from tembayes.physics.rigread import rig_from_config  # noqa: E402
 
 
 def assert_units_everywhere(idata):
@@ -97,7 +97,7 @@ def test_every_sampled_parameter_of_every_model_has_a_unit():
     names = set()
     for form in FORMS.values():
         effects = [e for e in CATALOGUE if e not in form.includes]
-        _, space = parameter_space(reference_rig(layers=form.layers), ds, data, 5.0, effects, form.name)
+        _, space = parameter_space(rig_from_config(None, layers=form.layers), ds, data, 5.0, effects, form.name)
         names |= {p.name for p in space.priors}
     assert set(MODULE_PARAMETERS) | {SHIFT} | set(NOISE_PARAMETERS) <= names
     names |= {f"hyper_{k}" for k in HYPER_NAMES} | set(CHANNELS)

@@ -163,18 +163,20 @@ def test_population_table_refuses_bad_keys_naming_them(data_factory, line, key, 
 
 @pytest.fixture
 def fake_rig(monkeypatch):
-    """Stand-in for tembayes.physics.rig that knows only the 'reference' preset."""
+    """Stand-in for tembayes.physics.rigread that knows only the 'reference' preset."""
+    from tembayes.physics.rigread import REFERENCE
+
     calls = []
 
     def rig_from_config(config):
         calls.append(dict(config))
         if config.get("preset") != "reference":
             raise ModelError(f"unknown rig preset {config.get('preset')!r}; known presets: ['reference']")
-        return object()
+        return REFERENCE
 
-    module = types.ModuleType("tembayes.physics.rig")
+    module = types.ModuleType("tembayes.physics.rigread")
     module.rig_from_config = rig_from_config
-    monkeypatch.setitem(sys.modules, "tembayes.physics.rig", module)
+    monkeypatch.setitem(sys.modules, "tembayes.physics.rigread", module)
     return calls
 
 
@@ -186,11 +188,7 @@ def test_rig_model_error_becomes_data_error(data_factory, fake_rig):
     assert "Fix the [rig] table" in info.value.hint
 
 
-def test_rig_checked_by_real_physics_when_available(data_factory):
-    try:
-        from tembayes.physics.rig import rig_from_config  # noqa: F401
-    except ImportError:
-        pytest.skip("tembayes.physics.rig not written yet")
+def test_rig_checked_by_real_physics(data_factory):
     folder = data_factory.batch(toml=data_factory.batch_toml(rig={"preset": "no-such-rig"}))
     with pytest.raises(DataError, match="no-such-rig") as info:
         load_batch_toml(folder)

@@ -88,7 +88,7 @@ def docs_workdir(tmp_path_factory):
         max_relinearise=1,
         psis_draws=100,
         leg_cells=2,
-        block_cells=2,
+        block_split=1,
         model="paper",
         discrepancy="none",
     )

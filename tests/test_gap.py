@@ -172,9 +172,9 @@ def test_refit_names_a_sensor_lag_at_the_noise_floor_and_recovers_its_time_const
 
 def test_range_conflicts_flag_a_leak_far_above_the_enclosure_and_nothing_inside():
     from tembayes.gap.conflicts import range_conflicts
-    from tembayes.physics.rig import reference_rig
+    from tembayes.physics.rigread import rig_from_config
 
-    rig = reference_rig(4, 6)
+    rig = rig_from_config(None, 4, 3)
     rng = np.random.default_rng(0)
     nominal = rig.nominal()
     draws = {k: v * np.exp(0.02 * rng.standard_normal(500)) for k, v in nominal.items()}

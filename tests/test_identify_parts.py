@@ -11,7 +11,7 @@ from tembayes.identify.estimates import Steady, jump_resistance, junction_temper
 from tembayes.identify.fits import fit_line, hysteresis
 from tembayes.physics import Inputs, simulate
 from tembayes.physics import kernel as K
-from tembayes.physics.rig import REFERENCE
+from tembayes.physics.rigread import REFERENCE
 from tembayes.physics.simulate import build
 
 # ----------------------------------------------------------------- steps

@@ -10,7 +10,7 @@ from tembayes.errors import ModelError
 from tembayes.physics import Inputs, simulate
 from tembayes.physics import kernel as K
 from tembayes.physics.reference import simulate_reference
-from tembayes.physics.rig import reference_rig
+from tembayes.physics.rigread import rig_from_config
 
 # Three draws around the typical module (a few % to ~20 % apart), with rig values.
 DRAWS = {
@@ -63,7 +63,7 @@ def test_simulator_matches_scipy_reference_short():
 
 
 def test_simulator_matches_scipy_reference_legs_and_effects_short():
-    _assert_close_to_reference(_experiment(120.0, 2.0), {**PAPER, **EFFECTS_ON}, rig=reference_rig(leg_cells=2))
+    _assert_close_to_reference(_experiment(120.0, 2.0), {**PAPER, **EFFECTS_ON}, rig=rig_from_config(None, leg_cells=2))
 
 
 @pytest.mark.slow
@@ -77,7 +77,9 @@ def test_simulator_matches_scipy_reference_20_min():
 def test_simulator_matches_scipy_reference_20_min_legs_and_effects():
     # leg cells and every effect on: 20 min at 5 Hz, one draw
     params = {k: v[0] for k, v in DRAWS.items()}
-    _assert_close_to_reference(_experiment(300.0, 5.0), {**params, **EFFECTS_ON}, rig=reference_rig(leg_cells=2))
+    _assert_close_to_reference(
+        _experiment(300.0, 5.0), {**params, **EFFECTS_ON}, rig=rig_from_config(None, leg_cells=2)
+    )
 
 
 # ---------------------------------------------------------------- 9. sampling

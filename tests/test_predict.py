@@ -21,12 +21,12 @@ from tembayes.cli import main
 from tembayes.constants import MODULE_PARAMETERS
 from tembayes.data import load_batch
 from tembayes.errors import DataError, ModelError
-from tembayes.physics.rig import reference_rig
+from tembayes.physics.rigread import rig_from_config
 from tembayes.predict import RunModel, constant_laws, predict, simulate_predictive
 from tembayes.predict.anchor import ResidualProcess, fit_residual_process
 from tembayes.predict.predictive import LEVELS, PredictiveDraws
 
-RIG = reference_rig(4, 6)
+RIG = rig_from_config(None, 4, 3)
 CONTRACT_METRICS = {"rmse", "max_abs", "coverage50", "coverage90", "coverage95"}
 CHANNELS = ("T1_C", "T2_C", "T3_C", "T4_C", "voltage_V")
 

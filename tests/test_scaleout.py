@@ -35,8 +35,8 @@ from tembayes.calibrate.runfolder import partial_path
 from tembayes.constants import MODULE_PARAMETERS
 from tembayes.data import LazyModule, load_batch
 
-CHEAP = CalibrationOptions(max_steps=1000, pilot=500, max_relinearise=1, psis_draws=100, leg_cells=2, block_cells=2)
-CHEAP_KW = "max_steps=1000, pilot=500, max_relinearise=1, psis_draws=100, leg_cells=2, block_cells=2"
+CHEAP = CalibrationOptions(max_steps=1000, pilot=500, max_relinearise=1, psis_draws=100, leg_cells=2, block_split=1)
+CHEAP_KW = "max_steps=1000, pilot=500, max_relinearise=1, psis_draws=100, leg_cells=2, block_split=1"
 
 
 @pytest.fixture(scope="module")

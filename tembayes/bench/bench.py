@@ -26,6 +26,7 @@ import numpy as np
 
 import tembayes
 from tembayes.bench import hifi, outside
+from tembayes.bench.hifi import DEPTHS
 from tembayes.bench.protocols import (
     boundary_drifts,
     identification_staircase,
@@ -42,7 +43,7 @@ from tembayes.data import (
     write_json,
 )
 from tembayes.errors import ModelError
-from tembayes.physics.rig import CERAMIC, DEPTHS
+from tembayes.physics.rigfile import CERAMIC
 from tembayes.physics.simulate import Inputs, simulate
 
 if TYPE_CHECKING:

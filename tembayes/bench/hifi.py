@@ -1,6 +1,6 @@
 """The virtual bench's higher-fidelity rig and module.
 
-Where the calibration model (:data:`tembayes.physics.rig.REFERENCE`) has two
+Where the calibration model (:data:`tembayes.physics.rigread.REFERENCE`) has two
 nodes per steel block and a lumped module, the bench resolves:
 
 - each steel block into 6 cells of 1.67 mm, so the sensors (2.5 mm from a
@@ -20,25 +20,24 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from tembayes.physics.rig import (
-    AREA,
-    CERAMIC,
-    DEPTHS,
-    JUNCTION_SHARE,
-    K_STEEL,
-    REFERENCE,
-    RHO_C,
-    SENSOR_DEPTH,
-    RigDescription,
-    RigParameter,
-    SensorDepth,
-)
+from tembayes.physics.rig import RigDescription, RigParameter, SensorDepth
+from tembayes.physics.rigfile import CERAMIC, JUNCTION_SHARE
+from tembayes.physics.rigread import REFERENCE
 
 if TYPE_CHECKING:
     from collections.abc import Mapping
 
 N_BLOCK_CELLS = 6
 N_LEG_CELLS = 4
+
+#: The reference rig's steel blocks (its file gives their lumped values).
+K_STEEL = 16.2  # AISI 304 [W/(m K)]
+AREA = 0.040 * 0.040  # block and module footprint [m^2]
+RHO_C = 7900.0 * 500.0  # volumetric heat capacity of the steel [J/(m^3 K)]
+#: Nominal depth of every sensor below its block's nearer face [m].
+SENSOR_DEPTH = 2.5e-3
+#: The reference rig's sensor depths (held by a calibration, drawn by the bench).
+DEPTHS = tuple(p for p in REFERENCE.parameters if p.name.startswith("depth_"))
 
 #: Bench rig parameters that the reference rig has too (same name, meaning
 #: and documented range), so a calibration's rig posterior can be checked.

@@ -38,7 +38,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from tembayes.physics.rig import AREA, K_STEEL, RHO_C, RigDescription, RigParameter
+from tembayes.bench.hifi import AREA, K_STEEL, RHO_C
+from tembayes.physics.rig import RigDescription, RigParameter
 
 if TYPE_CHECKING:
     from collections.abc import Mapping

@@ -52,7 +52,7 @@ class StepResponseModel:
     ----------
     data : StepData
     rig : RigDescription
-        The calibration rig (e.g. ``reference_rig(leg_cells=2)``).
+        The calibration rig (e.g. ``rig_from_config(None, leg_cells=2)``).
     input_spacing : float, optional
         Extra (unobserved) grid points at this spacing [s], so that the
         water temperature's few-minute wobble reaches the model.

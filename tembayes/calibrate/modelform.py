@@ -50,7 +50,7 @@ class ModelForm:
     ----------
     name : str
     layers : bool
-        The module's plates in two layers (``reference_rig(layers=True)``).
+        The module's plates in two layers (:meth:`tembayes.physics.rigfile.RigFile.build` with ``layers``).
     physics : dict
         Effect parameters held at a value (the rig description carries them).
     priors : tuple of ParameterPrior

@@ -60,7 +60,7 @@ from tembayes.constants import KELVIN, MODULE_PARAMETERS, T_REF
 from tembayes.data.write import atomic_write_text
 from tembayes.errors import ModelError
 from tembayes.physics.effects import EFFECT_PARAMETERS
-from tembayes.physics.rig import rig_from_config
+from tembayes.physics.rigread import rig_from_config
 
 if TYPE_CHECKING:
     from collections.abc import Mapping, Sequence
@@ -71,13 +71,14 @@ if TYPE_CHECKING:
     from tembayes.data import Datasheet, Experiment, LazyModule, Module
     from tembayes.physics.rig import RigDescription
 
-#: Resolution of the calibration model: legs in 4 cells, blocks in 6.  The
+#: Resolution of the calibration model: legs in 4 cells, every block cell of
+#: the rig file in 3 (the reference rig's blocks in 6).  The
 #: paper-sized model (lumped module, 2 cells per block) misses the first
 #: minute after a step by up to 0.1 K in dT (heat takes ~25 s through a
 #: block, the legs' Joule heat is released along them), which biases K and S
 #: by percents; 4 x 6 is within the sensor noise of a 14 x 8 model.
 LEG_CELLS = 4
-BLOCK_CELLS = 6
+BLOCK_SPLIT = 3
 
 #: How a calibration widens its laws for a model that is not the rig (``CalibrationOptions.discrepancy``).
 DISCREPANCIES = ("none", "window-sandwich", "robust")
@@ -107,8 +108,10 @@ class CalibrationOptions:
 
     Attributes
     ----------
-    leg_cells, block_cells : int
-        Resolution of the calibration model.
+    leg_cells, block_split : int
+        Resolution of the calibration model: the module's legs in
+        ``leg_cells`` cells, every block cell of the rig in ``block_split``
+        (odd).
     nwalkers : int or None
         emcee walkers (>= 2 x parameters); None: 2 x parameters + 2.
     max_steps : int
@@ -155,7 +158,7 @@ class CalibrationOptions:
     """
 
     leg_cells: int = LEG_CELLS
-    block_cells: int = BLOCK_CELLS
+    block_split: int = BLOCK_SPLIT
     nwalkers: int | None = None
     max_steps: int = 60000
     thin_by: int = 10
@@ -260,7 +263,7 @@ def calibration_rig(rig_config: Mapping | None, options: CalibrationOptions) -> 
     return rig_from_config(
         rig_config or {},
         leg_cells=options.leg_cells,
-        block_cells=options.block_cells,
+        block_split=options.block_split,
         layers=form.layers,
         physics={**form.physics, **dict(options.effect_values)},
     )

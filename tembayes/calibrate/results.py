@@ -104,9 +104,9 @@ _FIXED_UNITS = {
 def _table_units():
     """Units of the rig's parameters and the effect catalogue's (no suffix: ``g_cooler``, ``tab_share``)."""
     from tembayes.physics.effects import CATALOGUE
-    from tembayes.physics.rig import reference_rig
+    from tembayes.physics.rigread import shipped_rig
 
-    out = {p.name: p.unit for p in reference_rig(layers=True).parameters}
+    out = {p.name: p.unit for p in shipped_rig("reference").build(layers=True).parameters}
     out.update({p.name: p.unit for e in CATALOGUE.values() for p in e.parameters})
     return out
 

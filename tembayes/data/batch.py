@@ -9,7 +9,7 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..constants import KELVIN
+from ..constants import KELVIN, TEMPERATURE_COLUMNS
 from ..errors import DataError, ModelError
 from .experiment import Experiment, load_experiment
 from .preflight import ERROR, check_experiment
@@ -318,8 +318,9 @@ class Batch:
     datasheet : Datasheet
         From ``[module_type]``.
     rig_config : dict
-        The ``[rig]`` table (``{"preset": "reference"}`` when absent; a
-        missing ``preset`` defaults to ``"reference"``).
+        The ``[rig]`` table: a shipped rig's ``preset`` (``"reference"``
+        when absent) or a rig ``file`` (its absolute path), and parameter
+        overrides.
     modules : dict of str to Module
         In natural order of the ids (TEM1, TEM2, TEM10).
     population : dict
@@ -350,7 +351,8 @@ def load_batch_toml(path: Path | str) -> tuple[Datasheet, dict]:
     -------
     datasheet : Datasheet
     rig_config : dict
-        The ``[rig]`` table with ``preset`` defaulted to ``"reference"``.
+        The ``[rig]`` table: ``preset`` (default ``"reference"``) or ``file``
+        (made absolute), and parameter overrides.
 
     Raises
     ------
@@ -438,15 +440,7 @@ def _tables(path, doc):
                 'Write it as a [rig] section, e.g. [rig] preset = "reference"',
                 column="rig",
             )
-        rig_config = dict(rig)
-        rig_config.setdefault("preset", DEFAULT_RIG_CONFIG["preset"])
-        if not isinstance(rig_config["preset"], str):
-            raise DataError(
-                path,
-                f"rig.preset must be text, found {rig_config['preset']!r}",
-                'Quote it, e.g. preset = "reference"',
-                column="preset",
-            )
+        rig_config = _rig_source(path, dict(rig))
     _check_rig(path, rig_config)
     return datasheet, rig_config
 
@@ -501,15 +495,42 @@ def _population(path, doc):
     return {k: (v, log_sd) for k, v in values.items()}
 
 
+def _rig_source(path: Path, rig_config: dict) -> dict:
+    """``preset`` (the default) or ``file``, made absolute: a rig file sits next to batch.toml."""
+    if "file" not in rig_config:
+        rig_config.setdefault("preset", DEFAULT_RIG_CONFIG["preset"])
+    key = "file" if "file" in rig_config else "preset"
+    if not isinstance(rig_config[key], str):
+        raise DataError(
+            path,
+            f"rig.{key} must be text, found {rig_config[key]!r}",
+            'Quote it, e.g. preset = "reference" or file = "rig.toml"',
+            column=key,
+        )
+    if key == "file":
+        rig_config["file"] = str((path.parent / rig_config["file"]).resolve())
+    return rig_config
+
+
 def _check_rig(path: Path, rig_config: dict) -> None:
-    from ..physics.rig import rig_from_config  # lazy: physics is heavier than data
+    from ..physics.rigread import rig_from_config  # lazy: physics is heavier than data
 
     try:
-        rig_from_config(rig_config)
+        rig = rig_from_config(rig_config)
     except ModelError as e:
         raise DataError(
             path, str(e), "Fix the [rig] table (or remove it to use the reference rig)", column="rig"
         ) from None
+    # the stages read the reference rig's columns by position (boundaries: water, then room air)
+    columns = (*rig.sensors, *rig.boundaries.values())
+    if columns != TEMPERATURE_COLUMNS:
+        raise DataError(
+            path,
+            f"rig '{rig.name}' reads {', '.join(columns)}; the calibration, prediction and gap stages read the "
+            f"reference rig's columns in this order ({', '.join(TEMPERATURE_COLUMNS)}) only so far",
+            "Describe the rig with `tembayes rig` for now, or use a rig with the reference rig's sensors and boundaries",
+            column="rig",
+        )
 
 
 def file_stem(module_id: str) -> str:

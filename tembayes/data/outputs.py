@@ -88,6 +88,7 @@ KINDS = {
         OutputKind("report", (("report.html",),), ("report.html", "report.json")),
         OutputKind("simulate", (("truth.json", "batch.toml"),), ("truth.json", "batch.toml", "*/")),
         OutputKind("export", (), (), is_file=True),
+        OutputKind("rig", (("rig.json",),), ("rig.json", "rig.png")),
     )
 }
 

@@ -185,7 +185,7 @@ def refit(module, datasheet, effect=None, *, rig_config=None, start=None, option
         posterior's laws); default the prior centres, the effects at zero and
         the step shift at the middle of its interval.
     options : CalibrationOptions, optional
-        The calibration's resolution (``leg_cells``, ``block_cells``).
+        The calibration's resolution (``leg_cells``, ``block_split``).
     max_nfev : int
 
     Returns

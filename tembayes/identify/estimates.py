@@ -35,7 +35,6 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from tembayes.errors import ModelError
-from tembayes.physics.rig import BOUNDARIES
 
 if TYPE_CHECKING:
     from collections.abc import Mapping
@@ -276,7 +275,7 @@ def junction_temperatures(
                 raise ModelError(f"rig '{rig.name}': node '{names[j]}' next to '{names[b]}' has no sensor")
             flux += net.G[:, b, j] * (Tb - sens[:, read[names[j]]])
         bound = np.array([steady.t_water, steady.t_amb])
-        for kb in range(len(BOUNDARIES)):
+        for kb in range(len(rig.boundaries)):
             flux += net.Gb[:, b, kb] * (Tb - bound[kb])
         out.append(Tb + flux / net.G[:, p, b])
     th, tc = out

@@ -33,7 +33,7 @@ from tembayes.errors import ModelError
 from tembayes.identify.estimates import hold_end, jump_resistance, junction_temperatures
 from tembayes.identify.fits import LineFit, fit_line, hysteresis
 from tembayes.identify.rigfit import RigFit, constant_laws, fit_rig, validation_errors
-from tembayes.physics.rig import rig_from_config
+from tembayes.physics.rigread import rig_from_config
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Mapping

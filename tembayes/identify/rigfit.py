@@ -23,7 +23,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from tembayes.constants import KELVIN, LAW_PARAMETERS, T_REF
-from tembayes.physics.rig import REFERENCE
+from tembayes.physics.rigread import REFERENCE
 from tembayes.physics.simulate import Inputs, simulate
 
 if TYPE_CHECKING:

@@ -16,7 +16,7 @@ from scipy.integrate import solve_ivp
 from tembayes.errors import ModelError
 from tembayes.physics import effects
 from tembayes.physics import kernel as K
-from tembayes.physics.rig import REFERENCE
+from tembayes.physics.rigread import REFERENCE
 from tembayes.physics.simulate import Simulation, build
 
 if TYPE_CHECKING:

@@ -2,9 +2,9 @@
 
 A rig is data, not code: named physical parameters (with the plausible range
 the rig documentation gives), nodes with a capacitance, links with a
-conductance, two measured boundaries (``water`` and ``ambient``), the two
-nodes the module sits between, and the node each sensor reads.  Another rig is
-another :class:`RigDescription`; :data:`PRESETS` holds the known ones.
+conductance, measured boundaries, the two nodes the module sits between, and
+the node each sensor reads.  Rig files (:mod:`tembayes.physics.rigread`, :mod:`tembayes.physics.rigfile`)
+describe it; :class:`RigDescription` is the network at one resolution.
 
 Capacitance and conductance entries are *expressions* over the parameters:
 
@@ -13,14 +13,6 @@ Capacitance and conductance entries are *expressions* over the parameters:
 - a product of a number and names: ``"0.5*leak_bottom*tab_share"``
 - a sum of those: ``"c_plate_hot + 0.5*c_legs"``
 - a list: conductances in series, ``["g_cooler", "g_steel_quarter"]``
-
-The reference rig (``docs/data-format.md``, 'The reference rig') splits each steel block
-into two 5 mm cells whose centres sit exactly at the sensor depths (2.5 mm
-away from each face), so the four sensors read node temperatures.  Its module is
-the paper's lumped element by default (``leg_cells=0``: each plate carries
-half the legs' capacitance); :func:`reference_rig` with ``leg_cells=n``
-resolves the legs into ``n`` cells, so Joule heat is released along the legs
-at the local resistance.
 """
 
 from __future__ import annotations
@@ -37,7 +29,8 @@ from tembayes.errors import ModelError
 if TYPE_CHECKING:
     from collections.abc import Mapping, Sequence
 
-BOUNDARIES = ("water", "ambient")
+#: The reference rig's measured boundaries and their CSV columns.
+BOUNDARIES = MappingProxyType({"water": "T_water_C", "ambient": "T_amb_C"})
 
 
 @dataclass(frozen=True)
@@ -113,8 +106,8 @@ class Network:
         Node capacitances [J/K].
     G : ndarray, shape (nd, N, N)
         Symmetric node-to-node conductances [W/K], zero diagonal.
-    Gb : ndarray, shape (nd, N, 2)
-        Node-to-boundary conductances (water, ambient) [W/K].
+    Gb : ndarray, shape (nd, N, nb)
+        Node-to-boundary conductances [W/K], boundaries in the rig's order.
     """
 
     nodes: tuple
@@ -170,6 +163,8 @@ class RigDescription:
         ``(hot face, cold face)``: the module's outer nodes, where it meets the
         rig, for plates resolved into layers (the alumina outside the
         junctions' copper); empty when the plates are the faces.
+    boundaries : mapping of str to str
+        Measured boundary temperatures: name -> CSV column.
     """
 
     name: str
@@ -183,6 +178,7 @@ class RigDescription:
     physics: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
     depths: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
     faces: tuple = ()
+    boundaries: MappingProxyType = field(default_factory=lambda: BOUNDARIES)
 
     def __post_init__(self):
         names = [p.name for p in self.parameters]
@@ -194,9 +190,9 @@ class RigDescription:
         known = set(node_names)
         for a, b, expr in self.links:
             for end in (a, b):
-                if end not in known and end not in BOUNDARIES:
+                if end not in known and end not in self.boundaries:
                     raise ModelError(f"rig '{self.name}': link end '{end}' is not a node or boundary")
-            if a in BOUNDARIES and b in BOUNDARIES:
+            if a in self.boundaries and b in self.boundaries:
                 raise ModelError(f"rig '{self.name}': link {a}-{b} joins two boundaries")
             self._check_expr(expr)
         for _, expr in self.nodes:
@@ -220,6 +216,7 @@ class RigDescription:
         object.__setattr__(self, "sensors", MappingProxyType(dict(self.sensors)))
         object.__setattr__(self, "physics", MappingProxyType(dict(self.physics)))
         object.__setattr__(self, "depths", MappingProxyType(dict(self.depths)))
+        object.__setattr__(self, "boundaries", MappingProxyType(dict(self.boundaries)))
 
     # -- parameters ---------------------------------------------------------
     @property
@@ -325,11 +322,9 @@ class RigDescription:
         if not isinstance(expr, str):
             raise ModelError(f"rig '{self.name}': bad expression {expr!r}")
         for term in expr.split("+"):
-            names = 0
             for part in term.split("*"):
                 part = part.strip()
                 if part in self.parameter_names:
-                    names += 1
                     continue
                 try:
                     float(part)
@@ -339,12 +334,11 @@ class RigDescription:
                             f"rig '{self.name}': expression '{expr}' names unknown parameter '{part}'"
                         ) from None
                     raise ModelError(f"rig '{self.name}': bad factor '{part}' in '{expr}'") from None
-            if names == 0:
-                raise ModelError(f"rig '{self.name}': term '{term.strip()}' of '{expr}' names no parameter")
 
-    def _eval(self, expr, values):
+    def evaluate(self, expr, values: Mapping[str, float | np.ndarray]):
+        """An expression's value for parameter ``values`` (a series list: the series conductance)."""
         if isinstance(expr, (list, tuple)):
-            return 1.0 / sum(1.0 / self._eval(e, values) for e in expr)
+            return 1.0 / sum(1.0 / self.evaluate(e, values) for e in expr)
         if isinstance(expr, (int, float)):
             return np.float64(expr)
         total = 0.0
@@ -380,14 +374,15 @@ class RigDescription:
         N = len(names)
         C = np.empty((nd, N))
         for i, (_, expr) in enumerate(self.nodes):
-            C[:, i] = self._eval(expr, vals)
+            C[:, i] = self.evaluate(expr, vals)
         G = np.zeros((nd, N, N))
-        Gb = np.zeros((nd, N, 2))
+        bounds = tuple(self.boundaries)
+        Gb = np.zeros((nd, N, len(bounds)))
         for a, b, expr in self.links:
-            g = self._eval(expr, vals)
-            if a in BOUNDARIES or b in BOUNDARIES:
-                node, bnd = (b, a) if a in BOUNDARIES else (a, b)
-                Gb[:, names.index(node), BOUNDARIES.index(bnd)] += g
+            g = self.evaluate(expr, vals)
+            if a in bounds or b in bounds:
+                node, bnd = (b, a) if a in bounds else (a, b)
+                Gb[:, names.index(node), bounds.index(bnd)] += g
             else:
                 i, j = names.index(a), names.index(b)
                 G[:, i, j] += g
@@ -395,253 +390,3 @@ class RigDescription:
         if np.any(~np.isfinite(C)) or np.any(C <= 0):
             raise ModelError(f"rig '{self.name}': non-positive or non-finite capacitance")
         return Network(names, C, G, Gb)
-
-
-# --- the reference rig -------------------------------------------------------
-K_STEEL = 16.2  # AISI 304 [W/(m K)]
-AREA = 0.040 * 0.040  # block and module footprint [m^2]
-RHO_C = 7900.0 * 500.0  # volumetric heat capacity of the steel [J/(m^3 K)]
-
-
-def _steel_g(d):
-    return K_STEEL * AREA / d
-
-
-_REFERENCE_PARAMETERS = (
-    RigParameter("g_cooler", 12.5, 10.0, 15.0, "W/K", "water cooler to top block face"),
-    RigParameter("g_paste_hot", 35.0, 20.0, 50.0, "W/K", "thermal paste, module hot face"),
-    RigParameter("g_paste_cold", 35.0, 20.0, 50.0, "W/K", "thermal paste, module cold face"),
-    RigParameter("c_plate_hot", 4.5, 4.0, 5.0, "J/K", "hot alumina plate"),
-    RigParameter("c_plate_cold", 4.5, 4.0, 5.0, "J/K", "cold alumina plate"),
-    RigParameter("c_legs", 1.25, 1.0, 1.5, "J/K", "all legs of the module together"),
-    RigParameter("leak_top", 0.02, 0.01, 0.03, "W/K", "top block to ambient (enclosure)"),
-    RigParameter("leak_bottom", 0.04, 0.02, 0.06, "W/K", "bottom block to ambient (enclosure, tabs)"),
-    RigParameter(
-        "tab_share",
-        0.5,
-        0.2,
-        0.9,
-        "1",
-        "share of leak_bottom through the tabs the block rests on (at its bottom face); "
-        "the rest leaves through the side walls",
-    ),
-    RigParameter(
-        "c_half_block",
-        RHO_C * AREA * 0.005,
-        0.97 * RHO_C * AREA * 0.005,
-        1.03 * RHO_C * AREA * 0.005,
-        "J/K",
-        "5 mm of a steel block (rho c V)",
-    ),
-    RigParameter(
-        "g_steel_quarter",
-        _steel_g(0.0025),
-        0.95 * _steel_g(0.0025),
-        1.05 * _steel_g(0.0025),
-        "W/K",
-        "2.5 mm of steel (k A / d)",
-    ),
-    RigParameter(
-        "g_steel_half",
-        _steel_g(0.005),
-        0.95 * _steel_g(0.005),
-        1.05 * _steel_g(0.005),
-        "W/K",
-        "5 mm of steel (k A / d)",
-    ),
-)
-
-#: The module's plates as two layers (``reference_rig(layers=True)``): the
-#: alumina, then the copper and solder where the junctions are, joined by the
-#: ceramic's conductance (0.6-1 mm of alumina, k ~ 25 W/(m K), over 40 x 40 mm:
-#: 35-70 W/K).  A calibration holds it at the nominal value: in series with the
-#: paste the data barely tell the two apart, and sampled it bent the R0-S0-K
-#: ridge until a module did not converge in 60 000 steps (held, the same module
-#: converged in 25 000); its range's uncertainty is carried over to the laws
-#: instead (``--discrepancy robust``).
-CERAMIC = RigParameter(
-    "g_ceramic",
-    50.0,
-    35.0,
-    70.0,
-    "W/K",
-    "through a module's alumina plate to its junctions (the plate's two layers)",
-    held=True,
-)
-#: Share of a plate's heat capacity at its junctions (copper and solder); the rest is alumina.
-JUNCTION_SHARE = 0.2
-#: Nominal depth of every sensor below its block's nearer face [m].
-SENSOR_DEPTH = 2.5e-3
-#: The sensors' depths: the hole's depth and the thermistor's seat in it are
-#: known to about a quarter of a millimetre.  In a heat-flux path of steel a
-#: quarter millimetre is ~0.1 K at 10 W, which the calibration cannot tell
-#: from the junctions' temperature difference, so the laws' R0-S0-K ridge
-#: moves with it; a calibration holds the depths at nominal and carries their
-#: range over (``--discrepancy robust``).
-DEPTHS = tuple(
-    RigParameter(
-        f"depth_{s}",
-        SENSOR_DEPTH,
-        SENSOR_DEPTH - 0.25e-3,
-        SENSOR_DEPTH + 0.25e-3,
-        "m",
-        f"depth of {s} below its block's nearer face",
-        held=True,
-    )
-    for s in ("T1", "T2", "T3", "T4")
-)
-
-
-def reference_rig(leg_cells: int = 0, block_cells: int = 2, layers: bool = False) -> RigDescription:
-    """The reference identification rig.
-
-    Parameters
-    ----------
-    leg_cells : int, optional
-        0 (default): the paper's lumped module between two plate nodes, each
-        plate carrying half the legs' capacitance.  ``n > 0``: the legs
-        resolved into ``n`` cells (Joule heat along the legs at the local
-        resistance, conduction along them).
-    block_cells : int, optional
-        Cells per steel block: 2 (default, the paper-sized model: cell
-        centres at the sensor depths), or 6, 10, 14, ... (``2 (2k + 1)``, so
-        that a cell centre still sits at each sensor's depth, 2.5 mm from a
-        face).  Heat diffuses through 10 mm of steel in ~25 s, so the step
-        transients need more than two cells per block.
-    layers : bool, optional
-        Each plate as two layers: the alumina (``1 - JUNCTION_SHARE`` of its
-        heat capacity, next to the paste) and the junctions' copper, joined
-        by ``g_ceramic`` (:data:`CERAMIC`).  The paper's plate is one node at
-        the junctions, so the alumina's resistance lands in the paste's and
-        its heat capacity at the junctions.
-    """
-    if int(leg_cells) != leg_cells or leg_cells < 0:
-        raise ModelError(f"leg_cells must be a whole number >= 0, got {leg_cells}")
-    nb = block_cells
-    if int(nb) != nb or nb < 2 or (nb - 2) % 4:
-        raise ModelError(f"block_cells must be 2, 6, 10, 14, ... (a cell centre at each sensor), got {block_cells}")
-    nb = int(nb)
-    legs = tuple(f"leg_{i + 1}" for i in range(leg_cells))
-    plate_extra = "" if legs else " + 0.5*c_legs"
-    if nb == 2:
-        top = ["top_upper", "top_lower"]
-        bottom = ["bottom_upper", "bottom_lower"]
-    else:
-        top = [f"top_{i + 1}" for i in range(nb)]  # top_1 at the water cooler
-        bottom = [f"bottom_{i + 1}" for i in range(nb)]  # bottom_1 at the module
-    f = 2.0 / nb  # cell size in units of a 5 mm half block
-    c_cell = "c_half_block" if nb == 2 else f"{f!r}*c_half_block"
-    g_cell = "g_steel_half" if nb == 2 else f"{1.0 / f!r}*g_steel_half"
-    g_face = "g_steel_quarter" if nb == 2 else f"{1.0 / f!r}*g_steel_quarter"
-    leak = "0.5" if nb == 2 else repr(1.0 / nb)
-    if layers:
-        share, rest = repr(JUNCTION_SHARE), repr(1.0 - JUNCTION_SHARE)
-        hot = [("hot_ceramic", f"{rest}*c_plate_hot"), ("hot_plate", f"{share}*c_plate_hot" + plate_extra)]
-        cold = [("cold_plate", f"{share}*c_plate_cold" + plate_extra), ("cold_ceramic", f"{rest}*c_plate_cold")]
-        hot_face, cold_face = "hot_ceramic", "cold_ceramic"
-        half = "2.0*g_ceramic"
-    else:
-        hot = [("hot_plate", "c_plate_hot" + plate_extra)]
-        cold = [("cold_plate", "c_plate_cold" + plate_extra)]
-        hot_face, cold_face, half = "hot_plate", "cold_plate", None
-    nodes = (
-        *((n, c_cell) for n in top),
-        *hot,
-        *((leg, f"{1.0 / leg_cells!r}*c_legs") for leg in legs),
-        *cold,
-        *((n, c_cell) for n in bottom),
-    )
-    links = [("water", top[0], ["g_cooler", g_face])]
-    links += [(a, b, g_cell) for a, b in zip(top[:-1], top[1:])]
-    links += [(top[-1], hot_face, [g_face, "g_paste_hot"] + ([half] if layers else []))]
-    links += [(cold_face, bottom[0], ([half] if layers else []) + ["g_paste_cold", g_face])]
-    if layers:
-        links += [("hot_ceramic", "hot_plate", half), ("cold_plate", "cold_ceramic", half)]
-    links += [(a, b, g_cell) for a, b in zip(bottom[:-1], bottom[1:])]
-    links += [(n, "ambient", f"{leak}*leak_top") for n in top]
-    # the bottom block rests on tabs: part of its leak leaves at the bottom face
-    links += [(n, "ambient", f"{leak}*leak_bottom + -{leak}*leak_bottom*tab_share") for n in bottom]
-    links += [(bottom[-1], "ambient", "leak_bottom*tab_share")]
-    k = (nb - 2) // 4  # the cell whose centre is 2.5 mm from a face
-    name = "reference"
-    if legs:
-        name += f"-legs{leg_cells}"
-    if nb != 2:
-        name += f"-blocks{nb}"
-    if layers:
-        name += "-layers"
-    return RigDescription(
-        name=name,
-        parameters=_REFERENCE_PARAMETERS + ((CERAMIC,) if layers else ()) + DEPTHS,
-        nodes=nodes,
-        links=tuple(links),
-        hot="hot_plate",
-        cold="cold_plate",
-        sensors={"T1_C": top[k], "T2_C": top[nb - 1 - k], "T3_C": bottom[k], "T4_C": bottom[nb - 1 - k]},
-        legs=legs,
-        faces=(hot_face, cold_face) if layers else (),
-        depths={
-            ch: SensorDepth(deeper, f"depth_{ch[:2]}", SENSOR_DEPTH, 0.010 / nb)
-            for ch, deeper in (
-                ("T1_C", top[k + 1]),
-                ("T2_C", top[nb - 2 - k]),
-                ("T3_C", bottom[k + 1]),
-                ("T4_C", bottom[nb - 2 - k]),
-            )
-        },
-    )
-
-
-#: The reference rig with the paper's lumped module.
-REFERENCE = reference_rig()
-
-#: Known rigs by preset name (``[rig] preset = ...`` in batch.toml): builders
-#: taking ``leg_cells``.
-PRESETS = MappingProxyType({"reference": reference_rig})
-
-
-def rig_from_config(
-    config: Mapping | None,
-    leg_cells: int = 0,
-    block_cells: int = 2,
-    *,
-    layers: bool = False,
-    physics: Mapping[str, float] | None = None,
-) -> RigDescription:
-    """The rig a batch.toml ``[rig]`` table asks for.
-
-    Parameters
-    ----------
-    config : mapping
-        ``{"preset": "reference", <parameter>: <value>, ...}``; values in SI
-        units override the preset's nominal values (e.g. ``g_cooler = 11.0``).
-    leg_cells, block_cells : int, optional
-        Resolution of the module's legs and of the blocks (see
-        :func:`reference_rig`).
-    layers : bool, optional
-        The module's plates in two layers (see :func:`reference_rig`).
-    physics : mapping, optional
-        Effect parameter values the description includes (``RigDescription.physics``).
-
-    Returns
-    -------
-    RigDescription
-
-    Raises
-    ------
-    ModelError
-        Unknown preset or parameter, or a non-positive value.
-    """
-    config = dict(config or {})
-    preset = config.pop("preset", "reference")
-    if not isinstance(preset, str) or preset not in PRESETS:
-        raise ModelError(f"unknown rig preset {preset!r}; known presets: {sorted(PRESETS)}")
-    rig = PRESETS[preset](leg_cells, block_cells, layers)
-    if config:
-        bad = [k for k, v in config.items() if isinstance(v, bool) or not isinstance(v, (int, float))]
-        if bad:
-            raise ModelError(f"rig override(s) {bad} must be numbers")
-        rig = rig.with_nominal(**config)
-    if physics:
-        rig = dataclasses.replace(rig, physics=dict(physics))
-    return rig

@@ -26,7 +26,7 @@ from tembayes.constants import MODULE_PARAMETERS, T_REF
 from tembayes.errors import ModelError
 from tembayes.physics import effects
 from tembayes.physics import kernel as K
-from tembayes.physics.rig import REFERENCE
+from tembayes.physics.rigread import REFERENCE
 
 if TYPE_CHECKING:
     from collections.abc import Mapping

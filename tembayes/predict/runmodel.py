@@ -68,7 +68,7 @@ class RunModel:
     ----------
     exp : tembayes.data.Experiment
     rig : RigDescription
-        The calibration rig (the run's ``leg_cells``/``block_cells``).
+        The calibration rig (the run's ``leg_cells``/``block_split``).
     dense : float, optional
         Every sample in the first ``dense`` seconds of the run and after a
         step is a grid point [s].

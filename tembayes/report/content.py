@@ -102,7 +102,7 @@ def step_estimates(run: CalibrationRun, batch: Batch, module_id: str) -> dict:
     See :func:`tembayes.identify.pipeline.step_estimates`.
     """
     from tembayes.identify.pipeline import step_estimates as _steps
-    from tembayes.physics.rig import rig_from_config
+    from tembayes.physics.rigread import rig_from_config
 
     rig = rig_from_config(batch.rig_config, leg_cells=0)
     nu = run.module_summary(module_id).nuisance
