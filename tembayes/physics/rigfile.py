@@ -186,24 +186,19 @@ def _scaled(expr, k: float):
         return [_scaled(e, k) for e in expr]
     if isinstance(expr, (int, float)):
         return float(expr) * k
-    terms = []
-    for term in expr.split("+"):
-        coef, names = 1.0, []
-        for part in term.split("*"):
-            part = part.strip()
-            try:
-                coef = coef * float(part)
-            except ValueError:
-                names.append(part)
-        terms.append("*".join([repr(coef * k), *names]))
-    return " + ".join(terms)
+    return " + ".join("*".join([repr(coef * k), *names]) for coef, names in _terms(expr))
 
 
 def canonical(expr) -> tuple:
     """An expression as sorted ``(coefficient, names)`` terms: ``"1*g"`` and ``"g"`` compare equal."""
     if isinstance(expr, (int, float)):
         return ((float(expr), ()),)
-    terms = []
+    return tuple(sorted((coef, tuple(sorted(names))) for coef, names in _terms(expr)))
+
+
+def _terms(expr: str) -> list:
+    """The terms of an expression: ``(product of its numbers, its names in order)``."""
+    out = []
     for term in expr.split("+"):
         coef, names = 1.0, []
         for part in term.split("*"):
@@ -212,8 +207,8 @@ def canonical(expr) -> tuple:
                 coef *= float(part)
             except ValueError:
                 names.append(part)
-        terms.append((coef, tuple(sorted(names))))
-    return tuple(sorted(terms))
+        out.append((coef, names))
+    return out
 
 
 def _text(expr) -> str:
@@ -268,9 +263,7 @@ def _split_link(ln: Link, owner, subs, m: int) -> list:
     ends = [e for e in (ln.a, ln.b) if e in owner]
     if not ends:
         return [(ln.a, ln.b, ln.g)]
-    if len(ends) == 2:
-        raise ModelError(f"link {ln.a}-{ln.b} joins two block cells: blocks are joined through their faces")
-    cell = ends[0]
+    cell = ends[0]  # the reader refuses a link between two block cells
     at_a = cell == ln.a
     b, i = owner[cell]
     outer = subs(cell)[0 if i == 0 else -1]

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import functools
 import itertools
 import tomllib
 from importlib import resources
@@ -44,8 +45,9 @@ BLOCK_KEYS = ("cells", "g_cell", "g_face")
 SENSOR_KEYS = ("node", "depth", "toward", "centre", "spacing")
 
 
+@functools.lru_cache(maxsize=None)
 def shipped_rig(name: str) -> RigFile:
-    """A rig shipped with tembayes, by preset name (:data:`SHIPPED`)."""
+    """A rig shipped with tembayes, by preset name (:data:`SHIPPED`); read and checked once per process."""
     if name not in SHIPPED:
         near = difflib.get_close_matches(str(name), SHIPPED, n=1)
         raise ModelError(

@@ -93,13 +93,11 @@ def summarise_rig(rig: RigFile, module_k: float = DEFAULT_MODULE_K) -> RigSummar
     vals = {p.name: np.atleast_1d(p.nominal) for p in desc.parameters}
     links = tuple((a, b, float(np.atleast_1d(desc.evaluate(g, vals))[0])) for a, b, g in desc.links)
     C = net.C[0]
-    L = -net.G[0].copy()
-    np.fill_diagonal(L, net.G[0].sum(axis=1) + net.Gb[0].sum(axis=1))
     h, c = names.index(rig.hot), names.index(rig.cold)
-    L[h, h] += module_k
-    L[c, c] += module_k
-    L[h, c] -= module_k
-    L[c, h] -= module_k
+    G = net.G[0].copy()
+    G[h, c] += module_k  # the module as a conductance between its faces
+    G[c, h] += module_k
+    L = np.diag(G.sum(axis=1) + net.Gb[0].sum(axis=1)) - G
     # C dT/dt = -L T + q: symmetric in C^-1/2 coordinates
     s = 1.0 / np.sqrt(C)
     lam, W = eigh(s[:, None] * L * s[None, :])

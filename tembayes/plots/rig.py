@@ -119,31 +119,10 @@ def plot_rig(summary: RigSummary) -> Figure:
         color="#7a4000",
         zorder=3,
     )
-    caps = dict(summary.nodes)
-    for n, c in caps.items():
-        x, y = pos[n]
-        ax.text(
-            x,
-            y,
-            f"{n}\n{c:.3g} J/K",
-            ha="center",
-            va="center",
-            fontsize=7,
-            zorder=4,
-            bbox={"boxstyle": "round,pad=0.4", "fc": "#cfe3f5", "ec": "#1f5f99"},
-        )
+    for n, c in summary.nodes:
+        _label(ax, pos[n], f"{n}\n{c:.3g} J/K", 7, {"boxstyle": "round,pad=0.4", "fc": "#cfe3f5", "ec": "#1f5f99"})
     for bnd, col in rig.boundaries.items():
-        x, y = pos[bnd]
-        ax.text(
-            x,
-            y,
-            f"{bnd}\n({col})",
-            ha="center",
-            va="center",
-            fontsize=8,
-            zorder=4,
-            bbox={"boxstyle": "square,pad=0.5", "fc": "#e6e6e6", "ec": "0.3"},
-        )
+        _label(ax, pos[bnd], f"{bnd}\n({col})", 8, {"boxstyle": "square,pad=0.5", "fc": "#e6e6e6", "ec": "0.3"})
     for col, spec in rig.sensors.items():
         x, y = pos[spec.node]
         ax.annotate(
@@ -170,6 +149,11 @@ def plot_rig(summary: RigSummary) -> Figure:
     ax.set_ylim(min(ys) - 0.8, max(ys) + 0.8)
     fig.tight_layout()
     return fig
+
+
+def _label(ax, xy, text, size, box):
+    """A node's or boundary's boxed label at ``xy``."""
+    ax.text(*xy, text, ha="center", va="center", fontsize=size, zorder=4, bbox=box)
 
 
 def save_rig_figure(summary: RigSummary, path: Path) -> Path:
