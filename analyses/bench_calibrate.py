@@ -109,8 +109,8 @@ def main(argv=None):
 
     # --- naive: emcee over solve_ivp of the whole run ---
     opt = CalibrationOptions()
-    data = step_data(module.identification)
     rig = calibration_rig(batch.rig_config, opt)
+    data = step_data(module.identification, face=rig.layout.face)
     _, space = parameter_space(rig, batch.datasheet, data, StepResponseModel(data, rig).shift_bound)
     params = {k: float(np.mean(v)) for k, v in r.draws.items() if k not in NOISE_PARAMETERS and k != "step_shift_s"}
     params.update(space.fixed)

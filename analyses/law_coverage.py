@@ -20,6 +20,7 @@ have no run under ``--work`` are kept.
     python analyses/law_coverage.py --fidelity standard --physics full --model full --batches 13
     python analyses/law_coverage.py ... --summarise
     python analyses/law_coverage.py ... --tag s11 --summarise --compare-to high-paper-full-robust-nested
+    python analyses/law_coverage.py --rig heatsink-al --fidelity standard --physics full --batches 4
 
 Writes analyses/results/law_coverage_<label>.{json,md}.
 """
@@ -49,7 +50,13 @@ TYPES = {
 
 
 def label(args):
-    return f"{args.fidelity}-{args.physics}-{args.model}-{args.discrepancy}" + (f"-{args.tag}" if args.tag else "")
+    rig = "" if args.rig == "reference" else f"{args.rig}-"
+    return f"{rig}{args.fidelity}-{args.physics}-{args.model}-{args.discrepancy}" + (f"-{args.tag}" if args.tag else "")
+
+
+def bench_label(args):
+    rig = "" if args.rig == "reference" else f"{args.rig}-"
+    return f"{rig}{args.fidelity}-{args.physics}"
 
 
 def run(cmd):
@@ -61,7 +68,7 @@ def run(cmd):
 
 def one_batch(args, work, t, b):
     name = f"{t}-b{b}"
-    bdir = work / "batches" / f"{args.fidelity}-{args.physics}" / name
+    bdir = work / "batches" / bench_label(args) / name
     if not (bdir / "truth.json").exists():
         ds = work / f"{t}.toml"
         ds.write_text(TYPES[t])
@@ -82,6 +89,8 @@ def one_batch(args, work, t, b):
                 seed,
                 "--validations",
                 0,
+                "--rig",
+                args.rig,
                 "--overwrite",
             ]
         )
@@ -111,7 +120,7 @@ def one_batch(args, work, t, b):
 
 def rows(work, args):
     out = []
-    for bdir in sorted((work / "batches" / f"{args.fidelity}-{args.physics}").glob("*")):
+    for bdir in sorted((work / "batches" / bench_label(args)).glob("*")):
         rdir = work / "runs" / label(args) / bdir.name
         if not (rdir / "summary.json").exists():
             continue
@@ -226,7 +235,7 @@ def paired(work, args, other):
     """
     out = {p: {"shift": [], "sd_ratio": [], "covered": [0, 0]} for p in PARAMS}
     steps = []
-    for bdir in sorted((work / "batches" / f"{args.fidelity}-{args.physics}").glob("*")):
+    for bdir in sorted((work / "batches" / bench_label(args)).glob("*")):
         a, b = (work / "runs" / lab / bdir.name / "summary.json" for lab in (other, label(args)))
         if not (a.exists() and b.exists()):
             continue
@@ -275,6 +284,7 @@ def main():
         "(a study continued on another machine)",
     )
     ap.add_argument("--modules", type=int, default=4, help="modules per batch")
+    ap.add_argument("--rig", default="reference", help="a shipped rig or a rig file (tembayes simulate --rig)")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--work", type=Path, default=Path("/tmp/tembayes-law-coverage"))
     ap.add_argument("--shard", default="0/1", help="K/N: this process does every N-th batch from K")

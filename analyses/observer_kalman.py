@@ -281,7 +281,7 @@ def _identification_ambient(batch):
     from tembayes.data import load_batch
 
     exp = load_batch(batch).modules[MODULE].identification
-    return round(float(np.mean(exp.t_amb)) - 273.15, 1)
+    return round(float(np.mean(exp.channel("T_amb_C"))) - 273.15, 1)
 
 
 # --------------------------------------------------------------------------- the exported model
@@ -405,7 +405,7 @@ def relinearised_sensitivities(ex, batch_dir, run_dir, cache, say, compute=False
             h = REL_STEP * (abs(v) if v != 0 else 1.0)
             f, y = [], []
             for sgn in (1, -1):
-                lm = linearise({**theta, name: v + sgn * h}, rig, op["tavg_C"], op["current_A"], t_amb_C=amb)
+                lm = linearise({**theta, name: v + sgn * h}, rig, op["tavg_C"], op["current_A"], room_C=amb)
                 dx, du = op["x0"] - lm.x0, op["u0"] - lm.u0
                 f.append(lm.A @ dx + lm.B @ du)
                 y.append(lm.y0 + lm.C @ dx + lm.D @ du)
@@ -569,7 +569,7 @@ def filter_inputs(exp, sd_current):
     """
     t = np.asarray(exp.time, float)
     I = np.asarray(exp.current, float)
-    tw, ta = np.asarray(exp.t_water, float), np.asarray(exp.t_amb, float)
+    tw, ta = np.asarray(exp.channel("T_water_C"), float), np.asarray(exp.channel("T_amb_C"), float)
     n = len(t)
     ih, cnt, step, dI = np.empty(n), np.empty(n, int), np.zeros(n, bool), np.zeros(n)
     since = np.full(n, np.inf)
@@ -927,7 +927,7 @@ def _nonlinear_child(args):
     from tembayes.physics import Inputs, simulate
 
     rig = load_run(run_dir).rig_for(load_batch(batch_dir))
-    inputs = Inputs(np.array(t, float), np.array(u[:, 0], float), np.array(u[:, 1], float), np.array(u[:, 2], float))
+    inputs = Inputs(np.array(t, float), np.array(u[:, 0], float), np.array(u[:, 1:].T, float))
     sim = simulate(inputs, dict(zip(names, map(float, mean))), rig=rig)
     np.save(out, np.vstack([sim.sensors[0, c] for c in range(4)] + [sim.voltage[0]]).T)
 
@@ -953,7 +953,7 @@ def _phase_child(args):
         T, I = np.concatenate([t, et]), np.concatenate([u[:, 0], ei])
         o = np.argsort(T)
         T, I = T[o], I[o]
-        sim = simulate(Inputs(T, I, np.interp(T, t, u[:, 1]), np.interp(T, t, u[:, 2])), theta, rig=rig)
+        sim = simulate(Inputs(T, I, [np.interp(T, t, u[:, 1]), np.interp(T, t, u[:, 2])]), theta, rig=rig)
         sel = np.isin(T, t)
         res[f"f{f:g}"] = np.vstack([sim.sensors[0, c][sel] for c in range(4)] + [sim.voltage[0][sel]]).T
     np.savez(out, **res)

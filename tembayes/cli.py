@@ -23,6 +23,8 @@ examples:
   tembayes simulate runs/kt --effect k_temperature --effect sensor_lag=8 --seed 3
   tembayes simulate runs/other --datasheet other_type.toml --validation-rate 1
   tembayes simulate runs/real --fidelity high --validation-start rest --modules 8   # out-of-model bench
+  tembayes simulate runs/sink --rig heatsink-al --modules 4    # another shipped rig
+  tembayes simulate runs/mine --rig my_rig.toml                # your rig file (copied into the batch)
 
 effects (NAME or NAME=VALUE; VALUE sets the first parameter, others scale along):
 {effects}
@@ -119,7 +121,7 @@ best; plus the screen, the range conflicts, the best group of effects the
 data cannot tell apart and the settings; and the figures ranking.png,
 gap_map_*.png and residuals_*.png.  Held out are the validation runs and,
 one at a time, the identification run's step windows.  The gap is the
-excess RMSE over T1..T4 [K] of the validation runs beyond the predictive's
+excess RMSE over the rig's sensors [K] of the validation runs beyond the predictive's
 own uncertainty (or, when only the identification windows show one, their
 excess RMS in noise sds: gap.json's "metric"); the evidence the held-out
 ELPD difference [nats].
@@ -133,7 +135,7 @@ examples:
   tembayes predict runs/example data/example/TEM1/validation.csv --module TEM1 --out runs/ppc --draws 200 --netcdf
 
 writes DIR/metrics.json (docs/outputs.md, 'metrics.json (predict)'): per
-channel T1_C..T4_C and voltage_V the RMSE and max |error| of the predictive
+channel (the rig's sensor columns and voltage_V) the RMSE and max |error| of the predictive
 mean, in K or V, and the fraction of samples inside the central 50/90/95 %
 predictive bands, noise included; plus the errors per 5 K bin of T-bar, the
 anchoring of the rig and, unless --no-constant, the same for R and S
@@ -169,15 +171,18 @@ def _cmd_simulate(args):
     from tembayes.data import load_batch_toml
     from tembayes.data.outputs import check_output
     from tembayes.physics.effects import parse_effects
+    from tembayes.physics.rigread import rig_source
 
     datasheet = TEC1_12706
+    rig = rig_source(args.rig) if args.rig else None
     if args.datasheet:
         datasheet, _ = load_batch_toml(args.datasheet)
     check_output(
         args.out,
         kind="simulate",
         overwrite=args.overwrite,
-        inputs=[(args.datasheet, "datasheet file")] if args.datasheet else (),
+        inputs=([(args.datasheet, "datasheet file")] if args.datasheet else [])
+        + ([(Path(rig["file"]), "rig file")] if rig and "file" in rig else []),
     )
     config = BenchConfig(
         n_modules=args.modules,
@@ -194,11 +199,13 @@ def _cmd_simulate(args):
         fidelity=args.fidelity,
         validation_start=args.validation_start,
         physics=args.physics,
+        rig=rig,
     )
     truth = simulate_batch(args.out, config, overwrite=args.overwrite)
     print(
         f"wrote {args.out}: {len(truth['modules'])} modules ({datasheet.name}), "
-        f"effects: {', '.join(config.effects) or 'none'}, outlier: {config.outlier or 'none'}, seed {args.seed}"
+        f"effects: {', '.join(config.effects) or 'none'}, outlier: {config.outlier or 'none'}, seed {args.seed}, "
+        f"rig: {truth['generator']['bench_rig']}"
     )
     return 0
 
@@ -228,12 +235,14 @@ def _cmd_inspect(args):
     rig = batch.rig_config.get("file") or batch.rig_config.get("preset", "reference")
     print(f"batch {batch.path}  type {ds.name or '?'}  rig {rig}")
     print(f"  datasheet -> S {ds.seebeck():.4g} V/K, R {ds.resistance():.4g} ohm, K {ds.conductance():.4g} W/K")
+    cold = batch.layout.face[1]
+    c = cold.removesuffix("_C")
     for mid, files in report["modules"].items():
         for name, q in files.items():
             print(
                 f"  {mid:<8s} {name:<18s} {q['n_samples']:>7d} samples {q['duration_s'] / 3600:5.2f} h "
                 f"dt {q['dt_median_s']:.3g} s  I {q['current_min_A']:+.2f}..{q['current_max_A']:+.2f} A  "
-                f"T3 {q['T3_C_min']:.1f}..{q['T3_C_max']:.1f} C  noise T3 {1e3 * q['T3_C_noise']:.1f} mK"
+                f"{c} {q[cold + '_min']:.1f}..{q[cold + '_max']:.1f} C  noise {c} {1e3 * q[cold + '_noise']:.1f} mK"
             )
     for f in batch.findings:
         print(f"  {f.severity.upper()}: {f}")
@@ -448,7 +457,7 @@ def _cmd_export(args):
         run,
         batch,
         points=points or None,
-        t_amb_C=args.ambient,
+        room_C=args.ambient,
         allow_extrapolation=args.allow_extrapolation,
         n_draws=args.draws,
         seed=args.seed,
@@ -475,11 +484,10 @@ def _cmd_export(args):
 
 def _cmd_rig(args):
     from tembayes.data.outputs import check_output
-    from tembayes.physics.rigread import read_rig_file, shipped_rig
+    from tembayes.physics.rigread import rig_file_of, rig_source
     from tembayes.physics.rigsummary import summarise_rig
 
-    is_file = args.rig.endswith(".toml") or Path(args.rig).is_file()
-    rig = read_rig_file(args.rig) if is_file else shipped_rig(args.rig)  # refused input: nothing is written
+    rig = rig_file_of(rig_source(args.rig))  # refused input: nothing is written
     check_output(args.out, kind="rig", inputs=[(rig.path, "rig file")], overwrite=args.overwrite)
     summary = summarise_rig(rig, args.module_k)
 
@@ -569,8 +577,8 @@ def _cmd_predict(args):
         )
     batch = _run_batch(args, run)
     _check_out(args, "predict", (batch.path, "batch folder"), (args.experiment, "experiment file"))
-    exp = load_experiment(args.experiment, datasheet=batch.datasheet)
-    findings = check_experiment(exp, datasheet=batch.datasheet)
+    exp = load_experiment(args.experiment, datasheet=batch.datasheet, layout=batch.layout)
+    findings = check_experiment(exp, datasheet=batch.datasheet, layout=batch.layout)
     raise_first_error(findings)
     _say_findings(findings)
     result = predict(
@@ -780,6 +788,13 @@ def _add_simulate(sub):
         default="steady",
         help="steady: a validation run starts with 300 s at 0 A; rest: the rig at rest and the current "
         "switched straight to the first level",
+    )
+    p.add_argument(
+        "--rig",
+        metavar="RIG",
+        help="a shipped rig (reference, reference-faces, heatsink-al, liquid-plates) or a rig file: the batch has "
+        "that rig's columns and [rig] entry, simulated at a finer resolution than the calibration's (default: the "
+        "reference rig's benches)",
     )
     p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
     p.set_defaults(func=_cmd_simulate)
@@ -1053,7 +1068,8 @@ def _add_export(sub):
         type=float,
         default=None,
         metavar="C",
-        help="ambient temperature of the operating points [C] (default: the identification runs' median)",
+        help="temperature of the room the rig leaks to at the operating points [C] (default: the identification "
+        "runs' median)",
     )
     p.add_argument("--module", action="append", metavar="ID", help="only these modules (repeatable)")
     p.add_argument("--draws", type=int, default=200, metavar="N", help="posterior draws kept per module")

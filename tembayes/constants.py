@@ -11,25 +11,6 @@ KELVIN = 273.15
 #: Reference temperature of the linear laws, 25 degC [K].
 T_REF = 25.0 + KELVIN
 
-#: Columns every experiment CSV must carry, in the order of docs/data-format.md, 'CSV columns'.
-CSV_COLUMNS = (
-    "time_s",
-    "current_A",
-    "voltage_V",
-    "T1_C",
-    "T2_C",
-    "T3_C",
-    "T4_C",
-    "T_water_C",
-    "T_amb_C",
-)
-
-#: The four block-sensor temperature channels, top (water side) to bottom.
-SENSOR_CHANNELS = ("T1_C", "T2_C", "T3_C", "T4_C")
-
-#: All temperature columns (sensors and boundaries).
-TEMPERATURE_COLUMNS = SENSOR_CHANNELS + ("T_water_C", "T_amb_C")
-
 #: Law parameter names, in the order used by every parameter vector.
 LAW_PARAMETERS = ("R0_ohm", "R1_ohm_per_K", "S0_V_per_K", "S1_V_per_K2")
 

@@ -13,7 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tembayes.constants import CSV_COLUMNS
+from tembayes.physics import REFERENCE
+
+CSV_COLUMNS = REFERENCE.layout.csv_columns
 
 TEC1_12706 = {
     "name": "TEC1-12706",

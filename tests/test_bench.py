@@ -12,10 +12,12 @@ import pytest
 from tembayes.bench import BenchConfig, draw_truth, run_experiment, simulate_batch
 from tembayes.bench.hifi import hifi_rig
 from tembayes.bench.protocols import Protocol, identification_staircase
-from tembayes.constants import CSV_COLUMNS, EFFECTS, KELVIN, MODULE_PARAMETERS
+from tembayes.constants import EFFECTS, KELVIN, MODULE_PARAMETERS
 from tembayes.data import load_batch, noise_estimate
 from tembayes.errors import ModelError
 from tembayes.physics import CATALOGUE, REFERENCE, parse_effects
+
+CSV_COLUMNS = REFERENCE.layout.csv_columns
 
 SHORT = BenchConfig(n_modules=2, hold=120, rate=1, n_validations=1, validation_duration=1800)
 
@@ -173,7 +175,7 @@ def test_identification_temperature_span(default_identification):
     assert 10.0 < tavg.min() < 16.0
     assert 44.0 < tavg.max() < 52.0
     # the top block stays near the water (the chiller carries the heat away)
-    assert np.abs(exp.sensors[0] - exp.t_water).max() < 5.0
+    assert np.abs(exp.sensors[0] - exp.channel("T_water_C")).max() < 5.0
     # the samples cover the whole staircase (less at most one interval)
     dt = float(np.median(np.diff(exp.time)))
     assert 25 * 600.0 - dt - 0.01 < exp.duration <= 25 * 600.0
@@ -187,7 +189,7 @@ def test_identification_noise_levels(default_identification):
     # 4 mK rms on each NTC channel: a MAD estimate from 4 x 530 differences has
     # ~3 % relative sd, the 0.1 mK CSV rounding adds nothing visible
     assert 0.0035 < t_noise < 0.0045
-    assert 0.0035 < noise_estimate(exp.t_water[sel]) < 0.0045
+    assert 0.0035 < noise_estimate(exp.channel("T_water_C")[sel]) < 0.0045
     assert 0.8e-3 < noise_estimate(exp.voltage[sel]) < 1.2e-3
     assert 0.8e-3 < noise_estimate(exp.current[sel]) < 1.2e-3
     # the same from plain first differences: sd(diff)/sqrt(2)
@@ -195,7 +197,7 @@ def test_identification_noise_levels(default_identification):
 
 
 def test_water_wobbles_by_hundredths(default_identification):
-    w = default_identification.t_water
+    w = default_identification.channel("T_water_C")
     smooth = np.convolve(w, np.ones(61) / 61, mode="valid")  # 1 min average removes the 4 mK noise
     assert 0.005 < smooth.std() < 0.05
     assert 0.02 < np.ptp(smooth) < 0.2
@@ -389,10 +391,10 @@ def test_ambient_leak_direction(effect_runs):
     base, run = effect_runs["base"], effect_runs["ambient_leak"]
     for k in (COOL, HEAT):
         i = _hold_end(base, k)
-        gap = abs(base.sensors[2, i] - base.t_amb[i])
-        gap_leak = abs(run.sensors[2, i] - run.t_amb[i])
+        gap = abs(base.sensors[2, i] - base.channel("T_amb_C")[i])
+        gap_leak = abs(run.sensors[2, i] - run.channel("T_amb_C")[i])
         assert gap_leak < gap - 0.5  # pulled towards ambient by > 0.5 K
-    assert np.array_equal(run.t_amb, base.t_amb)
+    assert np.array_equal(run.channel("T_amb_C"), base.channel("T_amb_C"))
 
 
 def test_every_catalogue_effect_is_exercised(effect_runs):
@@ -610,6 +612,9 @@ def test_a_validation_run_can_start_from_rest_at_its_first_level(high_and_standa
     exp = load_batch(b).modules["TEM1"].validations[0]
     first = float(np.median(exp.current[:10]))
     assert abs(first) >= 0.15  # straight into a level, no rest hold
-    boundaries = (min(exp.t_water[0], exp.t_amb[0]) - 0.5, max(exp.t_water[0], exp.t_amb[0]) + 0.5)
+    boundaries = (
+        min(exp.channel("T_water_C")[0], exp.channel("T_amb_C")[0]) - 0.5,
+        max(exp.channel("T_water_C")[0], exp.channel("T_amb_C")[0]) + 0.5,
+    )
     assert np.all((exp.sensors[:, 0] > boundaries[0]) & (exp.sensors[:, 0] < boundaries[1]))  # the rig at rest
     assert np.ptp(exp.sensors[2, :300]) > 1.0  # and on its way

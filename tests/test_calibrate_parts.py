@@ -13,6 +13,8 @@ from tembayes.calibrate.parameters import ParameterSpace
 from tembayes.calibrate.priors import ParameterPrior, law_priors, rig_prior
 from tembayes.physics.rigread import REFERENCE
 
+FACE = REFERENCE.layout.face
+
 
 def test_window_loglike_matches_multivariate_normal():
     # residuals of 3 windows x 2 channels with offsets: closed form vs the
@@ -365,7 +367,7 @@ def _example_model(module="TEM1"):
     from tembayes.data import load_batch
 
     batch = load_batch(Path(__file__).resolve().parents[1] / "data" / "example")
-    data = step_data(batch.modules[module].identification)
+    data = step_data(batch.modules[module].identification, face=FACE)
     rig = calibration_rig(batch.rig_config, CalibrationOptions())
     return batch, data, rig, StepResponseModel(data, rig)
 
@@ -388,7 +390,7 @@ def test_step_response_model_reads_no_unset_memory():
         junk = np.full(n, np.nan)
         del junk
         again = StepResponseModel(data, rig)
-        for name in ("_base_grid", "_tw", "_ta", "_current"):
+        for name in ("_base_grid", "_bounds", "_current"):
             assert np.all(np.isfinite(getattr(again, name))), name
             assert np.array_equal(getattr(again, name), getattr(first, name)), name
 
@@ -479,11 +481,11 @@ def test_step_data_assumes_no_less_noise_than_the_data_and_the_model_resolve(mon
             rig=hifi_rig(layers=True),
         )
 
-    noisy = step_data(run())  # the floors leave a run with the bench's noise alone
+    noisy = step_data(run(), face=FACE)  # the floors leave a run with the bench's noise alone
     assert noisy.noise[1] == pytest.approx(np.sqrt(2) * bench.NOISE["temperature_K"], rel=0.15)
     monkeypatch.setattr(bench, "NOISE", {k: 0.0 for k in bench.NOISE})
     exp = run()
-    clean = step_data(exp)
+    clean = step_data(exp, face=FACE)
     assert np.all(
         clean.noise
         >= [
@@ -497,7 +499,7 @@ def test_step_data_assumes_no_less_noise_than_the_data_and_the_model_resolve(mon
     q = {"sensors": 0.01, "voltage": 1e-3, "current": 1e-3}
     coarse = dataclasses.replace(exp, **{k: np.round(getattr(exp, k) / v) * v for k, v in q.items()})
     assert noise_estimate(coarse.sensors[1]) < 1e-3
-    rounded = step_data(coarse)
+    rounded = step_data(coarse, face=FACE)
     assert rounded.noise[1] == pytest.approx(np.sqrt(2) * 0.01 / np.sqrt(12), rel=1e-6)
     assert rounded.noise[0] >= 1e-3 / np.sqrt(12)  # the voltage keeps moving with the temperatures
 

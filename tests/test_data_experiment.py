@@ -8,9 +8,12 @@ import re
 import numpy as np
 import pytest
 
-from tembayes.constants import CSV_COLUMNS, KELVIN
+from tembayes.constants import KELVIN
 from tembayes.data import Datasheet, Experiment, load_experiment
 from tembayes.errors import DataError
+from tembayes.physics import REFERENCE
+
+CSV_COLUMNS = REFERENCE.layout.csv_columns
 
 # ---------------------------------------------------------------- accepted
 
@@ -25,8 +28,8 @@ def test_valid_file_loads_in_si(data_factory):
     assert exp.time.dtype == np.float64
     # degC in the file, kelvin inside
     assert exp.sensors[2, 0] == pytest.approx(float(rows[0][5]) + KELVIN)
-    assert exp.t_water[0] == pytest.approx(float(rows[0][7]) + KELVIN)
-    assert exp.t_amb[-1] == pytest.approx(float(rows[-1][8]) + KELVIN)
+    assert exp.channel("T_water_C")[0] == pytest.approx(float(rows[0][7]) + KELVIN)
+    assert exp.channel("T_amb_C")[-1] == pytest.approx(float(rows[-1][8]) + KELVIN)
     assert exp.current[3] == float(rows[3][1])
     assert exp.voltage[4] == float(rows[4][2])
     assert exp.extra == {}
@@ -46,7 +49,7 @@ def test_channel_returns_si_by_contract_name(data_factory):
 
 def test_arrays_are_read_only(data_factory):
     exp = load_experiment(data_factory.write_csv())
-    for arr in (exp.time, exp.current, exp.voltage, exp.sensors, exp.t_water, exp.t_amb):
+    for arr in (exp.time, exp.current, exp.voltage, exp.sensors, exp.channel("T_water_C"), exp.channel("T_amb_C")):
         assert not arr.flags.writeable
         with pytest.raises(ValueError):
             arr[0] = 1.0

@@ -5,8 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tembayes.constants import CSV_COLUMNS, KELVIN, TEMPERATURE_COLUMNS
+from tembayes.constants import KELVIN
 from tembayes.data import experiment_from_arrays, load_experiment, noise_estimate, summarize_experiment
+from tembayes.physics import REFERENCE
+
+CSV_COLUMNS = REFERENCE.layout.csv_columns
+TEMPERATURE_COLUMNS = REFERENCE.layout.temperatures
 
 
 def test_summary_of_a_staircase():
@@ -21,7 +25,7 @@ def test_summary_of_a_staircase():
     sensors = np.array([21.0, 22.0, 27.0, 28.0])[:, None] + drift + KELVIN + rng.normal(0, 0.004, (4, n))
     tw = 20.0 + KELVIN + rng.normal(0, 0.03, n)
     ta = np.full(n, 23.0 + KELVIN)
-    s = summarize_experiment(experiment_from_arrays(t, cur, volt, sensors, tw, ta))
+    s = summarize_experiment(experiment_from_arrays(t, cur, volt, sensors, [tw, ta]))
 
     assert s["n_samples"] == n and isinstance(s["n_samples"], int)
     assert s["duration_s"] == pytest.approx(0.2 * (n - 1) + 0.1)
@@ -78,7 +82,7 @@ def _rig_run(hold, rng):
     tw, ta = np.full(t.size, 20.0 + KELVIN), np.full(t.size, 22.0 + KELVIN)
     t3 = ta - 6.0 * bottom
     sensors = np.array([tw + 0.5 * top, tw + 1.0 * top, t3, t3 + 0.05 * (ta - t3)]) + rng.normal(0, 0.004, (4, t.size))
-    return experiment_from_arrays(t, cur, 2.0 * cur, sensors, tw, ta)
+    return experiment_from_arrays(t, cur, 2.0 * cur, sensors, [tw, ta])
 
 
 def test_short_holds_are_not_read_as_minutes():
@@ -89,6 +93,6 @@ def test_short_holds_are_not_read_as_minutes():
     assert not [f for f in found if f.column == "time_s"], [f.problem for f in found]
     minutes = _rig_run(900.0, np.random.default_rng(0))
     minutes = experiment_from_arrays(
-        minutes.time / 60.0, minutes.current, minutes.voltage, minutes.sensors, minutes.t_water, minutes.t_amb
+        minutes.time / 60.0, minutes.current, minutes.voltage, minutes.sensors, minutes.boundaries
     )
     assert [f.column for f in check_experiment(minutes) if f.severity == "error"] == ["time_s"]

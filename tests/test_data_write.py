@@ -164,7 +164,7 @@ def test_atomic_directory_overwrite(tmp_path):
 
 def test_experiment_csv_round_trip(tmp_path):
     t, cur, volt, sensors, tw, ta = _arrays()
-    exp = experiment_from_arrays(t, cur, volt, sensors, tw, ta, extra={"T5_C": np.linspace(0, 1, t.size)})
+    exp = experiment_from_arrays(t, cur, volt, sensors, [tw, ta], extra={"T5_C": np.linspace(0, 1, t.size)})
     path = write_experiment_csv(tmp_path / "TEM1" / "identification.csv", exp)
     back = load_experiment(path)
     assert path.read_text().splitlines()[0] == ("time_s,current_A,voltage_V,T1_C,T2_C,T3_C,T4_C,T_water_C,T_amb_C,T5_C")
@@ -172,8 +172,8 @@ def test_experiment_csv_round_trip(tmp_path):
     for name, tol in half.items():
         np.testing.assert_allclose(back.channel(name), exp.channel(name), rtol=0, atol=tol * (1 + 1e-9))
     np.testing.assert_allclose(back.sensors, exp.sensors, rtol=0, atol=5e-5 + 1e-9)
-    np.testing.assert_allclose(back.t_water, exp.t_water, rtol=0, atol=5e-5 + 1e-9)
-    np.testing.assert_allclose(back.t_amb, exp.t_amb, rtol=0, atol=5e-5 + 1e-9)
+    np.testing.assert_allclose(back.channel("T_water_C"), exp.channel("T_water_C"), rtol=0, atol=5e-5 + 1e-9)
+    np.testing.assert_allclose(back.channel("T_amb_C"), exp.channel("T_amb_C"), rtol=0, atol=5e-5 + 1e-9)
     np.testing.assert_array_equal(back.extra["T5_C"], exp.extra["T5_C"])  # full precision
     # writing the loaded experiment again is byte-identical (stable format)
     again = write_experiment_csv(tmp_path / "again.csv", back)
@@ -184,7 +184,7 @@ def test_experiment_csv_round_trip(tmp_path):
 def test_experiment_csv_decimals_and_no_negative_zero(tmp_path):
     t, cur, volt, sensors, tw, ta = _arrays(n=20)
     cur = np.full(20, -1e-9)
-    exp = experiment_from_arrays(t, cur, volt, sensors, tw, ta)
+    exp = experiment_from_arrays(t, cur, volt, sensors, [tw, ta])
     path = write_experiment_csv(tmp_path / "e.csv", exp, decimals={"temperature": 2, "voltage_V": 3})
     first = path.read_text().splitlines()[1].split(",")
     assert first[1] == "0.00000"
@@ -200,32 +200,34 @@ def test_experiment_csv_fine_time_keeps_increasing(tmp_path):
     # 2 kHz sampling: 3 time decimals would merge samples, so more are written.
     t, cur, volt, sensors, tw, ta = _arrays(n=50)
     t = 1.0 + 5e-4 * np.arange(50)
-    exp = experiment_from_arrays(t, cur, volt, sensors, tw, ta)
+    exp = experiment_from_arrays(t, cur, volt, sensors, [tw, ta])
     back = load_experiment(write_experiment_csv(tmp_path / "fast.csv", exp))
     np.testing.assert_allclose(back.time, t, atol=1e-9)
 
 
 def test_experiment_from_arrays_shapes():
     t, cur, volt, sensors, tw, ta = _arrays(n=10)
-    exp = experiment_from_arrays(t, cur, volt, sensors, tw, ta)
+    exp = experiment_from_arrays(t, cur, volt, sensors, [tw, ta])
     assert exp.n == 10 and str(exp.path) == "<in-memory>"
     assert not exp.sensors.flags.writeable
     sensors_copy = sensors.copy()
-    exp2 = experiment_from_arrays(t, cur, volt, sensors_copy, tw, ta, path="x.csv")
+    exp2 = experiment_from_arrays(t, cur, volt, sensors_copy, [tw, ta], path="x.csv")
     sensors_copy[0, 0] = 0.0  # the experiment holds its own copy
     assert exp2.sensors[0, 0] == sensors[0, 0]
-    with pytest.raises(ValueError, match=r"sensors_K: expected shape \(4, 10\), found \(10, 4\)"):
-        experiment_from_arrays(t, cur, volt, sensors.T, tw, ta)
+    with pytest.raises(
+        ValueError, match=r"sensors_K: expected shape \(4, 10\) for T1_C, T2_C, T3_C, T4_C, found \(10, 4\)"
+    ):
+        experiment_from_arrays(t, cur, volt, sensors.T, [tw, ta])
     with pytest.raises(ValueError, match=r"current: expected shape \(10,\) like time, found \(9,\)"):
-        experiment_from_arrays(t, cur[:9], volt, sensors, tw, ta)
+        experiment_from_arrays(t, cur[:9], volt, sensors, [tw, ta])
     with pytest.raises(ValueError, match=r"time: expected shape \(n,\), found \(2, 5\)"):
-        experiment_from_arrays(t.reshape(2, 5), cur, volt, sensors, tw, ta)
+        experiment_from_arrays(t.reshape(2, 5), cur, volt, sensors, [tw, ta])
     with pytest.raises(ValueError, match="at least 2 samples"):
-        experiment_from_arrays(t[:1], cur[:1], volt[:1], sensors[:, :1], tw[:1], ta[:1])
+        experiment_from_arrays(t[:1], cur[:1], volt[:1], sensors[:, :1], [tw[:1], ta[:1]])
     with pytest.raises(ValueError, match="strictly increasing at index 3"):
-        experiment_from_arrays(np.r_[t[:3], t[2], t[4:]], cur, volt, sensors, tw, ta)
+        experiment_from_arrays(np.r_[t[:3], t[2], t[4:]], cur, volt, sensors, [tw, ta])
     with pytest.raises(ValueError, match="voltage: contains NaN"):
-        experiment_from_arrays(t, cur, np.r_[np.nan, volt[1:]], sensors, tw, ta)
+        experiment_from_arrays(t, cur, np.r_[np.nan, volt[1:]], sensors, [tw, ta])
 
 
 # ---------------------------------------------------------------- batch.toml
@@ -249,7 +251,7 @@ def test_write_batch_toml_round_trip(tmp_path):
 def test_written_batch_loads(tmp_path):
     ds = Datasheet(name="X", th=25.0 + KELVIN, imax=6.4, vmax=14.4, dtmax=66.0, qmax=50.0)
     t, cur, volt, sensors, tw, ta = _arrays()
-    exp = experiment_from_arrays(t, cur, volt, sensors, tw, ta)
+    exp = experiment_from_arrays(t, cur, volt, sensors, [tw, ta])
     with atomic_directory(tmp_path / "batch") as tmp:
         write_batch_toml(tmp / "batch.toml", ds)
         for m in ("TEM1", "TEM2", "TEM10"):

@@ -26,7 +26,7 @@ def test_linear_model_matches_the_simulator_for_a_small_current_step(rig):
     from tembayes.export.linearise import linearise
     from tembayes.physics import Inputs, simulate
 
-    lm = linearise(P, rig, 35.0, 2.5, t_amb_C=25.0)
+    lm = linearise(P, rig, 35.0, 2.5, room_C=25.0)
     assert 0.5 * (lm.x0[lm.states.index("hot_plate")] + lm.x0[lm.states.index("cold_plate")]) == pytest.approx(
         35.0 + KELVIN, abs=1e-6
     )
@@ -35,7 +35,7 @@ def test_linear_model_matches_the_simulator_for_a_small_current_step(rig):
     dI = 0.02
     u = np.ones_like(t)
     sim = simulate(
-        Inputs(t, lm.u0[0] + dI * u, lm.u0[1] * u, lm.u0[2] * u), P, rig=rig, y0=lm.x0, steady_start=False, atol=1e-7
+        Inputs(t, lm.u0[0] + dI * u, lm.u0[1:, None] * u), P, rig=rig, y0=lm.x0, steady_start=False, atol=1e-7
     )
     y_nl = np.vstack([sim.sensors[0], sim.voltage[0]]) - lm.y0[:, None]
     # exact step response of the linear model: x(t) = A^-1 (e^{At} - I) B du
@@ -180,7 +180,7 @@ def test_export_round_trips_in_every_format(export1, fmt):
         A, cov = doc["modules"]["TEM1"]["linear"]["op1"]["A"], doc["modules"]["TEM1"]["cov"]
         dA = doc["modules"]["TEM1"]["linear"]["op1"]["sensitivity"]["K_W_per_K"]["A"]
         states = [str(s).strip() for s in doc["states"]]
-        assert doc["schema"] == "tembayes-observer-export/2"
+        assert doc["schema"] == "tembayes-observer-export/3"
         isd = doc["modules"]["TEM1"]["input_noise"]["current_sd_A"]
         dy0 = doc["modules"]["TEM1"]["linear"]["op1"]["sensitivity"]["K_W_per_K"]["y0"]
         chans = [str(c).strip() for c in doc["modules"]["TEM1"]["process_noise"]["channels"]]
@@ -221,8 +221,7 @@ def _covered(**kw):
     base = dict(
         tavg_C=(float(tavg.min()), float(tavg.max())),
         current_A=(-1.6, 0.8),
-        t_water_C=(19.9, 20.2),
-        t_amb_C=(21.5, 22.5),
+        boundaries_C={"T_water_C": (19.9, 20.2), "T_amb_C": (21.5, 22.5)},
         states=np.column_stack([tavg, current]),
         modules=("TEM1", "TEM2"),
         source=Path("runs/x"),
@@ -266,13 +265,14 @@ def test_boundary_warnings_name_a_point_whose_water_is_far_from_the_runs():
     from tembayes.export.coverage import BOUNDARY_MARGIN_K, boundary_warnings
 
     covered = _covered()
+    inputs = ("current_A", "T_water_C", "T_amb_C")
     near, far = (
-        SimpleNamespace(tavg_C=t, current_A=i, u0=np.array([i, tw + KELVIN, 295.0]))
+        SimpleNamespace(tavg_C=t, current_A=i, u0=np.array([i, tw + KELVIN, 295.0]), inputs=inputs)
         for t, i, tw in ((20.0, 0.0, 20.5), (45.0, 0.5, 20.2 + BOUNDARY_MARGIN_K + 1.0))
     )
-    assert boundary_warnings([[near]], covered=covered, t_amb_C=22.0) == []
-    out = boundary_warnings([[near, far], [near, near]], covered=covered, t_amb_C=30.0)
-    assert len(out) == 2 and "ambient 30 C" in out[0] and "T_avg 45 C, I 0.5 A needs the water" in out[1]
+    assert boundary_warnings([[near]], covered=covered, room_C=22.0, room="T_amb_C") == []
+    out = boundary_warnings([[near, far], [near, near]], covered=covered, room_C=30.0, room="T_amb_C")
+    assert len(out) == 2 and "T_amb_C 30 C" in out[0] and "T_avg 45 C, I 0.5 A needs T_water_C" in out[1]
 
 
 def test_default_export_points_lie_inside_the_runs_range(export1):
@@ -306,6 +306,7 @@ def test_every_field_of_the_file_is_described_in_its_schema_and_in_the_docs(expo
     def generic(path):
         path = re.sub(r"^modules\.[^.]+\.", "modules.<module>.", path)
         path = re.sub(r"\.op\d+\.", ".op<k>.", path)
+        path = re.sub(r"\.boundaries_C\.[^.]+$", ".boundaries_C.<boundary>", path)
         return re.sub(r"\.sensitivity\.[^.]+\.[^.]+$", ".sensitivity.<parameter>.<X>", path)
 
     missing = sorted({generic(p) for p in paths(doc)} - known)

@@ -64,8 +64,7 @@ def test_no_staircase_refused_by_the_pipeline(tmp_path):
         np.zeros_like(t),
         np.zeros_like(t),
         np.full((4, len(t)), 295.0),
-        np.full(len(t), 293.0),
-        np.full(len(t), 295.0),
+        [np.full(len(t), 293.0), np.full(len(t), 295.0)],
     )
     with pytest.raises(ModelError, match="staircase"):
         _step_table(exp, REFERENCE)
@@ -130,7 +129,9 @@ def test_junction_temperatures_recover_the_plates_at_steady_state(current):
     }
     m = build(params, REFERENCE)
     tw, ta = 293.15, 295.65
-    y, ok = K.steady_one(np.full(6, tw), current, tw, ta, m["A"][0], m["Bb"][0], m["Cinv"][0], m["tem"], m["P"][0])
+    y, ok = K.steady_one(
+        np.full(6, tw), current, np.array([tw, ta]), m["A"][0], m["Bb"][0], m["Cinv"][0], m["tem"], m["P"][0]
+    )
     assert ok
     names = m["network"].nodes
     sensors = np.array([y[names.index(REFERENCE.sensors[c])] for c in REFERENCE.sensors])
@@ -142,8 +143,8 @@ def test_junction_temperatures_recover_the_plates_at_steady_state(current):
         voltage_sd=0,
         sensors=sensors,
         sensors_sd=np.zeros(4),
-        t_water=tw,
-        t_amb=ta,
+        boundaries=np.array([tw, ta]),
+        face=(sensors[1], sensors[2]),
         drift=0,
     )
     (th, tc), (sh, sc), _ = junction_temperatures(ss, REFERENCE, rig_values)
@@ -172,7 +173,7 @@ def _true_jumps(module, proto):
     p = {k: module[k] for k in ("R0_ohm", "R1_ohm_per_K", "S0_V_per_K", "S1_V_per_K2", "K_W_per_K")}
     p.update(module["rig_bench"])
     n = len(grid)
-    sim = simulate(Inputs(grid, cur, np.full(n, 293.15), np.full(n, 295.15)), p, rig=hifi.hifi_rig())
+    sim = simulate(Inputs(grid, cur, [np.full(n, 293.15), np.full(n, 295.15)]), p, rig=hifi.hifi_rig())
     a, b = np.searchsorted(grid, steps - 1e-3), np.searchsorted(grid, steps)
     return (sim.voltage[0, b] - sim.voltage[0, a]) / (cur[b] - cur[a])
 

@@ -18,7 +18,7 @@ LAWS = {"R0_ohm": 1.75, "R1_ohm_per_K": 0.009, "S0_V_per_K": 0.047, "S1_V_per_K2
 def _run(rig, extra=None):
     t = np.linspace(0.0, 900.0, 901)
     current = np.where(t < 100, 0.0, np.where(t < 500, 1.2, -1.2))
-    inputs = Inputs(t, current, np.full_like(t, 20.0 + KELVIN), np.full_like(t, 23.0 + KELVIN))
+    inputs = Inputs(t, current, [np.full_like(t, 20.0 + KELVIN), np.full_like(t, 23.0 + KELVIN)])
     return simulate(inputs, {**LAWS, **(extra or {})}, rig=rig)
 
 

@@ -28,7 +28,7 @@ def _steady(params, current, rig=REFERENCE, tw=TW, ta=TA):
     m = build(params, rig)
     n = len(m["network"].nodes)
     y, ok = K.steady_one(
-        np.full(n, tw), float(current), tw, ta, m["A"][0], m["Bb"][0], m["Cinv"][0], m["tem"], m["P"][0]
+        np.full(n, tw), float(current), np.array([tw, ta]), m["A"][0], m["Bb"][0], m["Cinv"][0], m["tem"], m["P"][0]
     )
     assert ok, "steady_one did not converge"
     return y, m
@@ -201,6 +201,7 @@ def _insulated_cold_rig():
         links=(("water", "hot", "g_sink"), ("cold", "block", 50.0)),
         hot="hot",
         cold="cold",
+        boundaries=REFERENCE.boundaries,
     )
 
 
@@ -251,7 +252,7 @@ def test_steady_voltage_has_the_sign_of_the_current(current):
     assert abs(V) > abs(PAPER["R0_ohm"] * current) * 0.9
     # and simulate reports the same at a steady start
     t = np.arange(0.0, 10.0, 1.0)
-    sim = simulate(Inputs(t, np.full(10, current), np.full(10, TW), np.full(10, TA)), PAPER)
+    sim = simulate(Inputs(t, np.full(10, current), [np.full(10, TW), np.full(10, TA)]), PAPER)
     assert sim.voltage[0, 0] == pytest.approx(V, abs=1e-9)
 
 
@@ -259,7 +260,7 @@ def test_steady_voltage_has_the_sign_of_the_current(current):
 def test_larger_resistance_raises_voltage_at_the_jump(step):
     t = np.arange(0.0, 60.0, 0.2)
     current = np.where(t >= 30.0, step, 0.0)
-    inp = Inputs(t, current, np.full_like(t, TW), np.full_like(t, TA))
+    inp = Inputs(t, current, [np.full_like(t, TW), np.full_like(t, TA)])
     k = int(np.searchsorted(t, 30.0))
     v_lo = simulate(inp, PAPER).voltage[0, k]
     v_hi = simulate(inp, {**PAPER, "R0_ohm": 2.0}).voltage[0, k]
@@ -298,8 +299,8 @@ def test_jacobian_matches_finite_differences(legs, current):
         e = np.zeros_like(y)
         e[j] = h
         Jfd[:, j] = (
-            K.rhs_one(y + e, current, TW, TA, A, Bb, Cinv, tem, p)
-            - K.rhs_one(y - e, current, TW, TA, A, Bb, Cinv, tem, p)
+            K.rhs_one(y + e, current, np.array([TW, TA]), A, Bb, Cinv, tem, p)
+            - K.rhs_one(y - e, current, np.array([TW, TA]), A, Bb, Cinv, tem, p)
         ) / (2 * h)
     scale = np.abs(J).max()
     np.testing.assert_allclose(J, Jfd, rtol=1e-8, atol=1e-8 * scale)
@@ -316,7 +317,7 @@ def _short_inputs():
     current = np.select([t < 60, t < 120], [0.0, 0.8], -1.2) + rng.normal(0, 1e-3, t.size)
     tw = TW + 0.02 * np.sin(2 * np.pi * t / 300.0)
     ta = TA + 0.1 * t / 180.0
-    return Inputs(t, current, tw, ta)
+    return Inputs(t, current, [tw, ta])
 
 
 @pytest.fixture(scope="module")
@@ -410,13 +411,13 @@ def test_current_offset_inverts_the_measurement():
     t = np.arange(0.0, 240.0, 0.5)
     true = np.select([t < 60, t < 150], [0.0, 0.8], -1.2)
     tw, ta = np.full_like(t, TW), np.full_like(t, TA)
-    a = simulate(Inputs(t, true, tw, ta), PAPER)
-    b = simulate(Inputs(t, (1 + g) * true + o, tw, ta), {**PAPER, "current_gain_error": g, "current_offset_A": o})
+    a = simulate(Inputs(t, true, [tw, ta]), PAPER)
+    b = simulate(Inputs(t, (1 + g) * true + o, [tw, ta]), {**PAPER, "current_gain_error": g, "current_offset_A": o})
     # same true current up to rounding in (I (1+g) + o - o)/(1+g): 1e-12 K
     # after integration; the effect itself moves things by ~20 mK
     np.testing.assert_allclose(b.sensors, a.sensors, rtol=0, atol=1e-9)
     np.testing.assert_allclose(b.voltage, a.voltage, rtol=0, atol=1e-10)
-    c = simulate(Inputs(t, true, tw, ta), {**PAPER, "current_gain_error": g, "current_offset_A": o})
+    c = simulate(Inputs(t, true, [tw, ta]), {**PAPER, "current_gain_error": g, "current_offset_A": o})
     assert np.abs(c.sensors - a.sensors).max() > 0.01
 
 
@@ -480,7 +481,7 @@ def test_override_changes_the_network():
     assert net.Gb[0, :, 1].sum() == pytest.approx(0.02 + 0.05, rel=1e-14)
     # and the simulated block temperatures move with it
     t = np.arange(0.0, 5.0)
-    inp = Inputs(t, np.full(5, 0.8), np.full(5, TW), np.full(5, TA))
+    inp = Inputs(t, np.full(5, 0.8), [np.full(5, TW), np.full(5, TA)])
     a = simulate(inp, PAPER).sensors
     b = simulate(inp, PAPER, rig=rig).sensors
     assert np.abs(a - b).max() > 1e-3
@@ -499,6 +500,7 @@ def _mini(**kw):
         links=(("water", "h", ["a", "b"]), ("c", "ambient", "0.25*b"), ("h", "c", "a + 2*b")),
         hot="h",
         cold="c",
+        boundaries=REFERENCE.boundaries,
     )
     args.update(kw)
     return RigDescription(**args)
@@ -554,13 +556,14 @@ def test_rig_with_only_numeric_expressions_builds():
         links=(("water", "h", 100.0), ("c", "ambient", 0.1)),
         hot="h",
         cold="c",
+        boundaries=REFERENCE.boundaries,
     )
     net = rig.network()
     assert net.C.shape == (1, 2)
 
 
 def test_simulate_rejects_unknown_and_missing_parameters():
-    inp = Inputs(np.arange(3.0), np.zeros(3), np.full(3, TW), np.full(3, TA))
+    inp = Inputs(np.arange(3.0), np.zeros(3), [np.full(3, TW), np.full(3, TA)])
     with pytest.raises(ModelError, match="S0_V_per_KK"):
         simulate(inp, {**PAPER, "S0_V_per_KK": 0.05})
     with pytest.raises(ModelError, match="sensor_tau"):  # effect name instead of its parameter
@@ -586,9 +589,7 @@ def test_a_sensor_off_its_cells_centre_reads_the_steel_at_its_own_depth():
     rig = rig_from_config(None, leg_cells=2, block_split=3)
     dx = 0.010 / 6
     t = np.linspace(0.0, 600.0, 61)
-    inputs = Inputs(
-        time=t, current=np.full_like(t, 3.0), t_water=np.full_like(t, 298.15), t_amb=np.full_like(t, 296.15)
-    )
+    inputs = Inputs(time=t, current=np.full_like(t, 3.0), boundaries=[np.full_like(t, 298.15), np.full_like(t, 296.15)])
     laws = {"R0_ohm": 2.0, "R1_ohm_per_K": 0.01, "S0_V_per_K": 0.05, "S1_V_per_K2": 1e-4, "K_W_per_K": 0.5}
     # T2 one cell deeper (towards the cooler) reads the next cell's centre, the T1 side unchanged
     nominal, deeper = (

@@ -103,7 +103,7 @@ def loaded_batch(data_factory):
 
 def test_identification_run_panels(loaded_batch):
     exps = {mid: m.identification for mid, m in loaded_batch.modules.items()}
-    fig = plot_identification_run(exps)
+    fig = plot_identification_run(exps, face=loaded_batch.layout.face)
     assert isinstance(fig, Figure)
     assert len(fig.axes) == 3
     for ax in fig.axes:
@@ -119,9 +119,9 @@ def test_identification_run_panels(loaded_batch):
 def test_draws_into_given_figure_and_refuses_a_used_one(loaded_batch):
     exps = {"TEM1": loaded_batch.modules["TEM1"].identification}
     fig = Figure()
-    assert plot_identification_run(exps, fig=fig) is fig
+    assert plot_identification_run(exps, face=("T2_C", "T3_C"), fig=fig) is fig
     with pytest.raises(ValueError, match="empty Figure, found one with 3 axes"):
-        plot_identification_run(exps, fig=fig)
+        plot_identification_run(exps, face=("T2_C", "T3_C"), fig=fig)
 
 
 def test_validation_residuals_and_rmse(loaded_batch):
@@ -165,7 +165,7 @@ def test_validation_interpolates_a_coarser_simulation(loaded_batch):
 def test_error_vs_tavg_one_rms_line_per_model(loaded_batch):
     exp = loaded_batch.modules["TEM1"].validations[0]
     sims = {"constant": offset_simulation(exp, 0.3), "linear": offset_simulation(exp, -0.1)}
-    fig = plot_error_vs_tavg(exp, sims)
+    fig = plot_error_vs_tavg(exp, sims, face=loaded_batch.layout.face)
     assert len(fig.axes) == 1
     ax = fig.axes[0]
     assert_labelled(ax)

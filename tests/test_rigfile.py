@@ -255,11 +255,39 @@ def test_rig_command_writes_json_and_figure(tmp_path, capsys):
     assert not (tmp_path / "none").exists()
 
 
-def test_batch_on_a_rig_with_other_columns_is_refused_by_name(data_factory):
-    folder = data_factory.batch(toml=data_factory.batch_toml(rig={"preset": "heatsink-al"}))
-    with pytest.raises(DataError, match="rig 'heatsink-al' reads T_hot_C, T_cold_C, T_load_C, T_amb_C") as err:
-        load_batch_toml(folder)
-    assert err.value.column == "rig"
+def test_a_batch_reads_the_columns_its_rig_names(data_factory):
+    """heatsink-al: T_hot_C, T_cold_C, T_load_C and T_amb_C, in any column order; the reference columns are refused."""
+    from tembayes.data import load_batch
+
+    folder = data_factory.batch(toml=data_factory.batch_toml(rig={"preset": "heatsink-al"}), validations=())
+    with pytest.raises(DataError, match="'T_hot_C'") as err:
+        load_batch(folder)
+    assert err.value.column == "T_hot_C" and "identification.csv" in str(err.value)
+    # the reference rows as the heat-sink rig's columns: T2 on the hot plate, T3 on the cold, T4 in the load
+    keep = {"time_s": 0, "current_A": 1, "voltage_V": 2, "T_load_C": 6, "T_amb_C": 8, "T_cold_C": 5, "T_hot_C": 4}
+    for m, mod in enumerate(("TEM1", "TEM2")):
+        rows = [[r[j] for j in keep.values()] for r in data_factory.rows(seed=m)]
+        data_factory.write_csv(f"batch/{mod}/identification.csv", header=list(keep), rows=rows)
+    batch = load_batch(folder)
+    exp = batch.modules["TEM1"].identification
+    assert exp.sensor_names == ("T_hot_C", "T_cold_C", "T_load_C") and exp.boundary_names == ("T_amb_C",)
+    rows = data_factory.rows(seed=0)
+    assert exp.channel("T_load_C")[3] == pytest.approx(float(rows[3][6]) + 273.15)
+    assert batch.layout.face == ("T_hot_C", "T_cold_C")
+
+
+def test_the_boundaries_are_read_in_the_rig_files_order(data_factory):
+    from tembayes.data import load_batch
+
+    folder = data_factory.batch(toml=data_factory.batch_toml(rig={"file": "rig.toml"}), validations=())
+    swapped = REFERENCE_TOML.replace(
+        'water = "T_water_C"\nambient = "T_amb_C"', 'ambient = "T_amb_C"\nwater = "T_water_C"'
+    )
+    assert swapped != REFERENCE_TOML
+    _write(folder, swapped)
+    exp = load_batch(folder).modules["TEM1"].identification
+    assert exp.boundary_names == ("T_amb_C", "T_water_C")
+    assert exp.boundaries[0][0] == pytest.approx(float(data_factory.rows(seed=0)[0][8]) + 273.15)
 
 
 def test_split_keeps_faces_and_depth_neighbours():
@@ -321,17 +349,6 @@ def test_a_folder_or_binary_is_refused_as_a_rig_file(tmp_path):
     (tmp_path / "bin.toml").write_bytes(b"\xff\xfe\x00name")
     with pytest.raises(DataError, match="cannot be read"):
         read_rig_file(tmp_path / "bin.toml")
-
-
-def test_batch_refuses_the_reference_columns_in_another_order(data_factory):
-    folder = data_factory.batch(toml=data_factory.batch_toml(rig={"file": "rig.toml"}))
-    swapped = REFERENCE_TOML.replace(
-        'water = "T_water_C"\nambient = "T_amb_C"', 'ambient = "T_amb_C"\nwater = "T_water_C"'
-    )
-    assert swapped != REFERENCE_TOML
-    _write(folder, swapped)
-    with pytest.raises(DataError, match="in this order"):
-        load_batch_toml(folder)
 
 
 def test_a_node_joined_only_to_a_boundary_is_drawn(tmp_path):

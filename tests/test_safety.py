@@ -131,7 +131,7 @@ def test_the_loader_reads_big_files_in_blocks_with_the_right_line_numbers(tmp_pa
     whole = load_experiment(path)
     monkeypatch.setattr(ex, "_CHUNK_BYTES", 5000)  # ~70 rows a block
     blocks = load_experiment(path)
-    for name in ("time", "current", "voltage", "sensors", "t_water", "t_amb", "lines"):
+    for name in ("time", "current", "voltage", "sensors", "boundaries", "lines"):
         np.testing.assert_array_equal(getattr(blocks, name), getattr(whole, name))
     lines = path.read_text().splitlines()
     lines[9000] = lines[9000].replace(",", ";", 1)

@@ -14,18 +14,24 @@ steps resolved more finely -- it proves the code; and ``high``
 not contain (finer steel, the module's layers, sensor bodies at uncertain
 depths, Thomson heat, K(T), re-mounting spread, slow sensor noise) -- it
 measures the method.  Every statistical study reports both.
+
+Those two are the reference rig's.  Any other rig (a shipped preset or a rig
+file, ``BenchConfig.rig``) is simulated by :mod:`tembayes.bench.anyrig`: the
+rig file at a finer resolution than the calibration's, with the standard
+bench's physics.
 """
 
 from __future__ import annotations
 
 import sys
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 import tembayes
-from tembayes.bench import hifi, outside
+from tembayes.bench import anyrig, hifi, outside
 from tembayes.bench.hifi import DEPTHS
 from tembayes.bench.protocols import (
     boundary_drifts,
@@ -44,11 +50,11 @@ from tembayes.data import (
 )
 from tembayes.errors import ModelError
 from tembayes.physics.rigfile import CERAMIC
+from tembayes.physics.rigread import rig_file_of
 from tembayes.physics.simulate import Inputs, simulate
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Mapping
-    from pathlib import Path
 
     from tembayes.bench.protocols import Protocol
     from tembayes.data import Experiment
@@ -114,6 +120,12 @@ class BenchConfig:
         sensor response time drawn in :data:`SENSOR_TAU_RANGE`, sensor depths
         drawn in their range, a temperature slope of K) or ``"paper"``
         (Evers et al.'s form).  The high-fidelity bench has its own.
+    rig : dict or None
+        A ``[rig]`` table (``{"preset": NAME}`` or ``{"file": PATH}``,
+        :func:`tembayes.physics.rigread.rig_source`) for a rig other than the
+        reference one, simulated by :mod:`tembayes.bench.anyrig` at the
+        ``standard`` fidelity; None (or the reference preset): the reference
+        rig's benches.
     """
 
     n_modules: int = 3
@@ -130,8 +142,18 @@ class BenchConfig:
     fidelity: str = "standard"
     validation_start: str = "steady"
     physics: str = "full"
+    rig: dict | None = None
 
     def __post_init__(self):
+        if self.rig == {"preset": "reference"}:
+            object.__setattr__(self, "rig", None)
+        if self.rig is not None:
+            rig_file_of(self.rig)  # an unreadable rig is refused here, before any work
+            if self.fidelity != "standard":
+                raise ModelError(
+                    "the out-of-model bench (fidelity 'high') exists for the reference rig only; "
+                    "simulate other rigs at fidelity 'standard'"
+                )
         if self.fidelity not in FIDELITIES:
             raise ModelError(f"fidelity must be one of {FIDELITIES}, got {self.fidelity!r}")
         if self.physics not in PHYSICS:
@@ -166,14 +188,9 @@ def draw_truth(config: BenchConfig, rng: np.random.Generator) -> dict:
         ``population`` (type means), ``modules`` (id -> law parameters,
         bench rig values and their lumped equivalent, outlier flag).
     """
-    ds = config.datasheet
-    # the type's real values differ from the datasheet conversions by a few %
-    R0 = ds.resistance() * rng.normal(1.0, 0.04)
-    S0 = ds.seebeck() * rng.normal(1.0, 0.03)
-    K0 = ds.conductance() * rng.normal(1.0, 0.05)
-    R1 = R0 * 0.005 * rng.normal(1.0, 0.1)  # R rises ~0.5 %/K
-    S1 = S0 * 0.002 * rng.normal(1.0, 0.15)  # S rises ~0.2 %/K
-    population = {"R0_ohm": R0, "R1_ohm_per_K": R1, "S0_V_per_K": S0, "S1_V_per_K2": S1, "K_W_per_K": K0}
+    population = _draw_type(config.datasheet, rng)
+    if config.rig is not None:
+        return _draw_truth_any_rig(config, rng, population)
     high = config.fidelity == "high"
     full = high or config.physics == "full"
     params = outside.OUTSIDE_PARAMETERS if high else hifi.HIFI_PARAMETERS + (CERAMIC,)
@@ -201,10 +218,7 @@ def draw_truth(config: BenchConfig, rng: np.random.Generator) -> dict:
             shared.update({p.name: float(rng.uniform(p.low, p.high)) for p in DEPTHS})
     modules = {}
     for mid in config.module_ids:
-        laws = {k: v * (1.0 + UNIT_SPREAD[k] * rng.standard_normal()) for k, v in population.items()}
-        is_out = mid == config.outlier
-        if is_out:
-            laws["S0_V_per_K"] *= 1.0 + config.outlier_shift * rng.choice([-1.0, 1.0])
+        laws, is_out = _draw_unit(config, rng, population, mid)
         rig = dict(shared)
         for k in ("g_paste_hot", "g_paste_cold", "c_plate_hot", "c_plate_cold", "c_legs") + (
             ("g_ceramic",) if full else ()
@@ -221,6 +235,61 @@ def draw_truth(config: BenchConfig, rng: np.random.Generator) -> dict:
             "rig": {k: float(v) for k, v in equivalent.items()},
         }
     return {"population": {k: float(v) for k, v in population.items()}, "modules": modules, "bench_layout": layout}
+
+
+def _draw_type(ds, rng):
+    """The type's true laws and K: the datasheet conversions off by a few %."""
+    R0 = ds.resistance() * rng.normal(1.0, 0.04)
+    S0 = ds.seebeck() * rng.normal(1.0, 0.03)
+    K0 = ds.conductance() * rng.normal(1.0, 0.05)
+    R1 = R0 * 0.005 * rng.normal(1.0, 0.1)  # R rises ~0.5 %/K
+    S1 = S0 * 0.002 * rng.normal(1.0, 0.15)  # S rises ~0.2 %/K
+    return {"R0_ohm": R0, "R1_ohm_per_K": R1, "S0_V_per_K": S0, "S1_V_per_K2": S1, "K_W_per_K": K0}
+
+
+def _draw_unit(config, rng, population, mid):
+    """One module's laws and K about the type's, and whether it is the outlier."""
+    laws = {k: v * (1.0 + UNIT_SPREAD[k] * rng.standard_normal()) for k, v in population.items()}
+    is_out = mid == config.outlier
+    if is_out:
+        laws["S0_V_per_K"] *= 1.0 + config.outlier_shift * rng.choice([-1.0, 1.0])
+    return laws, is_out
+
+
+def _draw_truth_any_rig(config, rng, population):
+    """:func:`draw_truth` on a rig other than the reference one (:mod:`tembayes.bench.anyrig`)."""
+    rig = bench_rig_of(config)
+    physics = {}
+    if config.physics == "full":
+        physics = {
+            "thomson_fraction": 1.0,
+            "K1_per_K": float(rng.normal(0, K1_SD)),
+            "sensor_tau_s": float(rng.uniform(*SENSOR_TAU_RANGE)),
+        }
+    mounting = anyrig.mounting_parameters(rig)
+    shared = anyrig.draw_rig_values(rng, rig.parameters, [p for p in rig.parameter_names if p not in mounting])
+    modules = {}
+    for mid in config.module_ids:
+        laws, is_out = _draw_unit(config, rng, population, mid)
+        values = {**shared, **anyrig.draw_rig_values(rng, rig.parameters, sorted(mounting))}
+        modules[mid] = {
+            **{k: float(v) for k, v in laws.items()},
+            "outlier": bool(is_out),
+            "rig_bench": values,
+            "rig": dict(values),
+        }
+    return {
+        "population": {k: float(v) for k, v in population.items()},
+        "modules": modules,
+        "bench_layout": {"physics": physics},
+    }
+
+
+def bench_rig_of(config: BenchConfig) -> RigDescription:
+    """The network the bench simulates for ``config``."""
+    if config.rig is not None:
+        return anyrig.bench_rig(rig_file_of(config.rig), layers=config.physics == "full")
+    return hifi.hifi_rig(layers=config.physics == "full")
 
 
 def _draw_rig(rng, name, parameters):
@@ -280,26 +349,48 @@ def run_experiment(
     i_true[np.isin(grid, steps - 1e-3)] = protocol.current(steps - 2e-3)
     if start == "rest":  # at rest before the first level is switched on
         i_true[grid < ts[0] - 0.02 + 1e-9] = 0.0
-    tw, ta = boundary_drifts(rng, grid)
+    rooms = [name == rig.layout.leak_boundary for name in rig.boundaries]
+    bounds = boundary_drifts(rng, grid, rooms)
     params = {k: module[k] for k in ("R0_ohm", "R1_ohm_per_K", "S0_V_per_K", "S1_V_per_K2", "K_W_per_K")}
     params.update(module["rig_bench"])
     # the current error is in the measurement, not in the module: applied below
     effect_params = dict(effect_params)
     meas = {k: effect_params.pop(k, 0.0) for k in ("current_gain_error", "current_offset_A")}
     params.update(effect_params)
-    sim = simulate(Inputs(grid, i_true, tw, ta), params, rig=rig)
+    sim = simulate(Inputs(grid, i_true, bounds), params, rig=rig)
     sel = np.searchsorted(grid, ts)
     n = len(ts)
     noise = NOISE
     current = (1.0 + meas["current_gain_error"]) * i_true[sel] + meas["current_offset_A"]
     current = current + rng.normal(0, noise["current_A"], n)
     voltage = sim.voltage[0, sel] + rng.normal(0, noise["voltage_V"], n)
-    sensors = sim.sensors[0][:, sel] + rng.normal(0, noise["temperature_K"], (4, n))
-    water = tw[sel] + rng.normal(0, noise["temperature_K"], n)
-    amb = ta[sel] + rng.normal(0, noise["temperature_K"], n)
+    ns = len(sim.channels)
+    sensors = sim.sensors[0][:, sel] + rng.normal(0, noise["temperature_K"], (ns, n))
+    measured = np.array([b[sel] + rng.normal(0, noise["temperature_K"], n) for b in bounds])
     if slow_noise is not None:
-        sensors += np.stack([outside.ou_noise(rng, ts, *slow_noise) for _ in range(4)])
-    return experiment_from_arrays(ts + t0, current, voltage, sensors, water, amb, path=path)
+        sensors += np.stack([outside.ou_noise(rng, ts, *slow_noise) for _ in range(ns)])
+    layout = rig.layout
+    return experiment_from_arrays(
+        ts + t0,
+        current,
+        voltage,
+        sensors,
+        measured,
+        path=path,
+        sensor_names=layout.sensors,
+        boundary_names=layout.boundaries,
+    )
+
+
+def _batch_rig(rig, folder):
+    """The batch.toml ``[rig]`` of a bench batch; a rig file is copied into the batch folder."""
+    if rig is None:
+        return {"preset": "reference"}
+    if "file" in rig:
+        text = Path(rig["file"]).read_text(encoding="utf-8")
+        (folder / "rig.toml").write_text(text, encoding="utf-8")
+        return {"file": "rig.toml"}
+    return dict(rig)
 
 
 def simulate_batch(
@@ -337,13 +428,10 @@ def simulate_batch(
     high = config.fidelity == "high"
     # the catalogue effects asked for come on top of (or replace) the bench's own physics
     eff_flat = {**truth["bench_layout"]["physics"], **eff_flat}
-    if high:
-        rig = outside.outside_rig(truth["bench_layout"]["depth_sides"])
-    else:
-        rig = hifi.hifi_rig(layers=config.physics == "full")
+    rig = outside.outside_rig(truth["bench_layout"]["depth_sides"]) if high else bench_rig_of(config)
     run = {"rig": rig, "slow_noise": SLOW_NOISE if high else None}
     with atomic_directory(out, overwrite=overwrite, kind="simulate") as tmp:
-        write_batch_toml(tmp / "batch.toml", ds, {"preset": "reference"})
+        write_batch_toml(tmp / "batch.toml", ds, _batch_rig(config.rig, tmp))
         for (mid, module), mss in zip(truth["modules"].items(), module_ss):
             mrng = np.random.default_rng(mss)
             (tmp / mid).mkdir()
@@ -385,6 +473,7 @@ def simulate_batch(
                 "n_validations": config.n_validations,
                 "validation_duration_s": config.validation_duration,
                 "bench_rig": rig.name,
+                "rig": config.rig or {"preset": "reference"},
                 "fidelity": config.fidelity,
                 "physics": "high-fidelity" if high else config.physics,
                 "validation_start": config.validation_start,

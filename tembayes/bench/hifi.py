@@ -115,6 +115,7 @@ def hifi_rig(n_leg: int = N_LEG_CELLS, layers: bool = False) -> RigDescription:
         sensors={"T1_C": top[1], "T2_C": top[4], "T3_C": bottom[1], "T4_C": bottom[4]},
         legs=tuple(legs),
         faces=("hot_ceramic", "cold_ceramic") if layers else (),
+        boundaries=REFERENCE.boundaries,
         depths={
             ch: SensorDepth(deeper, f"depth_{ch[:2]}", SENSOR_DEPTH, _DX)
             for ch, deeper in (("T1_C", top[2]), ("T2_C", top[3]), ("T3_C", bottom[2]), ("T4_C", bottom[3]))

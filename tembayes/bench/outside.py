@@ -40,6 +40,7 @@ import numpy as np
 
 from tembayes.bench.hifi import AREA, K_STEEL, RHO_C
 from tembayes.physics.rig import RigDescription, RigParameter
+from tembayes.physics.rigread import REFERENCE
 
 if TYPE_CHECKING:
     from collections.abc import Mapping
@@ -146,6 +147,7 @@ def outside_rig(depth_sides: Mapping[str, int] | None = None) -> RigDescription:
         sensors={f"{s}_C": f"sensor_{s}" for s in sensor_cell},
         legs=tuple(legs),
         faces=("hot_ceramic", "cold_ceramic"),
+        boundaries=REFERENCE.boundaries,
     )
 
 

@@ -11,8 +11,12 @@ load.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
 
 REFERENCE_IMAX = 6.4  # [A] the module the reference levels were written for
 
@@ -119,20 +123,31 @@ def sample_times(
 
 
 def boundary_drifts(
-    rng: np.random.Generator, t: np.ndarray, t_water: float = 20.0 + 273.15, t_amb: float = 22.0 + 273.15
-) -> tuple[np.ndarray, np.ndarray]:
-    """True water and ambient temperatures [K] at times ``t`` [s].
+    rng: np.random.Generator,
+    t: np.ndarray,
+    rooms: Sequence[bool] = (False, True),
+    *,
+    controlled: float = 20.0 + 273.15,
+    room: float = 22.0 + 273.15,
+) -> np.ndarray:
+    """True boundary temperatures ``(nb, len(t))`` [K] at times ``t`` [s], in the rig's boundary order.
 
-    The chiller wobbles by a few hundredths of a kelvin (a control cycle of a
-    few minutes plus a little wander); the room drifts by a few tenths of a
-    kelvin over hours.
+    A controlled boundary (a chiller, a liquid loop) wobbles by a few
+    hundredths of a kelvin about ``controlled`` (a control cycle of a few
+    minutes plus a little wander); the room (``rooms[k]`` true) drifts by a
+    few tenths of a kelvin over hours about ``room``.  The default is the
+    reference rig's: the water, then the room.
     """
-    period = rng.uniform(200.0, 400.0)
-    phase = rng.uniform(0, 2 * np.pi)
-    water = t_water + rng.uniform(-0.3, 0.3) + 0.02 * np.sin(2 * np.pi * t / period + phase)
-    water += _smooth_walk(rng, t, 0.01, 600.0)
-    amb = t_amb + rng.uniform(-1.0, 1.0) + _smooth_walk(rng, t, 0.25, 3600.0)
-    return water, amb
+    out = []
+    for is_room in rooms:
+        if is_room:
+            out.append(room + rng.uniform(-1.0, 1.0) + _smooth_walk(rng, t, 0.25, 3600.0))
+            continue
+        period = rng.uniform(200.0, 400.0)
+        phase = rng.uniform(0, 2 * np.pi)
+        x = controlled + rng.uniform(-0.3, 0.3) + 0.02 * np.sin(2 * np.pi * t / period + phase)
+        out.append(x + _smooth_walk(rng, t, 0.01, 600.0))
+    return np.array(out)
 
 
 def _smooth_walk(rng, t, sd, tau):

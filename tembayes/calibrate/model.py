@@ -2,7 +2,7 @@
 
 One continuous simulation of the rig from the steady state shortly before the
 first step, with the current an ideal staircase (the hold levels of the run)
-and the measured, smoothed water and ambient temperatures, evaluated at the
+and the measured, smoothed boundary temperatures, evaluated at the
 selected samples of :class:`~tembayes.calibrate.stepdata.StepData`.  The
 simulation is the package's stiff integrator
 (:func:`tembayes.physics.kernel.integrate_grids`), batched over parameter
@@ -55,7 +55,7 @@ class StepResponseModel:
         The calibration rig (e.g. ``rig_from_config(None, leg_cells=2)``).
     input_spacing : float, optional
         Extra (unobserved) grid points at this spacing [s], so that the
-        water temperature's few-minute wobble reaches the model.
+        boundary temperatures' few-minute wobble reaches the model.
     atol : float, optional
         Integrator tolerance [K].
     hmax : float, optional
@@ -96,8 +96,7 @@ class StepResponseModel:
         hold[pos_step + 1] = np.arange(ns) + 1
         self._hold = hold
         self._current = data.levels[hold]
-        tw, ta = data.boundaries(grid)
-        self._tw, self._ta = tw, ta
+        self._bounds = data.boundaries(grid)
         self.shift_bound = sg.shift_bound
 
     def grid(self, shift: ArrayLike) -> np.ndarray:
@@ -117,7 +116,7 @@ class StepResponseModel:
         Returns
         -------
         dict
-            ``sensors`` ``(nd, 2, n_obs)`` (T2, T3) [K], ``voltage``
+            ``sensors`` ``(nd, 2, n_obs)`` (the face sensors, ``data.face``) [K], ``voltage``
             ``(nd, n_obs)`` [V], ``t_hot``/``t_cold`` ``(nd, n_obs)`` [K] and
             ``steps`` (accepted integrator steps per draw).
         """
@@ -131,14 +130,14 @@ class StepResponseModel:
         nd = m["nd"]
         shift = np.broadcast_to(shift, (nd,))
         names = m["network"].nodes
-        a, b, f = self.rig.readout(("T2_C", "T3_C"), m["params"])
+        a, b, f = self.rig.readout(self.data.face, m["params"])
         rec = np.concatenate([a, [names.index(self.rig.hot), names.index(self.rig.cold)], b]).astype(np.int64)
         G = self.grid(shift)
         if levels is None:
             Ic = np.repeat(self._current[None, :], nd, axis=0)
         else:
             Ic = np.ascontiguousarray(np.broadcast_to(levels, (nd, len(self.data.levels)))[:, self._hold])
-        out, volt, failed, steps = integrate_on_grids(m, G, Ic, self._tw, self._ta, rec, self.atol, self.hmax)
+        out, volt, failed, steps = integrate_on_grids(m, G, Ic, self._bounds, rec, self.atol, self.hmax)
         if strict and np.any(failed):
             raise ModelError(
                 "the step-response simulation failed (no steady start, step budget exceeded or non-finite values)"
@@ -159,8 +158,8 @@ class StepResponseModel:
         instead of raising :class:`~tembayes.errors.ModelError`.
         """
         s = self.simulate(params, strict=strict, levels=levels)
-        T2, T3 = s["sensors"][:, 0], s["sensors"][:, 1]
-        return np.stack([s["voltage"], T2 - T3, 0.5 * (T2 + T3)], axis=1)
+        hot, cold = s["sensors"][:, 0], s["sensors"][:, 1]
+        return np.stack([s["voltage"], hot - cold, 0.5 * (hot + cold)], axis=1)
 
     def level_jacobian(self, params: Mapping[str, float | np.ndarray], dI: float = 1e-3) -> np.ndarray:
         """Response of the channels to each hold's current level, at one point.

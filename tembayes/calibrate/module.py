@@ -582,8 +582,8 @@ class _Problem:
 def _problem(module, datasheet, rig_config, opt, effects, seed) -> _Problem:
     emcee_seed, rng = module_seed(seed, module.id)
     experiment = module.identification
-    data = step_data(experiment)
     rig = calibration_rig(rig_config, opt)
+    data = step_data(experiment, face=rig.layout.face)
     model = StepResponseModel(data, rig)
     effects = tuple(dict.fromkeys((*effects, *opt.effects)))  # the run's own and the gap's candidate
     model_space, space = parameter_space(rig, datasheet, data, model.shift_bound, effects, opt.model)
@@ -1002,8 +1002,8 @@ def sample_prior_only(
     """
     opt = options or CalibrationOptions()
     emcee_seed, rng = module_seed(seed, module.id)
-    data = step_data(module.identification)
     rig = calibration_rig(rig_config, opt)
+    data = step_data(module.identification, face=rig.layout.face)
     model = StepResponseModel(data, rig)
     _, space = parameter_space(rig, datasheet, data, model.shift_bound, form=opt.model)
     nwalkers = 2 * space.ndim + 2 if opt.nwalkers is None else int(opt.nwalkers)

@@ -13,9 +13,10 @@ where ``dT`` and the voltage carry ``S`` and ``K``).  Log spacing keeps the
 information of each time scale at ~50 points per step, so a simulation of all
 windows costs ~1/50 of the whole run.
 
-The channels compared are the voltage, the sensor temperature difference
-``dT = T2 - T3`` across the module and the sensors' mean ``(T2 + T3)/2``
-(which fixes the temperature the laws are evaluated at).
+The channels compared are the voltage, the temperature difference ``dT``
+between the rig's face sensors (the sensor nearest each module face,
+:attr:`~tembayes.physics.layout.Layout.face`; T2 - T3 on the reference rig)
+and their mean (which fixes the temperature the laws are evaluated at).
 """
 
 from __future__ import annotations
@@ -100,10 +101,13 @@ class StepData:
         Observed ``voltage [V], dT [K], Tmean [K]`` (:data:`CHANNELS`).
     noise : ndarray, shape (3,)
         Measurement noise sd of each channel, estimated from the whole run.
-    t_water, t_amb : ndarray, shape (n,)
-        Boundary temperatures at the selected samples [K], smoothed.
-    boundary_time, boundary_water, boundary_amb : ndarray
-        The smoothed boundaries on a regular grid, for inputs at other times.
+    face : tuple of (str, str)
+        The hot- and cold-face sensor columns ``dT`` is read from.
+    boundary_time : ndarray, shape (m,)
+        The run's sample times [s].
+    boundary_values : ndarray, shape (nb, m)
+        The smoothed boundary temperatures there [K], in the rig's order, for
+        inputs at any time (:meth:`boundaries`).
     """
 
     source: str
@@ -117,11 +121,9 @@ class StepData:
     since: np.ndarray
     obs: np.ndarray
     noise: np.ndarray
-    t_water: np.ndarray
-    t_amb: np.ndarray
+    face: tuple
     boundary_time: np.ndarray
-    boundary_water: np.ndarray
-    boundary_amb: np.ndarray
+    boundary_values: np.ndarray
 
     @property
     def n_steps(self) -> int:
@@ -143,12 +145,9 @@ class StepData:
         """+1 for an up-step, -1 for a down-step."""
         return np.sign(self.dI).astype(int)
 
-    def boundaries(self, t: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
-        """Smoothed water and ambient temperatures [K] at times ``t`` [s]."""
-        return (
-            np.interp(t, self.boundary_time, self.boundary_water),
-            np.interp(t, self.boundary_time, self.boundary_amb),
-        )
+    def boundaries(self, t: ArrayLike) -> np.ndarray:
+        """Smoothed boundary temperatures ``(nb, len(t))`` [K] at times ``t`` [s]."""
+        return np.array([np.interp(t, self.boundary_time, b) for b in self.boundary_values])
 
 
 def hold_levels(current: np.ndarray, holds: Iterable[tuple[int, int]]) -> np.ndarray:
@@ -245,6 +244,7 @@ def _smooth(time, x, width):
 def step_data(
     exp: Experiment,
     *,
+    face: tuple[str, str],
     dense: float = 2.0,
     per_decade: int = 16,
     pre: float = 1.0,
@@ -257,6 +257,9 @@ def step_data(
     Parameters
     ----------
     exp : tembayes.data.Experiment
+    face : tuple of (str, str)
+        The columns of the sensors nearest the module's hot and cold faces
+        (``rig.layout.face``).
     dense : float, optional
         Keep every sample in the first ``dense`` seconds after a step.
     per_decade : int, optional
@@ -267,11 +270,11 @@ def step_data(
         The run must rest at least this long before the first step [s].
         The simulation starts at the first sample, from the steady state
         there: the rest before the first step lets the model settle into
-        the slow drifts of the water and the room.
+        the slow drifts of the boundaries.
     min_steps : int, optional
         Refuse a run with fewer steps (the laws need several temperatures).
     smooth : float, optional
-        Width of the moving average on the water and ambient inputs [s].
+        Width of the moving average on the boundary inputs [s].
 
     Returns
     -------
@@ -325,14 +328,12 @@ def step_data(
     idx, win = idx[keep], win[keep]
     order = np.argsort(idx, kind="stable")
     idx, win = idx[order], win[order]
-    T2 = exp.sensors[1]
-    T3 = exp.sensors[2]
-    obs = np.vstack([exp.voltage[idx], (T2 - T3)[idx], 0.5 * (T2 + T3)[idx]])
-    sT = _noise_sd(np.nanmean([noise_estimate(T2), noise_estimate(T3)]), NOISE_FLOOR["temperature_K"], T2, T3)
+    hot, cold = (exp.channel(c) for c in face)
+    obs = np.vstack([exp.voltage[idx], (hot - cold)[idx], 0.5 * (hot + cold)[idx]])
+    sT = _noise_sd(np.nanmean([noise_estimate(hot), noise_estimate(cold)]), NOISE_FLOOR["temperature_K"], hot, cold)
     sV = _noise_sd(noise_estimate(exp.voltage), NOISE_FLOOR["voltage_V"], exp.voltage)
     noise = np.array([sV, np.sqrt(2.0) * sT, sT / np.sqrt(2.0)])
-    tw = _smooth(t, exp.t_water, smooth)
-    ta = _smooth(t, exp.t_amb, smooth)
+    bounds = np.array([_smooth(t, b, smooth) for b in exp.boundaries])
     step_time = np.array([s.t for s in steps])
     return StepData(
         source=src,
@@ -346,9 +347,7 @@ def step_data(
         since=t[idx] - step_time[win],
         obs=obs,
         noise=noise,
-        t_water=tw[idx],
-        t_amb=ta[idx],
+        face=tuple(face),
         boundary_time=t.copy(),
-        boundary_water=tw,
-        boundary_amb=ta,
+        boundary_values=bounds,
     )

@@ -8,11 +8,15 @@ import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from ..constants import KELVIN, TEMPERATURE_COLUMNS
+from ..constants import KELVIN
 from ..errors import DataError, ModelError
 from .experiment import Experiment, load_experiment
 from .preflight import ERROR, check_experiment
+
+if TYPE_CHECKING:
+    from ..physics.layout import Layout
 
 __all__ = [
     "Datasheet",
@@ -285,22 +289,25 @@ class LazyModule:
     datasheet : Datasheet
         The module type (the CSVs' unit checks).
     validation_files : tuple of Path
+    layout : tembayes.physics.layout.Layout, optional
+        The batch's rig columns; default the reference rig's.
     """
 
     id: str
     path: Path
     datasheet: "Datasheet"
     validation_files: tuple = ()
+    layout: "Layout | None" = None
 
     @property
     def identification(self) -> Experiment:
         """The identification experiment, read from disk on each access."""
-        return load_experiment(self.path / IDENTIFICATION_CSV, datasheet=self.datasheet)
+        return load_experiment(self.path / IDENTIFICATION_CSV, datasheet=self.datasheet, layout=self.layout)
 
     @property
     def validations(self) -> tuple:
         """The validation experiments, read from disk on each access."""
-        return tuple(load_experiment(p, datasheet=self.datasheet) for p in self.validation_files)
+        return tuple(load_experiment(p, datasheet=self.datasheet, layout=self.layout) for p in self.validation_files)
 
     def load(self) -> Module:
         """The module with its experiments in memory."""
@@ -329,6 +336,9 @@ class Batch:
     findings : tuple of tembayes.data.preflight.Finding
         The preflight's warnings on the experiments (errors too when loaded
         with ``strict=False``).
+    layout : tembayes.physics.layout.Layout
+        The rig's columns and where its sensors sit (the reference rig's
+        when not given).
     """
 
     path: Path
@@ -337,6 +347,11 @@ class Batch:
     modules: dict = field(default_factory=dict)
     population: dict = field(default_factory=dict)
     findings: tuple = ()
+    layout: "Layout | None" = None
+
+    def __post_init__(self):
+        if self.layout is None:
+            object.__setattr__(self, "layout", _check_rig(self.path, self.rig_config))
 
 
 def load_batch_toml(path: Path | str) -> tuple[Datasheet, dict]:
@@ -359,7 +374,7 @@ def load_batch_toml(path: Path | str) -> tuple[Datasheet, dict]:
     DataError
         Naming the file, the TOML line for syntax errors, and the key.
     """
-    return _tables(*_read_batch_toml(path))
+    return _tables(*_read_batch_toml(path))[:2]
 
 
 def _read_batch_toml(path):
@@ -441,8 +456,7 @@ def _tables(path, doc):
                 column="rig",
             )
         rig_config = _rig_source(path, dict(rig))
-    _check_rig(path, rig_config)
-    return datasheet, rig_config
+    return datasheet, rig_config, _check_rig(path, rig_config)
 
 
 def load_population_table(path: Path | str) -> dict:
@@ -512,25 +526,16 @@ def _rig_source(path: Path, rig_config: dict) -> dict:
     return rig_config
 
 
-def _check_rig(path: Path, rig_config: dict) -> None:
+def _check_rig(path: Path, rig_config: dict) -> Layout:
+    """The layout of the rig ``[rig]`` asks for; a rig that cannot be read refuses batch.toml."""
     from ..physics.rigread import rig_from_config  # lazy: physics is heavier than data
 
     try:
-        rig = rig_from_config(rig_config)
+        return rig_from_config(rig_config).layout
     except ModelError as e:
         raise DataError(
             path, str(e), "Fix the [rig] table (or remove it to use the reference rig)", column="rig"
         ) from None
-    # the stages read the reference rig's columns by position (boundaries: water, then room air)
-    columns = (*rig.sensors, *rig.boundaries.values())
-    if columns != TEMPERATURE_COLUMNS:
-        raise DataError(
-            path,
-            f"rig '{rig.name}' reads {', '.join(columns)}; the calibration, prediction and gap stages read the "
-            f"reference rig's columns in this order ({', '.join(TEMPERATURE_COLUMNS)}) only so far",
-            "Describe the rig with `tembayes rig` for now, or use a rig with the reference rig's sensors and boundaries",
-            column="rig",
-        )
 
 
 def file_stem(module_id: str) -> str:
@@ -589,7 +594,7 @@ def load_batch(path: Path | str, *, lazy: bool = False, strict: bool = True) -> 
             path, "this is not a folder", "Pass the batch folder (the one holding batch.toml and the module folders)"
         )
     toml = _read_batch_toml(path / BATCH_TOML)
-    datasheet, rig_config = _tables(*toml)
+    datasheet, rig_config, layout = _tables(*toml)
     population = _population(*toml)
 
     folders = sorted(
@@ -621,17 +626,21 @@ def load_batch(path: Path | str, *, lazy: bool = False, strict: bool = True) -> 
         module = Module(
             id=folder.name,
             path=folder,
-            identification=load_experiment(ident, datasheet=datasheet),
-            validations=tuple(load_experiment(p, datasheet=datasheet) for p in validation_files),
+            identification=load_experiment(ident, datasheet=datasheet, layout=layout),
+            validations=tuple(load_experiment(p, datasheet=datasheet, layout=layout) for p in validation_files),
         )
         for exp in (module.identification, *module.validations):
-            found = check_experiment(exp, datasheet=datasheet, identification=exp is module.identification)
+            found = check_experiment(
+                exp, datasheet=datasheet, identification=exp is module.identification, layout=layout
+            )
             if strict and any(f.severity == ERROR for f in found):
                 raise next(f for f in found if f.severity == ERROR).error()
             findings += found
         # lazy: the files were read (validated) above, and are dropped here
         modules[folder.name] = (
-            LazyModule(id=folder.name, path=folder, datasheet=datasheet, validation_files=validation_files)
+            LazyModule(
+                id=folder.name, path=folder, datasheet=datasheet, validation_files=validation_files, layout=layout
+            )
             if lazy
             else module
         )
@@ -642,4 +651,5 @@ def load_batch(path: Path | str, *, lazy: bool = False, strict: bool = True) -> 
         modules=modules,
         population=population,
         findings=tuple(findings),
+        layout=layout,
     )

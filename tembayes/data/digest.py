@@ -45,14 +45,25 @@ def batch_inputs(batch: Batch) -> dict:
     -------
     dict
         Keys are POSIX paths relative to the batch folder
-        (``"batch.toml"``, ``"TEM1/identification.csv"``, ...).
+        (``"batch.toml"``, ``"TEM1/identification.csv"``, ...); a rig file
+        the batch names (``[rig] file``) too, by its absolute path when it
+        lies outside the folder.
     """
     root = Path(batch.path)
     files = [root / BATCH_TOML]
+    if "file" in batch.rig_config:
+        files.append(Path(batch.rig_config["file"]))
     for m in batch.modules.values():
         files.append(Path(m.path) / IDENTIFICATION_CSV)
         files += [Path(p) for p in _validation_paths(m)]
-    return {f.relative_to(root).as_posix(): file_sha256(f) for f in files}
+    return {_key(f, root): file_sha256(f) for f in files}
+
+
+def _key(path: Path, root: Path) -> str:
+    try:
+        return path.resolve().relative_to(root.resolve()).as_posix()
+    except ValueError:
+        return path.resolve().as_posix()
 
 
 def _validation_paths(module):

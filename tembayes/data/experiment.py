@@ -16,10 +16,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..constants import CSV_COLUMNS, KELVIN, SENSOR_CHANNELS, TEMPERATURE_COLUMNS
+from ..constants import KELVIN
 from ..errors import DataError
 
 if TYPE_CHECKING:  # batch.py imports this module
+    from ..physics.layout import Layout
     from .batch import Datasheet
 
 __all__ = ["Experiment", "load_experiment", "TEMP_MIN_C", "TEMP_MAX_C"]
@@ -57,12 +58,13 @@ class Experiment:
         Module current [A]; positive cools the bottom (cold-side) block.
     voltage : ndarray, shape (n,)
         Module terminal voltage [V].
-    sensors : ndarray, shape (4, n)
-        Block temperatures T1..T4 [K], top (water side) to bottom.
-    t_water : ndarray, shape (n,)
-        Cooling-water temperature [K].
-    t_amb : ndarray, shape (n,)
-        Ambient air temperature [K].
+    sensors : ndarray, shape (ns, n)
+        The rig's sensor temperatures [K], in the order of ``sensor_names``.
+    boundaries : ndarray, shape (nb, n)
+        The rig's measured boundary temperatures [K], in the order of
+        ``boundary_names`` (the rig's boundary order).
+    sensor_names, boundary_names : tuple of str
+        Their CSV columns; default: the reference rig's.
     extra : dict of str to ndarray
         Other numeric columns of the file, as written (unit unknown); kept,
         not used.
@@ -81,8 +83,9 @@ class Experiment:
     current: np.ndarray
     voltage: np.ndarray
     sensors: np.ndarray
-    t_water: np.ndarray
-    t_amb: np.ndarray
+    boundaries: np.ndarray
+    sensor_names: tuple | None = None
+    boundary_names: tuple | None = None
     extra: dict = field(default_factory=dict)
     lines: np.ndarray | None = None
 
@@ -90,7 +93,7 @@ class Experiment:
         set_ = object.__setattr__  # frozen dataclass: the only way to normalise
         set_(self, "path", _IN_MEMORY if self.path is None else Path(self.path))
         n = None
-        for name in ("time", "current", "voltage", "t_water", "t_amb"):
+        for name in ("time", "current", "voltage"):
             arr = _frozen(getattr(self, name))
             if arr.ndim != 1:
                 raise ValueError(f"Experiment.{name}: expected shape (n,), found {arr.shape}")
@@ -99,10 +102,17 @@ class Experiment:
             elif arr.shape[0] != n:
                 raise ValueError(f"Experiment.{name}: expected shape ({n},) like time, found {arr.shape}")
             set_(self, name, arr)
-        sensors = _frozen(self.sensors)
-        if sensors.shape != (4, n):
-            raise ValueError(f"Experiment.sensors: expected shape (4, {n}), found {sensors.shape}")
-        set_(self, "sensors", sensors)
+        if self.sensor_names is None or self.boundary_names is None:
+            layout = _reference_layout()
+            set_(self, "sensor_names", layout.sensors if self.sensor_names is None else self.sensor_names)
+            set_(self, "boundary_names", layout.boundaries if self.boundary_names is None else self.boundary_names)
+        for name, names in (("sensors", "sensor_names"), ("boundaries", "boundary_names")):
+            set_(self, names, tuple(str(c) for c in getattr(self, names)))
+            arr = _frozen(getattr(self, name))
+            k = len(getattr(self, names))
+            if arr.shape != (k, n):
+                raise ValueError(f"Experiment.{name}: expected shape ({k}, {n}), found {arr.shape}")
+            set_(self, name, arr)
         extra = {}
         for key, value in dict(self.extra or {}).items():
             arr = _frozen(value)
@@ -143,8 +153,8 @@ class Experiment:
         ----------
         name : str
             A contract column name (``"time_s"``, ``"current_A"``,
-            ``"voltage_V"``, ``"T1_C"`` .. ``"T4_C"``, ``"T_water_C"``,
-            ``"T_amb_C"``) or the name of an extra column.
+            ``"voltage_V"``, a sensor or boundary column of the rig) or the
+            name of an extra column.
 
         Returns
         -------
@@ -164,21 +174,30 @@ class Experiment:
             return self.current
         if name == "voltage_V":
             return self.voltage
-        if name in SENSOR_CHANNELS:
-            return self.sensors[SENSOR_CHANNELS.index(name)]
-        if name == "T_water_C":
-            return self.t_water
-        if name == "T_amb_C":
-            return self.t_amb
+        if name in self.sensor_names:
+            return self.sensors[self.sensor_names.index(name)]
+        if name in self.boundary_names:
+            return self.boundaries[self.boundary_names.index(name)]
         if name in self.extra:
             return self.extra[name]
-        known = ", ".join(CSV_COLUMNS + tuple(self.extra))
+        known = ", ".join(self.columns + tuple(self.extra))
         raise KeyError(f"no channel {name!r} in {self.path}; known: {known}")
+
+    @property
+    def columns(self) -> tuple[str, ...]:
+        """The contract columns of this experiment: time, current, voltage, then its rig's temperatures."""
+        return ("time_s", "current_A", "voltage_V") + self.sensor_names + self.boundary_names
 
     def __repr__(self):
         return (
             f"Experiment(path={str(self.path)!r}, n={self.n}, duration={self.duration:.6g} s, extra={list(self.extra)})"
         )
+
+
+def _reference_layout() -> Layout:
+    from ..physics.rigread import REFERENCE  # lazy: physics is heavier than data
+
+    return REFERENCE.layout
 
 
 def _frozen(values) -> np.ndarray:
@@ -203,7 +222,9 @@ def _frozen(values) -> np.ndarray:
 _CHUNK_BYTES = 8 << 20
 
 
-def load_experiment(path: Path | str, *, datasheet: Datasheet | None = None) -> Experiment:
+def load_experiment(
+    path: Path | str, *, datasheet: Datasheet | None = None, layout: Layout | None = None
+) -> Experiment:
     """Load and validate one experiment CSV (``docs/data-format.md``, 'CSV columns').
 
     Parameters
@@ -215,6 +236,9 @@ def load_experiment(path: Path | str, *, datasheet: Datasheet | None = None) -> 
         The module type.  When given, a current above 3 x its Imax is
         refused as milliamperes (otherwise above 100 A), and a file whose
         Seebeck voltage per kelvin is 1.8 times too small is refused as degF.
+    layout : tembayes.physics.layout.Layout, optional
+        The batch's rig (its sensor and boundary columns); default the
+        reference rig.
 
     Returns
     -------
@@ -235,6 +259,8 @@ def load_experiment(path: Path | str, *, datasheet: Datasheet | None = None) -> 
     arrays' size plus a constant, whatever the file's size.
     """
     path = Path(path)
+    layout = layout or _reference_layout()
+    columns = layout.csv_columns
     _check_file(path)
     with path.open("rb") as f:
         first = f.readline()
@@ -247,10 +273,10 @@ def load_experiment(path: Path | str, *, datasheet: Datasheet | None = None) -> 
             raise DataError(
                 path,
                 "line 1 is empty, but the header row must be line 1",
-                f"Put the column names {', '.join(CSV_COLUMNS)} on line 1",
+                f"Put the column names {', '.join(columns)} on line 1",
                 line=1,
             )
-        table = _Table(path, _check_header(path, next(csv.reader([header]))))
+        table = _Table(path, _check_header(path, next(csv.reader([header])), columns), columns)
         line_no = 1
         while block := f.readlines(_CHUNK_BYTES):
             table.add(block, line_no + 1, last=not f.peek(1))
@@ -258,13 +284,13 @@ def load_experiment(path: Path | str, *, datasheet: Datasheet | None = None) -> 
     data, extra, row_lines = table.result()
 
     _check_time(path, data, row_lines)
-    _check_units(path, data, row_lines, datasheet)
+    _check_units(path, data, row_lines, datasheet, layout)
 
-    sensors = np.stack([data.pop(c) for c in SENSOR_CHANNELS])
+    sensors = np.stack([data.pop(c) for c in layout.sensors])
+    boundaries = np.stack([data.pop(c) for c in layout.boundaries])
     sensors += KELVIN
-    data["T_water_C"] += KELVIN
-    data["T_amb_C"] += KELVIN
-    for arr in (sensors, *data.values(), *extra.values()):
+    boundaries += KELVIN
+    for arr in (sensors, boundaries, *data.values(), *extra.values()):
         arr.setflags(write=False)  # handed over, not copied again
     return Experiment(
         path=path,
@@ -272,8 +298,9 @@ def load_experiment(path: Path | str, *, datasheet: Datasheet | None = None) -> 
         current=data["current_A"],
         voltage=data["voltage_V"],
         sensors=sensors,
-        t_water=data["T_water_C"],
-        t_amb=data["T_amb_C"],
+        boundaries=boundaries,
+        sensor_names=layout.sensors,
+        boundary_names=layout.boundaries,
         extra=extra,
         lines=row_lines,
     )
@@ -326,12 +353,13 @@ class _Table:
     the first bad row for the message.
     """
 
-    def __init__(self, path, names):
+    def __init__(self, path, names, columns):
         self.path = path
+        self.columns = columns
         self.ncol = len(names)
         index = {name: j for j, name in enumerate(names)}
-        self.contract = [index[c] for c in CSV_COLUMNS]
-        self.extra = {j: name for j, name in enumerate(names) if name and name not in CSV_COLUMNS}
+        self.contract = [index[c] for c in columns]
+        self.extra = {j: name for j, name in enumerate(names) if name and name not in columns}
         self.parts, self.line_parts = [], []
         self.extra_parts = {j: [] for j in self.extra}  # None once a column shows a non-number
 
@@ -380,7 +408,7 @@ class _Table:
                     self.path, row, self.ncol, int(numbers[k]), lines[k], trailing=last and k == len(rows) - 1
                 )
         cols = list(zip(*rows))
-        return np.column_stack([_to_float(self.path, cols[j], c, numbers) for j, c in zip(self.contract, CSV_COLUMNS)])
+        return np.column_stack([_to_float(self.path, cols[j], c, numbers) for j, c in zip(self.contract, self.columns)])
 
     @staticmethod
     def _extra_column(lines, j):
@@ -402,7 +430,7 @@ class _Table:
                 "Every field of the required columns (docs/data-format.md, 'CSV columns') needs a "
                 "finite number: fill the gap or delete the row",
                 line=int(numbers[k]),
-                column=CSV_COLUMNS[c],
+                column=self.columns[c],
             )
 
     def result(self):
@@ -425,18 +453,18 @@ class _Table:
             )
         values = np.concatenate(self.parts)
         self.parts = []
-        data = {c: np.ascontiguousarray(values[:, k]) for k, c in enumerate(CSV_COLUMNS)}
+        data = {c: np.ascontiguousarray(values[:, k]) for k, c in enumerate(self.columns)}
         extra = {self.extra[j]: np.concatenate(p) for j, p in self.extra_parts.items() if p}
         return data, extra, row_lines
 
 
-def _check_header(path: Path, header: list) -> list:
+def _check_header(path: Path, header: list, columns: tuple) -> list:
     names = [h.strip() for h in header]
     if not any(names):
         raise DataError(
             path,
             "line 1 is empty, but the header row must be line 1",
-            f"Put the column names {', '.join(CSV_COLUMNS)} on line 1",
+            f"Put the column names {', '.join(columns)} on line 1",
             line=1,
         )
     if len(names) == 1:
@@ -455,7 +483,7 @@ def _check_header(path: Path, header: list) -> list:
                 path, f"column {name!r} appears twice in the header", "Keep one column per name", line=1, column=name
             )
         seen[name] = True
-    missing = [c for c in CSV_COLUMNS if c not in seen]
+    missing = [c for c in columns if c not in seen]
     if missing:
         c = missing[0]
         guess = _did_you_mean(c, names)
@@ -473,7 +501,7 @@ def _check_header(path: Path, header: list) -> list:
             path,
             f"required column{'s' if len(missing) > 1 else ''} "
             f"{', '.join(repr(m) for m in missing)} missing; found {found}",
-            f"The header must name all of {', '.join(CSV_COLUMNS)} (units in the name)",
+            f"The header must name all of {', '.join(columns)} (units in the name)",
             line=1,
             column=c,
         )
@@ -498,7 +526,7 @@ def _did_you_mean(required: str, names: list):
 def _rename_hint(required: str, other: str, why: str) -> str:
     if why != "wrong units":
         return f"Did you mean {required!r}? Rename the column"
-    if required in TEMPERATURE_COLUMNS:
+    if required.endswith("_C"):
         to = "degC (kelvin - 273.15)"
     else:
         to = _UNIT_NAMES[required]
@@ -557,7 +585,7 @@ def _check_time(path, data, row_lines):
     # A repeated sample (logger hiccup) reads better than "time not increasing".
     same_time = np.flatnonzero(t[:i] == t[i])
     for k in same_time[::-1]:
-        if all(data[c][k] == data[c][i] for c in CSV_COLUMNS):
+        if all(v[k] == v[i] for v in data.values()):
             raise DataError(
                 path,
                 f"duplicate row (same as line {row_lines[k]})",
@@ -575,18 +603,18 @@ def _check_time(path, data, row_lines):
     )
 
 
-def _check_units(path, data, row_lines, datasheet):
-    for c in TEMPERATURE_COLUMNS:
+def _check_units(path, data, row_lines, datasheet, layout):
+    for c in layout.temperatures:
         med = float(np.median(data[c]))
         if med > _KELVIN_MEDIAN_C:
             raise DataError(
                 path, f"values around {med:.2f} look like kelvin", "Convert to degC (subtract 273.15)", column=c
             )
-    for c in TEMPERATURE_COLUMNS:
+    for c in layout.temperatures:
         v = data[c]
         bad = np.flatnonzero((v < TEMP_MIN_C) | (v > TEMP_MAX_C))
         if bad.size:
-            _refuse_degf(path, data, datasheet)
+            _refuse_degf(path, data, datasheet, layout)
             i = int(bad[0])
             raise DataError(
                 path,
@@ -625,22 +653,24 @@ def _check_units(path, data, row_lines, datasheet):
             column="voltage_V",
         )
     if datasheet is not None:
-        _refuse_degf(path, data, datasheet)
+        _refuse_degf(path, data, datasheet, layout)
 
 
-def _refuse_degf(path, data, datasheet):
+def _refuse_degf(path, data, datasheet, layout):
     """Refuse a file in degF when its physics says so (see :func:`tembayes.data.preflight.degf_evidence`)."""
     from .preflight import degf_evidence  # the physics of the data lives there
 
     why = (
         None
         if datasheet is None
-        else degf_evidence(data["current_A"], data["voltage_V"], {c: data[c] for c in TEMPERATURE_COLUMNS}, datasheet)
+        else degf_evidence(
+            data["current_A"], data["voltage_V"], {c: data[c] for c in layout.temperatures}, datasheet, layout.face
+        )
     )
     if why:
         raise DataError(
             path,
             f"the temperatures look like degF: {why}",
             "Convert every temperature column to degC ((F - 32) / 1.8)",
-            column=TEMPERATURE_COLUMNS[0],
+            column=layout.temperatures[0],
         )

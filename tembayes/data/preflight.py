@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..constants import KELVIN, SENSOR_CHANNELS
+from ..constants import KELVIN
 from ..errors import DataError
 from .quality import noise_estimate
 from .steps import CALIBRATE_LEAD_S, CALIBRATE_MIN_STEPS, current_noise, detect_steps
@@ -40,6 +40,7 @@ from .steps import CALIBRATE_LEAD_S, CALIBRATE_MIN_STEPS, current_noise, detect_
 if TYPE_CHECKING:  # batch.py and experiment.py import this module
     from collections.abc import Iterable, Mapping
 
+    from ..physics.layout import Layout
     from .batch import Datasheet
     from .experiment import Experiment
 
@@ -57,12 +58,6 @@ GAP_REFUSE_S = 30.0
 GAP_REFUSE_FACTOR = 50.0
 #: ... or when the current changes across it by more than this many noise sds (a step at an unknown instant).
 GAP_STEP_SIGMAS = 10.0
-
-#: Sensor channels on each side of the module (reference rig: T1, T2 top; T3, T4 bottom).
-HOT_SIDE = ("T1_C", "T2_C")
-COLD_SIDE = ("T3_C", "T4_C")
-#: The sensors next to the module's faces: their difference carries the module's response.
-FACE_SENSORS = ("T2_C", "T3_C")
 
 #: A sensor frozen for this long [s] and this many samples while another moves by
 #: STUCK_OTHERS_K is stuck.
@@ -82,18 +77,20 @@ COLD_MARGIN_K = 5.0
 #: Sensor settling (63 % of the response after a current step) outside this range [s]
 #: means the time stamps are not seconds: a rig's blocks take minutes (the reference rig
 #: about 150 s), so a file in minutes reads a few time units and one in hours a few hundredths.
+#: The limits are the reference rig's; a rig whose slowest time constant is shorter than
+#: SETTLE_REFERENCE_TAU_S has them scaled down with it (liquid-cooled plates settle in seconds).
 SETTLE_MAX_S = 6 * 3600.0
 SETTLE_MIN_S = 10.0
+SETTLE_REFERENCE_TAU_S = 165.0
 #: The slower sensor's 63 % time is sure when it comes within this fraction of its median hold.
 SETTLE_HOLD_FRACTION = 0.5
 #: The lower limit when only one of the two sensors responded, or no hold was long enough [s].
 SETTLE_MIN_UNSURE_S = 0.3
 
-#: Heat paths from a boundary to a module face through the rig's sensors, in order: in every
-#: settled hold one heat flow crosses each path, so the steps along it rise and fall together.
-SERIES_PATHS = (("T_water_C", "T1_C", "T2_C"), ("T_amb_C", "T4_C", "T3_C"))
-#: A path is out of order when its two steps, over the settled holds, anti-correlate below
-#: this and the first step spans at least SERIES_MIN_SPAN_K.
+#: Along a heat path from a boundary to a module face through the rig's sensors
+#: (:attr:`~tembayes.physics.layout.Layout.paths`) one heat flow crosses every settled hold, so
+#: the steps along it rise and fall together: two neighbouring steps are out of order when, over
+#: the settled holds, they anti-correlate below this and the first spans at least SERIES_MIN_SPAN_K.
 SERIES_MAX_CORR = -0.8
 SERIES_MIN_SPAN_K = 0.2
 SERIES_MIN_HOLDS = 4
@@ -110,7 +107,7 @@ ZERO_MARGIN_FRACTION = 0.2
 SEEBECK_RATIO_DEGF = 0.62
 SEEBECK_RATIO_DEGF_LOW = 0.35
 SEEBECK_MIN_R2 = 0.8
-#: Samples with |T2 - T3| above this [K] at zero current are needed, at least SEEBECK_MIN_SAMPLES.
+#: Samples with the face sensors' difference above this [K] at zero current are needed, at least SEEBECK_MIN_SAMPLES.
 SEEBECK_MIN_DT_K = 0.5
 SEEBECK_MIN_SAMPLES = 200
 
@@ -178,7 +175,13 @@ def raise_first_error(findings: Iterable[Finding], *, command: str | None = None
             raise f.error()
 
 
-def check_experiment(exp: Experiment, *, datasheet: Datasheet | None = None, identification: bool = False) -> list:
+def check_experiment(
+    exp: Experiment,
+    *,
+    datasheet: Datasheet | None = None,
+    identification: bool = False,
+    layout: Layout | None = None,
+) -> list:
     """Every preflight check of one experiment.
 
     Parameters
@@ -189,24 +192,32 @@ def check_experiment(exp: Experiment, *, datasheet: Datasheet | None = None, ide
         Seebeck ratio).
     identification : bool
         Also the warnings on what the run can identify.
+    layout : tembayes.physics.layout.Layout, optional
+        Where the rig's sensors sit (face sensors, heat paths); default the
+        reference rig.
 
     Returns
     -------
     list of Finding
         Errors first.
     """
+    if layout is None:
+        from ..physics.rigread import REFERENCE  # lazy: physics is heavier than data
+
+        layout = REFERENCE.layout
     steps = detect_steps(exp.time, exp.current)
-    settle, slow, sure = _settling_time(exp, steps)
-    found = [*_gaps(exp), *_time_unit(exp, slow, sure), *_stuck(exp), *_jumps(exp)]
+    settle, slow, sure = _settling_time(exp, steps, layout.face)
+    scale = min(1.0, layout.slowest_tau_s / SETTLE_REFERENCE_TAU_S)
+    found = [*_gaps(exp), *_time_unit(exp, slow, sure, scale), *_stuck(exp), *_jumps(exp)]
     if datasheet is not None:
         found += _below_pumping(exp, datasheet)
     # each check below reads physics a broken sensor or clock (or the one before) would confound:
     # a column in another unit breaks the heat paths, and swapped sensors reverse the polarity test
     for check in (_zero_current_range, _sensor_order, _polarity):
         if not any(f.severity == ERROR for f in found):
-            found += check(exp, steps, settle)
+            found += check(exp, steps, settle, layout)
     if identification:
-        found += _identifiability(exp, steps, settle)
+        found += _identifiability(exp, steps, settle, layout.face)
     return sorted(found, key=lambda f: f.severity != ERROR)
 
 
@@ -251,7 +262,7 @@ def _gaps(exp):
     return errors[:1] + [f for f in out if f.severity == WARNING][:1]
 
 
-def _settling_time(exp, steps):
+def _settling_time(exp, steps, face):
     """How long the sensors next to the module take to cover 63 % of their move after a current step.
 
     Returns
@@ -269,7 +280,7 @@ def _settling_time(exp, steps):
         response measure the hold, not the rig).
     """
     pooled, per_sensor = [], []
-    for c in FACE_SENSORS:
+    for c in face:
         x = exp.channel(c)
         noise = noise_estimate(x)
         times, holds = [], []
@@ -288,22 +299,21 @@ def _settling_time(exp, steps):
     if not per_sensor:
         return settle, math.nan, False
     slow, hold = max(per_sensor)
-    return settle, slow, len(per_sensor) == len(FACE_SENSORS) and slow < SETTLE_HOLD_FRACTION * hold
+    return settle, slow, len(per_sensor) == len(face) and slow < SETTLE_HOLD_FRACTION * hold
 
 
-def _time_unit(exp, slow, sure):
+def _time_unit(exp, slow, sure, scale):
     if not math.isfinite(slow):
         return []
     # one sensor responding (the other stuck or flat) may be the fast one, and short holds cut the response
-    low = SETTLE_MIN_S if sure else SETTLE_MIN_UNSURE_S
-    if slow > SETTLE_MAX_S:
+    low = scale * (SETTLE_MIN_S if sure else SETTLE_MIN_UNSURE_S)
+    if slow > scale * SETTLE_MAX_S:
         return [
             _finding(
                 ERROR,
                 exp,
                 f"the sensors take {slow / 3600:.3g} h (in the file's time unit) to settle "
-                "after a current step, but a rig's blocks settle in minutes: time_s looks like "
-                "milliseconds",
+                f"after a current step, but {_settles(scale)}: time_s looks like milliseconds",
                 "Convert the time column to seconds (divide by 1000)",
                 column="time_s",
             )
@@ -313,13 +323,19 @@ def _time_unit(exp, slow, sure):
             _finding(
                 ERROR,
                 exp,
-                f"the sensors settle {slow:.3g} time units after a current step, but a "
-                "rig's blocks take minutes: time_s looks like minutes or hours",
+                f"the sensors settle {slow:.3g} time units after a current step, but "
+                f"{_settles(scale)}: time_s looks like minutes or hours",
                 "Convert the time column to seconds (minutes: multiply by 60; hours: by 3600)",
                 column="time_s",
             )
         ]
     return []
+
+
+def _settles(scale):
+    if scale >= 1.0:
+        return "a rig's blocks settle in minutes"
+    return f"this rig settles in about {scale * SETTLE_REFERENCE_TAU_S:.2g} s (its slowest time constant)"
 
 
 # -- sensors ------------------------------------------------------------------
@@ -338,7 +354,7 @@ def _runs(x):
 def _stuck(exp):
     out = []
     t = exp.time
-    for j, c in enumerate(SENSOR_CHANNELS):
+    for j, c in enumerate(exp.sensor_names):
         x = exp.sensors[j]
         runs = _runs(x)
         if not runs.size:
@@ -354,7 +370,7 @@ def _stuck(exp):
             if coarse and length[k] < STUCK_QUANTISED_RATIO * np.max(np.delete(length, k), initial=0.0):
                 continue
             a, b = runs[k]
-            others = [(exp.channel(o)[a:b].max() - exp.channel(o)[a:b].min(), o) for o in SENSOR_CHANNELS if o != c]
+            others = [(exp.channel(o)[a:b].max() - exp.channel(o)[a:b].min(), o) for o in exp.sensor_names if o != c]
             moved, other = max(others)
             if moved > STUCK_OTHERS_K:
                 out.append(
@@ -378,7 +394,7 @@ def _stuck(exp):
 def _jumps(exp):
     dt = np.diff(exp.time)
     limit = JUMP_K + JUMP_RATE_K_PER_S * dt
-    for j, c in enumerate(SENSOR_CHANNELS):
+    for j, c in enumerate(exp.sensor_names):
         d = np.abs(np.diff(exp.sensors[j]))
         bad = np.flatnonzero(d > limit)
         if bad.size:
@@ -399,9 +415,9 @@ def _jumps(exp):
 
 
 def _below_pumping(exp, datasheet):
-    coldest = float(min(exp.t_water.min(), exp.t_amb.min()))
+    coldest = float(exp.boundaries.min())
     floor = coldest - datasheet.dtmax - COLD_MARGIN_K
-    for j, c in enumerate(SENSOR_CHANNELS):
+    for j, c in enumerate(exp.sensor_names):
         k = int(np.argmin(exp.sensors[j]))
         if exp.sensors[j][k] < floor:
             return [
@@ -433,12 +449,13 @@ def _slope(x, y):
     return b, math.sqrt(float(resid @ resid) / max(len(x) - 2, 1) / sxx)
 
 
-def _polarity(exp, *_):
+def _polarity(exp, steps, settle, layout):
     i = exp.current
     span = float(i.max() - i.min())
     if span < 0.1:
         return []
-    dT = exp.channel(FACE_SENSORS[1]) - exp.channel(FACE_SENSORS[0])  # cold face minus hot face
+    hot, cold = layout.face
+    dT = exp.channel(cold) - exp.channel(hot)
     thermal, _ = _slope(i, dT)
     volt, _ = _slope(i, exp.voltage)
     cools = None if abs(thermal) * span < 1.0 else thermal < 0
@@ -459,11 +476,7 @@ def _polarity(exp, *_):
                 )
             ]
         )
-    side = (
-        f"positive current warms the cold side: {FACE_SENSORS[1]} - {FACE_SENSORS[0]} rises by {thermal:.3g} K per A"
-        if not cools
-        else ""
-    )
+    side = f"positive current warms the cold side: {cold} - {hot} rises by {thermal:.3g} K per A" if not cools else ""
     if not cools and follows:
         return [
             _finding(
@@ -471,7 +484,8 @@ def _polarity(exp, *_):
                 exp,
                 side + "; the voltage follows the current, so both are reversed",
                 "Negate current_A and voltage_V (positive current must cool the bottom, cold-side "
-                "block); if the module is mounted the right way, check that T1, T2 are the top block's",
+                "block); if the module is mounted the right way, check that "
+                f"{', '.join(layout.hot_side)} are the hot side's sensors",
                 column="current_A",
             )
         ]
@@ -522,7 +536,7 @@ def _tail(a, b):
     return slice(a + int(0.8 * (b - a)), b)
 
 
-def _sensor_order(exp, steps, settle):
+def _sensor_order(exp, steps, settle, layout):
     """Sensors out of their place on a heat path (swapped columns), from the settled holds.
 
     Along a path boundary -> far sensor -> face sensor one heat flow crosses
@@ -533,40 +547,48 @@ def _sensor_order(exp, steps, settle):
     holds = _settled_holds(exp, steps, settle, zero=False)
     if len(holds) < SERIES_MIN_HOLDS:
         return []
-    for path in SERIES_PATHS:
+    for path in layout.paths:
         columns = [exp.channel(c) for c in path]
         levels = np.array([[np.median(x[_tail(a, b)]) for x in columns] for a, b in holds])
-        first, second = np.diff(levels, axis=1).T
-        if np.ptp(first) < SERIES_MIN_SPAN_K or np.ptp(second) == 0.0:
-            continue
-        r = float(np.corrcoef(first, second)[0, 1])
-        if r < SERIES_MAX_CORR:
-            k = int(np.argmax(np.abs(first)))  # the hold shown: the largest step
-            b = holds[k][1]
-            shown = ", ".join(f"{c} {v - KELVIN:.4g}" for c, v in zip(path, levels[k]))
-            return [
-                _finding(
-                    ERROR,
-                    exp,
-                    f"{path[0]} -> {path[1]} -> {path[2]} is not the order of the heat path: over "
-                    f"{len(holds)} settled holds {path[1]} - {path[0]} and {path[2]} - {path[1]} move in "
-                    f"opposite directions (correlation {r:+.2f}; at {exp.where(b - 1)}: {shown} degC)",
-                    "Check which column is which sensor: T1 top block by the water cooler, T2 top block by "
-                    "the module, T3 bottom block by the module, T4 bottom block by its bottom face; a swap "
-                    "across the module (T2 and T3) shows on this path too (docs/data-format.md, 'The reference rig')",
-                    b - 1,
-                    path[2],
-                )
-            ]
+        moves = np.diff(levels, axis=1).T
+        for j in range(len(path) - 2):
+            found = _out_of_order(exp, holds, path[j : j + 3], levels[:, j : j + 3], moves[j], moves[j + 1], layout)
+            if found:
+                return found
     return []
 
 
-def _zero_current_range(exp, steps, settle):
+def _out_of_order(exp, holds, path, levels, first, second, layout):
+    if np.ptp(first) < SERIES_MIN_SPAN_K or np.ptp(second) == 0.0:
+        return []
+    r = float(np.corrcoef(first, second)[0, 1])
+    if r >= SERIES_MAX_CORR:
+        return []
+    k = int(np.argmax(np.abs(first)))  # the hold shown: the largest step
+    b = holds[k][1]
+    shown = ", ".join(f"{c} {v - KELVIN:.4g}" for c, v in zip(path, levels[k]))
+    where = "; ".join(layout.describe(c) for c in path[1:])
+    return [
+        _finding(
+            ERROR,
+            exp,
+            f"{path[0]} -> {path[1]} -> {path[2]} is not the order of the heat path: over "
+            f"{len(holds)} settled holds {path[1]} - {path[0]} and {path[2]} - {path[1]} move in "
+            f"opposite directions (correlation {r:+.2f}; at {exp.where(b - 1)}: {shown} degC)",
+            f"Check which column is which sensor ({where}); a swap across the module shows on this path too "
+            "(the rig file's [sensors])",
+            b - 1,
+            path[2],
+        )
+    ]
+
+
+def _zero_current_range(exp, steps, settle, layout):
     for a, b in _settled_holds(exp, steps, settle, zero=True):
         tail = _tail(a, b)
-        lo = min(float(np.median(exp.t_water[tail])), float(np.median(exp.t_amb[tail])))
-        hi = max(float(np.median(exp.t_water[tail])), float(np.median(exp.t_amb[tail])))
-        for j, c in enumerate(SENSOR_CHANNELS):
+        bounds = np.median(exp.boundaries[:, tail], axis=1)
+        lo, hi = float(bounds.min()), float(bounds.max())
+        for j, c in enumerate(exp.sensor_names):
             x = exp.sensors[j]
             level = float(np.median(x[tail]))
             margin = ZERO_MARGIN_K + ZERO_MARGIN_FRACTION * abs(level - float(x[a]))
@@ -588,7 +610,11 @@ def _zero_current_range(exp, steps, settle):
 
 
 def degf_evidence(
-    current: np.ndarray, voltage: np.ndarray, temps: Mapping[str, np.ndarray], datasheet: Datasheet
+    current: np.ndarray,
+    voltage: np.ndarray,
+    temps: Mapping[str, np.ndarray],
+    datasheet: Datasheet,
+    face: tuple[str, str],
 ) -> str | None:
     """Why a file's temperatures read degF, or None.
 
@@ -606,13 +632,15 @@ def degf_evidence(
     temps : mapping of str to ndarray
         Temperature columns as read (degC, or degF if wrong).
     datasheet : tembayes.data.Datasheet
+    face : tuple of (str, str)
+        The columns of the sensors next to the hot and the cold module face.
 
     Returns
     -------
     str or None
     """
     sigma = max(current_noise(current), 1e-3)
-    dT = temps[FACE_SENSORS[0]] - temps[FACE_SENSORS[1]]  # hot face minus cold face
+    dT = temps[face[0]] - temps[face[1]]  # hot face minus cold face
     use = (np.abs(current) < 5 * sigma) & (np.abs(dT) > SEEBECK_MIN_DT_K)
     if use.sum() < SEEBECK_MIN_SAMPLES or min(float(np.median(v)) for v in temps.values()) < 32.0:
         return None
@@ -622,8 +650,8 @@ def degf_evidence(
     ratio = s / datasheet.seebeck()
     if r2 >= SEEBECK_MIN_R2 and SEEBECK_RATIO_DEGF_LOW <= ratio < SEEBECK_RATIO_DEGF:
         return (
-            f"at zero current the voltage is {1e3 * s:.3g} mV per degree of {FACE_SENSORS[0]} - "
-            f"{FACE_SENSORS[1]}, {ratio:.2f} of the datasheet's Seebeck coefficient ({1e3 * datasheet.seebeck():.3g} "
+            f"at zero current the voltage is {1e3 * s:.3g} mV per degree of {face[0]} - "
+            f"{face[1]}, {ratio:.2f} of the datasheet's Seebeck coefficient ({1e3 * datasheet.seebeck():.3g} "
             "mV/K), as when a kelvin reads 1.8 degrees, and no column reads below 32"
         )
     return None
@@ -632,7 +660,7 @@ def degf_evidence(
 # -- what an identification run can identify ----------------------------------
 
 
-def _identifiability(exp, steps, settle):
+def _identifiability(exp, steps, settle, face):
     hint = "The reference staircase: 0 -> +0.8 -> -1.6 -> 0 A in 0.2 A steps, each held about 600 s"
     if not steps:
         return [
@@ -698,7 +726,7 @@ def _identifiability(exp, steps, settle):
                 column="current_A",
             )
         )
-    tavg = 0.5 * (exp.channel(FACE_SENSORS[0]) + exp.channel(FACE_SENSORS[1]))
+    tavg = 0.5 * (exp.channel(face[0]) + exp.channel(face[1]))
     span = float(np.percentile(tavg, 99) - np.percentile(tavg, 1))
     if span < TAVG_SPAN_MIN_K:
         out.append(

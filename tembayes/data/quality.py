@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..constants import CSV_COLUMNS, KELVIN, TEMPERATURE_COLUMNS
+from ..constants import KELVIN
 
 if TYPE_CHECKING:  # the experiment's checks use this module's noise estimate
     from numpy.typing import ArrayLike
@@ -67,7 +67,7 @@ def summarize_experiment(exp: Experiment) -> dict:
         - ``n_current_levels``: distinct currents after rounding to 0.05 A
           (rough: noise near a rounding edge can add a level)
         - ``<T>_min``, ``<T>_max`` for each temperature column ``<T>``
-          (``T1_C`` .. ``T_amb_C``) [degC]
+          (the rig's sensors and boundaries) [degC]
         - ``<col>_noise`` for every measured column (current_A, voltage_V and
           the temperatures), robust white-noise sd in the column's CSV unit
           (A, V, degC = K); see :func:`noise_estimate`.
@@ -88,10 +88,10 @@ def summarize_experiment(exp: Experiment) -> dict:
         "voltage_max_V": float(exp.voltage.max()),
         "n_current_levels": int(np.unique(np.round(exp.current / CURRENT_LEVEL_STEP_A)).size),
     }
-    for c in TEMPERATURE_COLUMNS:
+    for c in exp.sensor_names + exp.boundary_names:
         v = exp.channel(c) - KELVIN
         out[f"{c}_min"] = float(v.min())
         out[f"{c}_max"] = float(v.max())
-    for c in CSV_COLUMNS[1:]:  # every measured column; time is the axis
+    for c in exp.columns[1:]:  # every measured column; time is the axis
         out[f"{c}_noise"] = noise_estimate(exp.channel(c))  # K and degC noise are equal
     return out

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..constants import CSV_COLUMNS, KELVIN, SENSOR_CHANNELS
+from ..constants import KELVIN
 from ..errors import TembayesError
 from .batch import Datasheet
 from .experiment import Experiment
@@ -215,10 +215,10 @@ def _column_data(exp: Experiment):
         "current_A": exp.current,
         "voltage_V": exp.voltage,
     }
-    for i, c in enumerate(SENSOR_CHANNELS):
+    for i, c in enumerate(exp.sensor_names):
         cols[c] = exp.sensors[i] - KELVIN
-    cols["T_water_C"] = exp.t_water - KELVIN
-    cols["T_amb_C"] = exp.t_amb - KELVIN
+    for i, c in enumerate(exp.boundary_names):
+        cols[c] = exp.boundaries[i] - KELVIN
     return cols
 
 
@@ -250,16 +250,17 @@ def write_experiment_csv(
     to ``exp`` within half a unit of the last written decimal.
     """
     cols = _column_data(exp)
-    dec = _decimals(decimals)
+    columns = exp.columns
+    dec = _decimals(decimals, columns)
     t_dec = dec["time_s"]
     # Rounding must not break "strictly increasing" or the file would be refused.
     while t_dec < _MAX_TIME_DECIMALS and np.any(np.diff(np.round(exp.time, t_dec)) <= 0):
         t_dec += 1
     dec["time_s"] = t_dec
-    names = list(CSV_COLUMNS)
-    fmts = [f"%.{dec[c]}f" for c in CSV_COLUMNS]
+    names = list(columns)
+    fmts = [f"%.{dec[c]}f" for c in columns]
     # Round first and add +0.0 so tiny negatives print as "0.000", not "-0.000".
-    arrays = [np.round(cols[c], dec[c]) + 0.0 for c in CSV_COLUMNS]
+    arrays = [np.round(cols[c], dec[c]) + 0.0 for c in columns]
     if include_extra:
         for name, values in exp.extra.items():
             names.append(name)
@@ -270,7 +271,7 @@ def write_experiment_csv(
     return atomic_write_text(path, buf.getvalue())
 
 
-def _decimals(decimals) -> dict:
+def _decimals(decimals, columns) -> dict:
     dec = {}
     base = dict(DEFAULT_DECIMALS)
     if isinstance(decimals, int):
@@ -278,9 +279,9 @@ def _decimals(decimals) -> dict:
         decimals = {}
     decimals = dict(decimals or {})
     for k in decimals:
-        if k not in CSV_COLUMNS and k != "temperature":
+        if k not in columns and k != "temperature":
             raise ValueError(f"decimals: unknown column {k!r}; use a contract column name or 'temperature'")
-    for c in CSV_COLUMNS:
+    for c in columns:
         kind = c if c in base else "temperature"
         dec[c] = int(decimals.get(c, decimals.get(kind, base[kind])))
     return dec
@@ -354,10 +355,12 @@ def experiment_from_arrays(
     current: ArrayLike,
     voltage: ArrayLike,
     sensors_K: ArrayLike,
-    t_water_K: ArrayLike,
-    t_amb_K: ArrayLike,
+    boundaries_K: ArrayLike,
     path: Path | str | None = None,
     extra: Mapping[str, ArrayLike] | None = None,
+    *,
+    sensor_names: tuple | None = None,
+    boundary_names: tuple | None = None,
 ) -> Experiment:
     """Build an :class:`Experiment` from SI arrays, checking shapes and values.
 
@@ -369,14 +372,16 @@ def experiment_from_arrays(
         Module current [A].
     voltage : array_like, shape (n,)
         Module voltage [V].
-    sensors_K : array_like, shape (4, n)
-        T1..T4 [K].
-    t_water_K, t_amb_K : array_like, shape (n,)
-        Water and ambient temperatures [K].
+    sensors_K : array_like, shape (ns, n)
+        Sensor temperatures [K], in the order of ``sensor_names``.
+    boundaries_K : array_like, shape (nb, n)
+        Boundary temperatures [K], in the order of ``boundary_names``.
     path : str or Path, optional
         Where the data belongs (default ``<in-memory>``).
     extra : dict, optional
         Further columns, each shape (n,).
+    sensor_names, boundary_names : tuple of str, optional
+        Their CSV columns (default: the reference rig's).
 
     Returns
     -------
@@ -394,19 +399,21 @@ def experiment_from_arrays(
     n = time.shape[0]
     if n < 2:
         raise ValueError(f"time: expected at least 2 samples, found {n}")
-    arrays = {
-        "current": current,
-        "voltage": voltage,
-        "t_water_K": t_water_K,
-        "t_amb_K": t_amb_K,
-    }
+    arrays = {"current": current, "voltage": voltage}
     for name, a in arrays.items():
         shape = np.shape(a)
         if shape != (n,):
             raise ValueError(f"{name}: expected shape ({n},) like time, found {shape}")
-    if np.shape(sensors_K) != (4, n):
-        raise ValueError(f"sensors_K: expected shape (4, {n}), found {np.shape(sensors_K)}")
-    for name, a in {"time": time, "sensors_K": sensors_K, **arrays}.items():
+    boundaries_K = np.atleast_2d(np.asarray(boundaries_K, dtype=np.float64))
+    if sensor_names is None or boundary_names is None:
+        from ..physics.rigread import REFERENCE  # lazy: physics is heavier than data
+
+        sensor_names = REFERENCE.layout.sensors if sensor_names is None else sensor_names
+        boundary_names = REFERENCE.layout.boundaries if boundary_names is None else boundary_names
+    for name, a, names in (("sensors_K", sensors_K, sensor_names), ("boundaries_K", boundaries_K, boundary_names)):
+        if np.shape(a) != (len(names), n):
+            raise ValueError(f"{name}: expected shape ({len(names)}, {n}) for {', '.join(names)}, found {np.shape(a)}")
+    for name, a in {"time": time, "sensors_K": sensors_K, "boundaries_K": boundaries_K, **arrays}.items():
         if not np.all(np.isfinite(np.asarray(a, dtype=np.float64))):
             raise ValueError(f"{name}: contains NaN or inf")
     if np.any(np.diff(time) <= 0):
@@ -418,7 +425,8 @@ def experiment_from_arrays(
         current=current,
         voltage=voltage,
         sensors=sensors_K,
-        t_water=t_water_K,
-        t_amb=t_amb_K,
+        boundaries=boundaries_K,
+        sensor_names=sensor_names,
+        boundary_names=boundary_names,
         extra=dict(extra or {}),
     )

@@ -11,11 +11,12 @@ laws, so :func:`check_points` refuses it unless extrapolation is allowed.
   module covered (the intersection over the modules);
 - ``current_A``: the hold currents of the identification runs (the
   intersection over the modules);
-- ``t_water_C``, ``t_amb_C``: the boundary temperatures the runs saw (the
-  union over the modules).  A point asks for a water temperature (solved
-  so that the steady state has its T̄): far outside the range seen, the rig
-  is extrapolated in a way the laws' box does not show, so that is a
-  warning, not a refusal (:func:`boundary_warnings`).
+- ``boundaries_C``: the temperature of every boundary column of the rig the
+  runs saw (the union over the modules).  A point asks for boundary
+  temperatures (the controlled ones solved so that the steady state has its
+  T̄, :func:`~tembayes.export.linearise.linearise`): far outside the range
+  seen, the rig is extrapolated in a way the laws' box does not show, so
+  that is a warning, not a refusal (:func:`boundary_warnings`).
 
 The steady states at the end of the holds, ``(T̄, I)`` pairs the rig really
 sat at, give the default operating points (:func:`default_points`).
@@ -56,8 +57,8 @@ class OperatingRange:
         that every module reached.
     current_A : (float, float)
         Hold current [A] that every module's staircase spanned.
-    t_water_C, t_amb_C : (float, float)
-        Water and ambient temperatures any of the runs saw [degC].
+    boundaries_C : dict of str to (float, float)
+        Boundary column -> the temperatures any of the runs saw [degC].
     states : ndarray, shape (k, 2)
         ``(T̄ [degC], I [A])`` at the end of every hold before a step, all
         modules pooled: where the rig really sat.
@@ -68,8 +69,7 @@ class OperatingRange:
 
     tavg_C: tuple
     current_A: tuple
-    t_water_C: tuple
-    t_amb_C: tuple
+    boundaries_C: dict
     states: np.ndarray
     modules: tuple
     source: Path
@@ -94,8 +94,7 @@ class OperatingRange:
         return {
             "tavg_C": list(self.tavg_C),
             "current_A": list(self.current_A),
-            "t_water_C": list(self.t_water_C),
-            "t_amb_C": list(self.t_amb_C),
+            "boundaries_C": {c: list(v) for c, v in self.boundaries_C.items()},
             "modules": list(self.modules),
         }
 
@@ -130,13 +129,14 @@ def calibrated_range(run, batch, *, modules):
             f"the identification runs of {list(modules)} share no operating range",
             "Export the modules one at a time (--module ID).",
         )
-    water = (min(p["water"][0] for p in per), max(p["water"][1] for p in per))
-    amb = (min(p["amb"][0] for p in per), max(p["amb"][1] for p in per))
+    bounds = {
+        c: (min(p["boundaries"][c][0] for p in per), max(p["boundaries"][c][1] for p in per))
+        for c in per[0]["boundaries"]
+    }
     return OperatingRange(
         tavg_C=tavg,
         current_A=cur,
-        t_water_C=water,
-        t_amb_C=amb,
+        boundaries_C=bounds,
         states=np.vstack([p["states"] for p in per]),
         modules=tuple(modules),
         source=Path(run.path),
@@ -158,8 +158,7 @@ def _module_coverage(run, exp, module_id):
     return {
         "tavg": (float(tavg[ok].min()), float(tavg[ok].max())),
         "current": (float(levels.min()), float(levels.max())),
-        "water": _span_C(exp.t_water),
-        "amb": _span_C(exp.t_amb),
+        "boundaries": {c: _span_C(exp.channel(c)) for c in exp.boundary_names},
         "states": np.column_stack([tavg[ok], before[ok]]),
     }
 
@@ -240,36 +239,44 @@ def check_points(points, *, covered, allow_extrapolation):
     ]
 
 
-def boundary_warnings(linear, *, covered, t_amb_C):
-    """Warnings for operating points whose water (or the ambient) temperature is far from what the runs saw.
+def boundary_warnings(linear, *, covered, room_C, room):
+    """Warnings for operating points whose boundary temperatures are far from what the runs saw.
 
     Parameters
     ----------
     linear : sequence of sequence of LinearModel
         Per exported entry (module, population), its points as linearised
-        (``u0`` holds the solved water temperature [K]).
+        (``u0[1:]`` holds the boundary temperatures [K], named by ``inputs[1:]``).
     covered : OperatingRange
-    t_amb_C : float
-        The ambient temperature of the points [degC].
+    room_C : float
+        The temperature given for the room the rig leaks to [degC].
+    room : str
+        The room's boundary column.
 
     Returns
     -------
     list of str
-        One per point whose water temperature, in any entry, lies more than
-        :data:`BOUNDARY_MARGIN_K` outside the range seen; one for the ambient.
+        One for the room, and one per point whose solved boundaries, in any
+        entry, lie more than :data:`BOUNDARY_MARGIN_K` outside the range seen.
     """
     out = []
-    lo, hi = covered.t_amb_C
-    if not lo - BOUNDARY_MARGIN_K <= t_amb_C <= hi + BOUNDARY_MARGIN_K:
-        out.append(f"ambient {t_amb_C:g} C is outside the {_span(lo, hi)} C the identification runs saw")
-    lo, hi = covered.t_water_C
+    columns = linear[0][0].inputs[1:]
+    solved = [j for j, c in enumerate(columns) if c != room] or [columns.index(room)]
+    if room not in (columns[j] for j in solved):
+        lo, hi = covered.boundaries_C[room]
+        if not lo - BOUNDARY_MARGIN_K <= room_C <= hi + BOUNDARY_MARGIN_K:
+            out.append(f"{room} {room_C:g} C is outside the {_span(lo, hi)} C the identification runs saw")
     for k, point in enumerate(linear[0]):
-        tw = np.array([float(entry[k].u0[1]) for entry in linear]) - KELVIN
-        if np.any((tw < lo - BOUNDARY_MARGIN_K) | (tw > hi + BOUNDARY_MARGIN_K)):
-            out.append(
-                f"operating point T_avg {point.tavg_C:g} C, I {point.current_A:g} A needs the water at "
-                f"{_span(tw.min(), tw.max())} C; the identification runs saw {_span(lo, hi)} C"
-            )
+        for j in solved:
+            c = columns[j]
+            lo, hi = covered.boundaries_C[c]
+            ub = np.array([float(entry[k].u0[1 + j]) for entry in linear]) - KELVIN
+            if np.any((ub < lo - BOUNDARY_MARGIN_K) | (ub > hi + BOUNDARY_MARGIN_K)):
+                out.append(
+                    f"operating point T_avg {point.tavg_C:g} C, I {point.current_A:g} A needs {c} at "
+                    f"{_span(ub.min(), ub.max())} C; the identification runs saw {_span(lo, hi)} C"
+                )
+                break
     return out
 
 

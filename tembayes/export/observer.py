@@ -6,7 +6,7 @@ Per calibrated module, and for a new module of the batch (the population):
   parameters (the rig anchored on the identification run, as ``tembayes
   predict`` does), and a thinned set of posterior draws (for a UKF's sigma
   points or a robust design's scenarios);
-- the sensors' measurement-noise covariance (T1..T4, V), read off the
+- the sensors' measurement-noise covariance (the rig's sensors, V), read off the
   identification run: second differences, robust scale on the diagonal,
   correlations from the samples away from the current steps;
 - a process-noise suggestion: the model discrepancy as one Ornstein-Uhlenbeck
@@ -33,9 +33,8 @@ from tembayes.constants import KELVIN, MODULE_PARAMETERS
 from tembayes.data.quality import noise_estimate
 from tembayes.errors import DataError
 from tembayes.export.coverage import boundary_warnings, calibrated_range, check_points, default_points
-from tembayes.export.linearise import INPUT_UNITS, INPUTS, OUTPUT_UNITS, OUTPUTS, linearise
+from tembayes.export.linearise import io_names, linearise
 from tembayes.predict.predictive import module_draws, predict
-from tembayes.predict.runmodel import CHANNELS
 
 #: Draws of the held-out posterior predictive whose residuals give the process noise.
 HELDOUT_DRAWS = 100
@@ -63,7 +62,7 @@ class ModuleExport:
         Evenly thinned posterior draws.
     n_posterior : int
         Posterior draws behind ``mean`` and ``cov``.
-    measurement_noise_cov : ndarray, shape (5, 5)
+    measurement_noise_cov : ndarray, shape (nch, nch)
         White sensor noise over the outputs [K^2, K V, V^2].
     process_noise : dict
         One OU disturbance per output (:func:`_ou_noise`), with held-out runs
@@ -110,10 +109,10 @@ class ObserverExport:
     units: dict
     modules: dict
     states: tuple
-    inputs: tuple = INPUTS
-    outputs: tuple = OUTPUTS
-    input_units: tuple = INPUT_UNITS
-    output_units: tuple = OUTPUT_UNITS
+    inputs: tuple
+    outputs: tuple
+    input_units: tuple
+    output_units: tuple
     meta: dict = field(default_factory=dict)
 
     @property
@@ -124,16 +123,16 @@ class ObserverExport:
 
 @dataclass(frozen=True)
 class _Operating:
-    """Where the linear models are taken: the calibration rig, the points ``(T̄ [degC], I [A])``, the ambient [degC]."""
+    """Where the linear models are taken: the calibration rig, the points ``(T̄ [degC], I [A])``, the room [degC]."""
 
     rig: object
     points: tuple
-    t_amb_C: float
+    room_C: float
     say: object
 
 
 def measurement_noise_cov(exp, step_guard=5):
-    """Covariance of the white sensor noise of an experiment, ``(5, 5)`` (T1..T4 in K, V in V).
+    """Covariance of the white sensor noise of an experiment, ``(ns + 1, ns + 1)`` (its sensors in K, V in V).
 
     Parameters
     ----------
@@ -141,7 +140,7 @@ def measurement_noise_cov(exp, step_guard=5):
     step_guard : int
         Samples left out on either side of a current step (the voltage jumps there).
     """
-    Y = np.vstack([np.asarray(exp.sensors[c], float) for c in range(4)] + [np.asarray(exp.voltage, float)])
+    Y = np.vstack([np.asarray(exp.sensors, float), np.asarray(exp.voltage, float)[None]])
     sd = np.array([noise_estimate(y) for y in Y])
     d2 = np.diff(Y, n=2, axis=1)
     di = np.abs(np.diff(np.asarray(exp.current, float)))
@@ -152,13 +151,13 @@ def measurement_noise_cov(exp, step_guard=5):
     d2 = d2[:, keep]
     # robust: drop any sample beyond 5 robust sds in any channel, then correlations
     ok = np.all(np.abs(d2) <= 5 * np.sqrt(6) * sd[:, None], axis=0)
-    corr = np.corrcoef(d2[:, ok]) if ok.sum() > 10 else np.eye(5)
+    corr = np.corrcoef(d2[:, ok]) if ok.sum() > 10 else np.eye(len(Y))
     corr = np.where(np.isfinite(corr), corr, 0.0)
     np.fill_diagonal(corr, 1.0)
     return corr * np.outer(sd, sd)
 
 
-def _ou_noise(sd, tau, source):
+def _ou_noise(sd, tau, source, channels):
     """``process_noise``: an OU disturbance per output, ``q_continuous`` the spectral density of its drive."""
     sd, tau = np.asarray(sd, float), np.asarray(tau, float)
     return {
@@ -166,14 +165,14 @@ def _ou_noise(sd, tau, source):
         "tau_s": tau,
         "q_continuous": spectral_density(sd, tau),
         "source": source,
-        "channels": list(CHANNELS),
+        "channels": list(channels),
     }
 
 
-def _process_noise(t, residual, floor, source):
-    """OU disturbances fitted to residuals ``(5, n)`` with the sensors' white noise ``floor`` ``(5,)`` modelled."""
-    fits = [fit_ou(t, residual[c], white_sd=floor[c]) for c in range(len(CHANNELS))]
-    return _ou_noise([f.sd for f in fits], [f.tau_s for f in fits], source)
+def _process_noise(t, residual, floor, source, channels):
+    """OU disturbances fitted to residuals ``(nch, n)`` with the sensors' white noise ``floor`` ``(nch,)`` modelled."""
+    fits = [fit_ou(t, residual[c], white_sd=floor[c]) for c in range(len(residual))]
+    return _ou_noise([f.sd for f in fits], [f.tau_s for f in fits], source, channels)
 
 
 #: Lower edges of the bins of time since the last current step [s] (the last bin is open).
@@ -198,21 +197,21 @@ def disturbance_structure(t, residual, current, R):
     Parameters
     ----------
     t : ndarray, shape (n,)
-    residual : ndarray, shape (5, n)
+    residual : ndarray, shape (nch, n)
         Held-out residuals (measurement minus predictive mean).
     current : ndarray, shape (n,)
-    R : ndarray, shape (5, 5)
+    R : ndarray, shape (nch, nch)
         White measurement-noise covariance.
 
     Returns
     -------
     dict
-        ``sd_by_time_since_step`` ``(5, len(STEP_BINS_S))``: the residual's
+        ``sd_by_time_since_step`` ``(nch, len(STEP_BINS_S))``: the residual's
         RMS beyond the white noise in each bin of time since the last step
-        (NaN with fewer than 30 samples); ``corr`` ``(5, 5)``: correlation of
+        (NaN with fewer than 30 samples); ``corr`` ``(nch, nch)``: correlation of
         the disturbances across the outputs (residual covariance minus the
         white noise, made positive semi-definite) and ``corr_by_time_since_step``
-        ``(len(STEP_BINS_S), 5, 5)`` the same per bin (the transients dominate
+        ``(len(STEP_BINS_S), nch, nch)`` the same per bin (the transients dominate
         the pooled one); ``n_by_time_since_step``: samples per bin (the
         profile's sampling error: a 4-hour run with 20 steps has ~200 samples
         in the first bin); ``step_bins_s``.
@@ -220,7 +219,7 @@ def disturbance_structure(t, residual, current, R):
     since = time_since_step(t, current)
     edges = np.append(np.asarray(STEP_BINS_S, float), np.inf)
     white = np.diag(R)
-    nb, nc = len(STEP_BINS_S), len(CHANNELS)
+    nb, nc = len(STEP_BINS_S), len(residual)
     prof = np.full((nc, nb), np.nan)
     corr_b = np.full((nb, nc, nc), np.nan)
     counts = np.zeros(nb, int)
@@ -277,7 +276,7 @@ def observer_inputs(
     batch,
     *,
     points=None,
-    t_amb_C=None,
+    room_C=None,
     allow_extrapolation=False,
     n_draws=200,
     seed=0,
@@ -297,9 +296,10 @@ def observer_inputs(
     points : sequence of (float, float), optional
         Operating points ``(T̄ [degC], I [A])`` to linearise at; default
         :func:`~tembayes.export.coverage.default_points` of the calibrated range.
-    t_amb_C : float, optional
-        Ambient temperature of the operating points [degC]; default the
-        median ambient of the modules' identification runs.
+    room_C : float, optional
+        Temperature of the room the rig leaks to at the operating points
+        [degC] (:func:`~tembayes.export.linearise.linearise`); default its
+        median over the modules' identification runs.
     allow_extrapolation : bool
         Export points outside the calibrated range (with a warning in
         ``meta.warnings``) instead of refusing them.
@@ -337,9 +337,10 @@ def observer_inputs(
     covered = calibrated_range(run, batch, modules=ids)
     points = default_points(covered) if points is None else tuple(tuple(map(float, p)) for p in points)
     warned = check_points(points, covered=covered, allow_extrapolation=allow_extrapolation)
-    if t_amb_C is None:
-        t_amb_C = float(np.median(np.concatenate([batch.modules[m].identification.t_amb for m in ids]))) - KELVIN
-    ctx = _Operating(rig=rig, points=points, t_amb_C=float(t_amb_C), say=say)
+    room = rig.boundaries[rig.layout.leak_boundary]
+    if room_C is None:
+        room_C = float(np.median(np.concatenate([batch.modules[m].identification.channel(room) for m in ids]))) - KELVIN
+    ctx = _Operating(rig=rig, points=points, room_C=float(room_C), say=say)
     out, draws_by_id, names = {}, {}, None
     for mid in ids:
         say(f"{mid}: anchoring the rig on the identification run")
@@ -352,13 +353,14 @@ def observer_inputs(
     pop = run.population_draws(MODULE_PARAMETERS)
     if pop is not None:
         out["population"] = _population_export(pop, out, draws_by_id, names, n_draws=n_draws, seed=seed, ctx=ctx)
-    warned += boundary_warnings([m.linear for m in out.values()], covered=covered, t_amb_C=float(t_amb_C))
+    warned += boundary_warnings([m.linear for m in out.values()], covered=covered, room_C=float(room_C), room=room)
     units = {**{p.name: p.unit for p in rig.parameters}, **MODULE_UNITS}
     meta = {
         "run": str(run.path),
         "batch": str(batch.path),
         "seed": int(seed),
-        "t_amb_C": float(t_amb_C),
+        "room_C": float(room_C),
+        "room_column": room,
         "points": [list(p) for p in points],
         "tref_C": run.tref_C,
         "calibrated_range": covered.to_dict(),
@@ -367,7 +369,18 @@ def observer_inputs(
         "seconds": _time.perf_counter() - t0,
     }
     states = next(iter(out.values())).linear[0].states
-    return ObserverExport(names, {k: units.get(k, "") for k in names}, out, states, meta=meta)
+    inputs, input_units, outputs, output_units = io_names(rig)
+    return ObserverExport(
+        names,
+        {k: units.get(k, "") for k in names},
+        out,
+        states,
+        inputs=inputs,
+        outputs=outputs,
+        input_units=input_units,
+        output_units=output_units,
+        meta=meta,
+    )
 
 
 def _module_export(run, batch, mid, d, X, names, heldout_runs, *, n_draws, seed, ctx):
@@ -383,6 +396,7 @@ def _module_export(run, batch, mid, d, X, names, heldout_runs, *, n_draws, seed,
             np.sqrt(np.maximum(d.noise_sd[0] ** 2 - floor**2, 0.0)),
             d.noise_tau[0],
             "identification-run residuals (the module has no held-out run)",
+            io_names(ctx.rig)[2],
         )
     mean = X.mean(axis=0)
     return ModuleExport(
@@ -412,6 +426,7 @@ def _heldout_process_noise(run, batch, mid, runs, R, *, seed):
         np.concatenate(rs, axis=1),
         np.sqrt(np.diag(R)),
         "held-out posterior-predictive residuals: " + ", ".join(Path(str(e.path)).name for e in runs),
+        p.channels,
     )
     # per run (the time since a step restarts with each run), then pooled by sample count
     parts = [disturbance_structure(tt, rr, cc, R) for tt, rr, cc in zip(ts, rs, cs)]
@@ -459,7 +474,7 @@ def _linear_models(params, names, label, ctx):
     lin = []
     for tavg, current in ctx.points:
         ctx.say(f"{label}: linearising at T_avg {tavg:g} C, I {current:g} A")
-        lin.append(linearise(params, ctx.rig, tavg, current, t_amb_C=ctx.t_amb_C, sensitivity=names))
+        lin.append(linearise(params, ctx.rig, tavg, current, room_C=ctx.room_C, sensitivity=names))
     return lin
 
 
@@ -468,6 +483,7 @@ def _pool_process_noise(items):
         np.sqrt(np.mean([p["sd"] ** 2 for p in items], axis=0)),
         np.mean([p["tau_s"] for p in items], axis=0),
         "mean over the calibrated modules",
+        items[0]["channels"],
     )
     if all("corr" in p for p in items):
         pn.update(_pool_structure(items))

@@ -19,8 +19,8 @@
 
 To add an effect, add it to :mod:`tembayes.physics.effects` (its parameters,
 prior scale and hook); the screen, the recalibration and the benchmark pick
-it up from the catalogue.  If a rig parameter can absorb it, add the pair to
-:data:`tembayes.gap.conflicts.SUSPECTS`.
+it up from the catalogue.  If a rig parameter's role can absorb it, add the
+pair to :data:`tembayes.gap.conflicts.ROLE_SUSPECTS`.
 """
 
 from tembayes.gap.diagnose import diagnose

@@ -13,30 +13,85 @@ the range, in units of the prior's log-sd (the range spans +-2 of them), and
 a conflict is declared when the posterior's central 90 % interval lies
 entirely outside the range.
 
-:data:`SUSPECTS` maps a conflict to the effects it can stand for
-(:func:`suspects`); a suspect's refit starts from the conflict moved into
-the effect (:func:`suspect_start`).
+:func:`suspect_table` maps a conflict to the effects it can stand for, by
+the parameter's role in the rig's network (:func:`suspects`); a suspect's
+refit starts from the conflict moved into the effect (:func:`suspect_start`).
 """
 
 from __future__ import annotations
+
+import re
 
 import numpy as np
 
 from tembayes.calibrate.priors import rig_prior
 
-#: A rig parameter calibrated beyond its documented range (``high`` or
-#: ``low``) and the effects it can stand for: an extra leak absorbs more heat
-#: exchange with ambient; a plate capacitance the size of a block absorbs a
-#: sensor lag or a contact resistance (both delay the blocks' response); a
-#: paste conductance below any paste absorbs a contact resistance.
-SUSPECTS = {
-    ("leak_top", "high"): ("ambient_leak",),
-    ("leak_bottom", "high"): ("ambient_leak",),
-    ("c_plate_hot", "high"): ("sensor_lag", "contact_resistance"),
-    ("c_plate_cold", "high"): ("sensor_lag", "contact_resistance"),
-    ("g_paste_hot", "low"): ("contact_resistance",),
-    ("g_paste_cold", "low"): ("contact_resistance",),
+#: What a rig parameter beyond its documented range can stand for, by its role:
+#: an extra leak absorbs more heat exchange with the room; a module plate's
+#: capacitance the size of a block absorbs a sensor lag or a contact resistance
+#: (both delay the blocks' response); a face contact's conductance below its
+#: range absorbs a contact resistance.
+ROLE_SUSPECTS = {
+    ("leak", "high"): ("ambient_leak",),
+    ("plate", "high"): ("sensor_lag", "contact_resistance"),
+    ("contact", "low"): ("contact_resistance",),
 }
+
+
+def parameter_roles(rig):
+    """``{parameter: (role, side)}`` of the rig parameters that can absorb an effect.
+
+    ``leak``: a conductance to the room (:attr:`~tembayes.physics.layout.Layout.leak_boundary`);
+    ``plate``: a capacitance of the module's plates; ``contact``: a
+    conductance between a module face and the rig that no other link uses
+    (steel in series with the paste is not one).  ``side`` is ``"hot"``,
+    ``"cold"`` or None.  Shares and the module's own ``c_legs`` have no role.
+    """
+    skip = {p.name for p in rig.parameters if p.is_share} | {"c_legs"}
+    faces = dict(zip(rig.module_faces, ("hot", "cold")))
+    own = {*rig.tem_chain, *rig.module_faces}
+
+    def face_of(a, b):
+        for x, y in ((a, b), (b, a)):
+            if x in faces and y not in own and y not in rig.boundaries:
+                return faces[x]
+        return None
+
+    elsewhere = {n for a, b, expr in rig.links if face_of(a, b) is None for n in _names(expr)}
+    roles = {}
+    for a, b, expr in rig.links:
+        side = face_of(a, b)
+        for name in _names(expr):
+            if name in skip:
+                continue
+            if rig.layout.leak_boundary in (a, b):
+                roles.setdefault(name, ("leak", None))
+            elif side is not None and name not in elsewhere:
+                roles.setdefault(name, ("contact", side))
+    for node, expr in rig.nodes:
+        if node in (rig.hot, rig.cold):
+            for name in _names(expr):
+                if name not in skip:
+                    roles.setdefault(name, ("plate", "hot" if node == rig.hot else "cold"))
+    return roles
+
+
+def suspect_table(rig):
+    """``{(parameter, "high"|"low"): effects}``: what each rig parameter's conflict can stand for."""
+    return {
+        (name, direction): effects
+        for name, (role, _) in parameter_roles(rig).items()
+        for (r, direction), effects in ROLE_SUSPECTS.items()
+        if r == role
+    }
+
+
+def _names(expr):
+    if isinstance(expr, (list, tuple)):
+        return [n for e in expr for n in _names(e)]
+    if not isinstance(expr, str):
+        return []
+    return [t for t in re.findall(r"[A-Za-z_][A-Za-z0-9_]*", expr)]
 
 
 def range_conflicts(draws, rig, *, level=0.90):
@@ -96,13 +151,14 @@ def range_conflicts(draws, rig, *, level=0.90):
     return sorted(out, key=lambda r: -r["outside_sd"])
 
 
-def suspects(conflicts, *, allowed):
-    """The effects some range conflicts point at (:data:`SUSPECTS`).
+def suspects(conflicts, rig, *, allowed):
+    """The effects some range conflicts point at (:func:`suspect_table`).
 
     Parameters
     ----------
     conflicts : dict
         Module id -> :func:`range_conflicts` rows.
+    rig : RigDescription
     allowed : list of str
         The effects that may be named.
 
@@ -111,19 +167,20 @@ def suspects(conflicts, *, allowed):
     list of str
         In the order the conflicts name them.
     """
+    table = suspect_table(rig)
     out = []
     for rows in conflicts.values():
         for r in rows:
             if not r["conflict"]:
                 continue
             side = "high" if r["median"] > r["high"] else "low"
-            for e in SUSPECTS.get((r["parameter"], side), ()):
+            for e in table.get((r["parameter"], side), ()):
                 if e in allowed and e not in out:
                     out.append(e)
     return out
 
 
-def suspect_start(effect, rows):
+def suspect_start(effect, rows, rig):
     """Where a range-conflict suspect's refit starts (SI): its conflict moved into the effect.
 
     The conflicting parameters go to their documented edge and the excess
@@ -138,21 +195,24 @@ def suspect_start(effect, rows):
     effect : str or None
     rows : list of dict
         The module's :func:`range_conflicts` rows.
+    rig : RigDescription
 
     Returns
     -------
     dict
         ``name -> value`` to override the start with (empty for the other effects).
     """
+    roles = parameter_roles(rig)
     out = {}
     for r in rows:
         if not r["conflict"]:
             continue
         p, med = r["parameter"], r["median"]
-        if effect == "ambient_leak" and p in ("leak_top", "leak_bottom") and med > r["high"]:
+        role, side = roles.get(p, (None, None))
+        if effect == "ambient_leak" and role == "leak" and med > r["high"]:
             out[p] = r["high"]
             out["extra_leak_W_per_K"] = out.get("extra_leak_W_per_K", 0.0) + med - r["high"]
-        elif effect == "contact_resistance" and p in ("g_paste_hot", "g_paste_cold") and med < r["low"]:
+        elif effect == "contact_resistance" and role == "contact" and med < r["low"]:
             out[p] = r["low"]
-            out[f"contact_R_{p.rsplit('_', 1)[1]}_K_per_W"] = 1.0 / med - 1.0 / r["low"]
+            out[f"contact_R_{side}_K_per_W"] = 1.0 / med - 1.0 / r["low"]
     return out

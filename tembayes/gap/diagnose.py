@@ -9,7 +9,7 @@ For every calibrated module with held-out runs (``validation*.csv``):
    :mod:`~tembayes.gap.where`; the base model refitted on each identification
    run, its step windows held out one at a time; and the rig parameters whose
    posterior sits outside the documented range (:mod:`~tembayes.gap.conflicts`;
-   :data:`~tembayes.gap.conflicts.SUSPECTS` maps them to the effects they can
+   :func:`~tembayes.gap.conflicts.suspect_table` maps them to the effects they can
    stand for).  No significant and material cell anywhere and no rig
    parameter out of range: ``no_gap``, nothing screened.
 2. **Which** (:mod:`~tembayes.gap.screen`) -- on the module with the largest
@@ -94,7 +94,7 @@ class _Plan:
 
     def start(self, module_id, effect):
         """Where a refit of ``effect`` on a module starts (SI)."""
-        return {**self.starts[module_id], **suspect_start(effect, self.conflicts.get(module_id, ()))}
+        return {**self.starts[module_id], **suspect_start(effect, self.conflicts.get(module_id, ()), self.rig)}
 
     def refit(self, module_id, effect, *, heldout=False):
         """A refit job, ``(fn, args)``."""
@@ -228,7 +228,7 @@ def _plan(run, batch, exclude, n_draws, seed, options, jobs, cache, say):
         raws=raws,
         starts={mid: {k: float(np.median(raws[mid][k])) for k in MODULE_PARAMETERS} for mid in ids},
         conflicts=conflicts,
-        suspects=suspects(conflicts, allowed=allowed),
+        suspects=suspects(conflicts, rig, allowed=allowed),
         jobs=default_jobs() if jobs is None else int(jobs),
         cache=cache,
         say=say,

@@ -25,11 +25,10 @@ from scipy.special import logsumexp
 
 from tembayes.gap.where import gap_map, identification_map
 from tembayes.predict.predictive import PredictiveDraws, simulate_predictive, subsample
-from tembayes.predict.runmodel import CHANNELS
 
 #: The held-out gap, one unit for every effect (docs/outputs.md, 'gap.json (gap)').
 GAP_METRIC = (
-    "excess RMSE [K] over T1..T4: sqrt(max(0, mean (y - predictive mean)^2 - mean predictive variance)), "
+    "excess RMSE [K] over the rig's sensors: sqrt(max(0, mean (y - predictive mean)^2 - mean predictive variance)), "
     "the predictive variance being the draws' spread plus the measurement noise; pooled over every "
     "held-out run of every module.  0 when the error is what the model's own uncertainty says"
 )
@@ -111,7 +110,7 @@ class RunEvaluation:
     ----------
     module_id, source : str
     sse, n : float, int
-        Sum of squared errors over T1..T4 [K^2] and its sample count.
+        Sum of squared errors over the rig's sensors [K^2] and its sample count.
     expected : float
         Its expectation under the predictive (draws' variance plus noise) [K^2].
     elpd_blocks : ndarray
@@ -139,14 +138,14 @@ class RunEvaluation:
 
 
 def _with_noise(draws, sd):
-    """The draws with white noise ``sd`` ``(5,)`` instead of their residual processes."""
+    """The draws with white noise ``sd`` ``(nch,)`` instead of their residual processes."""
     return PredictiveDraws(
         params=draws.params,
         noise_sd=np.repeat(np.asarray(sd, float)[None], draws.n, axis=0),
         label=draws.label,
         laws=draws.laws,
         anchor=draws.anchor,
-        noise_tau=np.zeros((draws.n, len(CHANNELS))),
+        noise_tau=np.zeros((draws.n, len(sd))),
     )
 
 
@@ -185,8 +184,8 @@ def evaluate_run(model, draws, rng_draws, rng_run, *, n_draws=N_DRAWS, alpha=ALP
     # evidence compares what the models predict, not how much misfit each
     # one learnt to expect on its identification run
     L = block_log_density(Y, pred.measured, pred.time, noise, np.full(len(noise), _WHITE_TAU_S))
-    r = pred.residual[:4]
-    expected = float(np.sum(pred.deviations[:, :4].astype(float).var(axis=0) + noise[:4, None] ** 2))
+    r = pred.residual[:-1]  # the sensors (the voltage last)
+    expected = float(np.sum(pred.deviations[:, :-1].astype(float).var(axis=0) + noise[:-1, None] ** 2))
     return RunEvaluation(
         module_id=draws.label,
         source=str(model.exp.path),
@@ -212,7 +211,7 @@ def elpd_blocks(evals):
 
 
 def rmse(evals):
-    """Plain RMSE over T1..T4 [K] of the predictive mean, pooled."""
+    """Plain RMSE over the rig's sensors [K] of the predictive mean, pooled."""
     return float(np.sqrt(sum(e.sse for e in evals) / max(sum(e.n for e in evals), 1)))
 
 

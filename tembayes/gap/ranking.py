@@ -138,7 +138,7 @@ class RankingRow:
         The module a lead-module or screened row was judged on.
     cells_left : CellsLeft or None
     rmse_T : tuple of float or None
-        ``(before, after)`` plain RMSE over T1..T4 [K].
+        ``(before, after)`` plain RMSE over the rig's sensors [K].
     size : dict or None
         Module id -> the effect's parameters.
     conflicts_left : dict or None

@@ -22,7 +22,7 @@ count.
 
 Regimes (a sample can be in several families):
 
-- ``Tavg``: bands of T-bar ~ (T2 + T3)/2 measured, 10 K wide;
+- ``Tavg``: bands of T-bar ~ the face sensors' measured mean, 10 K wide;
 - ``mode``: heating (I < 0, the bottom block heated), cooling (I > 0), idle;
 - ``current``: |I| small / medium / large (thirds of the run's largest |I|);
 - ``after_step``: transient (< 120 s after a step), settling (120-600 s),

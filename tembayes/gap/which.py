@@ -204,8 +204,8 @@ def refit(module, datasheet, effect=None, *, rig_config=None, start=None, option
 
     t0 = time.perf_counter()
     opt = options or CalibrationOptions()
-    data = step_data(module.identification)
     rig = calibration_rig(rig_config, opt)
+    data = step_data(module.identification, face=rig.layout.face)
     model = StepResponseModel(data, rig)
     effects = () if effect is None else (E.get(effect).name,)
     space, _ = parameter_space(

@@ -20,7 +20,8 @@ The paper's Algorithm 1 (after Mitrani et al. 2004), done carefully:
   The paper's literal version takes the first sample after the step.
 
 - **S from the steady state.**  At the end of each hold,
-  ``S(T_mean) = (V - R(T_mean) I) / dT``.  The paper takes the sensors:
+  ``S(T_mean) = (V - R(T_mean) I) / dT``.  The paper takes the face sensors
+  (the sensor nearest each module face; T2 and T3 on the reference rig):
   ``dT = T2 - T3``, ``T_mean = (T2 + T3) / 2``.  But tens of watts flow
   through paste and steel between a junction and its sensor, so the junction
   temperatures differ from the sensors by up to kelvins.  The corrected
@@ -155,7 +156,9 @@ def jump_resistance(
 class Steady:
     """The end of a hold: averages over its last ``window`` seconds.
 
-    Temperatures in kelvin, ``sensors`` ordered T1..T4.
+    Temperatures in kelvin, ``sensors`` in the experiment's (the rig's)
+    order, ``boundaries`` in the rig's boundary order, ``face`` the hot- and
+    cold-face sensors (:attr:`~tembayes.physics.layout.Layout.face`).
     """
 
     t_end: float
@@ -165,13 +168,16 @@ class Steady:
     voltage_sd: float
     sensors: np.ndarray
     sensors_sd: np.ndarray
-    t_water: float
-    t_amb: float
-    drift: float  # slope of T3 over the window [K/s]: how far from steady
+    boundaries: np.ndarray
+    face: tuple
+    drift: float  # slope of the cold-face sensor over the window [K/s]: how far from steady
 
 
-def hold_end(exp: Experiment, start: int, stop: int, *, window: float = 60.0) -> Steady:
-    """Average the last ``window`` seconds of a hold ``[start, stop)`` of an experiment."""
+def hold_end(exp: Experiment, start: int, stop: int, *, face: tuple[str, str], window: float = 60.0) -> Steady:
+    """Average the last ``window`` seconds of a hold ``[start, stop)`` of an experiment.
+
+    ``face`` names the sensors next to the module's hot and cold faces.
+    """
     t = exp.time
     a = max(start, int(np.searchsorted(t, t[stop - 1] - window)))
     sl = slice(a, stop)
@@ -183,8 +189,9 @@ def hold_end(exp: Experiment, start: int, stop: int, *, window: float = 60.0) ->
         return float(np.mean(x)), float(np.std(x, ddof=1) / np.sqrt(n))
 
     v, vsd = mean_sd(exp.voltage[sl])
-    sens = np.array([mean_sd(exp.sensors[c, sl]) for c in range(4)])
-    drift = float(np.polyfit(t[sl] - t[sl].mean(), exp.sensors[2, sl], 1)[0])
+    sens = np.array([mean_sd(x[sl]) for x in exp.sensors])
+    drift = float(np.polyfit(t[sl] - t[sl].mean(), exp.channel(face[1])[sl], 1)[0])
+    at_face = tuple(float(sens[exp.sensor_names.index(c), 0]) for c in face)
     return Steady(
         t_end=float(t[stop - 1]),
         window=float(t[stop - 1] - t[a]),
@@ -193,8 +200,8 @@ def hold_end(exp: Experiment, start: int, stop: int, *, window: float = 60.0) ->
         voltage_sd=vsd,
         sensors=sens[:, 0],
         sensors_sd=sens[:, 1],
-        t_water=float(np.mean(exp.t_water[sl])),
-        t_amb=float(np.mean(exp.t_amb[sl])),
+        boundaries=np.mean(exp.boundaries[:, sl], axis=1),
+        face=at_face,
         drift=drift,
     )
 
@@ -210,12 +217,12 @@ def junction_temperatures(
 ) -> tuple[tuple[float, float], tuple[float, float], tuple[np.ndarray, np.ndarray]]:
     """Module plate (junction) temperatures at steady state, from the sensors.
 
-    For each plate, the rig's block node next to it must be read by a sensor
-    and all of that node's other neighbours must be measured (sensors or
-    boundaries), as on the reference rig.  Then the heat the plate sends into
-    the block equals what that node passes on (steady state), and the plate
-    temperature is the node's plus that flux over the plate-node link's
-    conductance.
+    A plate read by a sensor is that sensor.  Otherwise the rig's node next
+    to the plate must be read by a sensor and all of that node's other
+    neighbours must be measured (sensors or boundaries), as on the reference
+    rig.  Then the heat the plate sends into the block equals what that node
+    passes on (steady state), and the plate temperature is the node's plus
+    that flux over the plate-node link's conductance.
 
     Parameters
     ----------
@@ -256,11 +263,15 @@ def junction_temperatures(
     net = rig.network(draws)
     names = net.nodes
     read = {node: c for c, node in enumerate(rig.sensors.values())}
+    ns = len(steady.sensors)
     sens = steady.sensors[None, :] + np.concatenate(
-        [np.zeros((1, 4)), rng.normal(0, 1, (n_draws, 4)) * steady.sensors_sd[None, :]]
+        [np.zeros((1, ns)), rng.normal(0, 1, (n_draws, ns)) * steady.sensors_sd[None, :]]
     )
     out = []
     for plate in (rig.hot, rig.cold):
+        if plate in read:
+            out.append(sens[:, read[plate]])
+            continue
         p = names.index(plate)
         nbrs = [j for j in np.flatnonzero(net.G[0, p]) if names[j] not in rig.tem_chain]
         if len(nbrs) != 1 or names[nbrs[0]] not in read:
@@ -274,9 +285,8 @@ def junction_temperatures(
             if names[j] not in read:
                 raise ModelError(f"rig '{rig.name}': node '{names[j]}' next to '{names[b]}' has no sensor")
             flux += net.G[:, b, j] * (Tb - sens[:, read[names[j]]])
-        bound = np.array([steady.t_water, steady.t_amb])
         for kb in range(len(rig.boundaries)):
-            flux += net.Gb[:, b, kb] * (Tb - bound[kb])
+            flux += net.Gb[:, b, kb] * (Tb - steady.boundaries[kb])
         out.append(Tb + flux / net.G[:, p, b])
     th, tc = out
     return (float(th[0]), float(tc[0])), (float(np.std(th[1:])), float(np.std(tc[1:]))), (th[1:], tc[1:])

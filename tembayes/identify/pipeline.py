@@ -9,7 +9,8 @@ Per module:
    nominal rig values);
 4. R(T) fitted to the jumps, then S = (V - R(T) I) / dT at each hold end,
    S(T) fitted -- the corrected method; the paper's method in parallel
-   (sensor dT = T2 - T3, sensor T_mean, first-sample R);
+   (sensor dT across the module's face sensors, T2 - T3 on the reference
+   rig, their mean, first-sample R);
 5. the rig fit (thermal parameters and K, laws fixed), then pass 2 of 3-4
    with the fitted rig values, and the rig fit again with the final laws;
 6. validation runs simulated with (a) R, S constant at 35 degC (its own rig
@@ -117,7 +118,7 @@ def _step_table(exp, rig, rig_values=None, rig_sds=None, *, seed=0):
         jump = jump_resistance(exp.time, exp.voltage, exp.current, st)
         for a, b in ((st.prev_start, st.index), (st.hold_start, st.hold_end)):
             if (a, b) not in ends:
-                ss = hold_end(exp, a, b)
+                ss = hold_end(exp, a, b, face=rig.layout.face)
                 # the same seed for every hold: shared rig-value draws, so the
                 # draws carry the correlation between holds
                 (th, tc), (sh, sc), (dh, dc) = junction_temperatures(
@@ -136,7 +137,7 @@ def _step_table(exp, rig, rig_values=None, rig_sds=None, *, seed=0):
                 # state at the step instant: the end of the previous hold
                 "Tavg_R": 0.5 * (prev[1] + prev[2]),
                 "Tavg_R_sd": 0.5 * float(np.hypot(prev[3], prev[4])),
-                "Tavg_R_paper": 0.5 * (prev[0].sensors[1] + prev[0].sensors[2]),
+                "Tavg_R_paper": 0.5 * (prev[0].face[0] + prev[0].face[1]),
                 # state at the end of this hold
                 "steady": ss,
                 "Th": this[1],
@@ -148,8 +149,8 @@ def _step_table(exp, rig, rig_values=None, rig_sds=None, *, seed=0):
                 "dT_sd": float(np.hypot(this[3], this[4])),
                 "Th_draws": this[5],
                 "Tc_draws": this[6],
-                "Tavg_paper": 0.5 * (ss.sensors[1] + ss.sensors[2]),
-                "dT_paper": ss.sensors[1] - ss.sensors[2],
+                "Tavg_paper": 0.5 * (ss.face[0] + ss.face[1]),
+                "dT_paper": ss.face[0] - ss.face[1],
             }
         )
     return rows
@@ -409,14 +410,15 @@ def to_json(results: Mapping[str, ModuleIdentification], batch: Batch) -> dict:
                 for name, v in r.validation.items()
             },
         }
+    hot, cold = (c.removesuffix("_C") for c in batch.layout.face)
     return {
         "tref_C": 25.0,
         "method": {
             "fit": "R from the voltage jump extrapolated to the step instant (c0 + c1 sqrt(tau)); S from the "
             "hold's steady state with junction temperatures reconstructed through the rig network; "
             "weighted linear fits (covariance scaled by the reduced chi-square when > 1)",
-            "fit_paper": "the paper's recipe: R from the first sample after the step, S with sensor dT = T2 - T3 "
-            "and sensor T_mean = (T2 + T3)/2, unweighted linear fits",
+            "fit_paper": f"the paper's recipe: R from the first sample after the step, S with sensor dT = {hot} - "
+            f"{cold} and sensor T_mean = ({hot} + {cold})/2, unweighted linear fits",
             "Tavg_C": "mean junction temperature at the end of the hold that follows the step (where S is "
             "measured); Tavg_R_C is the one at the step instant (where R is measured)",
             "validation": "RMSE and max |error| per sensor [K] and on the voltage [V]; 'constant' = R, S fixed "

@@ -32,18 +32,24 @@ if TYPE_CHECKING:
     from tembayes.data.experiment import Experiment
     from tembayes.physics.rig import RigDescription
 
-#: What the rig fit adjusts by default (the rest of the rig stays nominal:
-#: the steel's geometry and heat capacity are known).
-FIT_PARAMETERS = (
-    "K_W_per_K",
-    "g_cooler",
-    "g_paste_hot",
-    "g_paste_cold",
-    "c_plate_hot",
-    "c_plate_cold",
-    "leak_top",
-    "leak_bottom",
-)
+#: A rig parameter whose documented range spans more than this ratio (high / low) is fitted by default.
+FIT_RANGE_RATIO = 1.2
+
+
+def fit_parameters(rig: RigDescription) -> tuple[str, ...]:
+    """What the rig fit adjusts by default: ``K_W_per_K`` and the rig's loosely known parameters.
+
+    Those whose range spans more than :data:`FIT_RANGE_RATIO`, not held, not
+    shares, not the module's own ``c_legs`` (it sits with K); the rest stays
+    nominal (on the reference rig: the steel's geometry and heat capacity are
+    known to a few per cent, the sensors' depths held).
+    """
+    return ("K_W_per_K",) + tuple(
+        p.name
+        for p in rig.parameters
+        if not p.held and not p.is_share and p.name != "c_legs" and p.high > FIT_RANGE_RATIO * p.low
+    )
+
 
 SENSOR_NOISE_K = 0.004  # reference rig NTC noise [K]
 VOLTAGE_NOISE_V = 0.001  # reference rig voltage noise [V]
@@ -90,7 +96,7 @@ def fit_rig(
     laws: Mapping[str, float],
     *,
     rig: RigDescription = REFERENCE,
-    parameters: Sequence[str] = FIT_PARAMETERS,
+    parameters: Sequence[str] | None = None,
     K0: float | None = None,
     max_rate: float = 1.0,
     fixed: Mapping[str, float] | None = None,
@@ -114,8 +120,9 @@ def fit_rig(
     laws : dict
         ``R0_ohm``, ``R1_ohm_per_K``, ``S0_V_per_K``, ``S1_V_per_K2`` (SI).
     rig : RigDescription
-    parameters : sequence of str
-        What to fit: ``K_W_per_K`` and rig parameter names.
+    parameters : sequence of str, optional
+        What to fit: ``K_W_per_K`` and rig parameter names; default
+        :func:`fit_parameters`.
     K0 : float, optional
         Starting module conductance [W/K] (e.g. the datasheet's).
     max_rate : float
@@ -134,8 +141,9 @@ def fit_rig(
     -------
     RigFit
     """
+    parameters = fit_parameters(rig) if parameters is None else tuple(parameters)
     idx = decimate(Inputs.from_experiment(exp), max_rate)
-    inputs = Inputs(exp.time[idx], exp.current[idx], exp.t_water[idx], exp.t_amb[idx])
+    inputs = Inputs(exp.time[idx], exp.current[idx], exp.boundaries[:, idx])
     meas = np.vstack([exp.sensors[:, idx]] + ([exp.voltage[idx][None]] if voltage else []))
     nch = meas.shape[0]
     nominal = rig.nominal()

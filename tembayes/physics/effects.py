@@ -172,10 +172,11 @@ def _network_ambient(net, rig, params):
     extra = _get(params, "extra_leak_W_per_K", net.C.shape[0], nonnegative=True)
     if not np.any(extra):
         return
-    # spread in proportion to the leaks the rig already has
-    amb = net.Gb[:, :, 1]
+    # into the room the rig leaks to, spread in proportion to the leaks it already has
+    k = tuple(rig.boundaries).index(rig.layout.leak_boundary)
+    amb = net.Gb[:, :, k]
     share = amb / amb.sum(axis=1, keepdims=True)
-    net.Gb[:, :, 1] = amb + share * extra[:, None]
+    net.Gb[:, :, k] = amb + share * extra[:, None]
 
 
 def _sensor_lag(time, Y, params):

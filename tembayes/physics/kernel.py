@@ -18,7 +18,7 @@ leg cells give the virtual bench's higher-fidelity module.
 The integrator is Shampine & Reichelt's modified Rosenbrock pair (MATLAB's
 ``ode23s``): L-stable, so the plates (tau ~ 0.1 s) and the blocks (minutes)
 are both handled, with an embedded error estimate for step control.  Inputs
-(current, water and ambient temperatures) are linear between samples, and the
+(current and the measured boundary temperatures) are linear between samples, and the
 steps land exactly on every sample time.
 """
 
@@ -180,11 +180,14 @@ def true_current(i_meas: float | np.ndarray, p: np.ndarray) -> float | np.ndarra
 
 
 @njit(cache=True)
-def _rhs(y, I, uw, ua, A, Bb, Cinv, tem, p, Tt, Qt, f):
+def _rhs(y, I, ub, A, Bb, Cinv, tem, p, Tt, Qt, f):
     N = y.shape[0]
     m = tem.shape[0]
+    nb = ub.shape[0]
     for i in range(N):
-        s = Bb[i, 0] * uw + Bb[i, 1] * ua
+        s = Bb[i, 0] * ub[0]
+        for k in range(1, nb):
+            s += Bb[i, k] * ub[k]
         for j in range(N):
             s += A[i, j] * y[j]
         f[i] = s
@@ -265,11 +268,11 @@ def _lusolve(W, piv, b):
 
 
 @njit(cache=True)
-def _steady(y, I, uw, ua, A, Bb, Cinv, tem, p, Tt, Qt, Tz, Qz, f, J, dfdI, piv):
+def _steady(y, I, ub, A, Bb, Cinv, tem, p, Tt, Qt, Tz, Qz, f, J, dfdI, piv):
     """Newton iterations to the steady state at constant inputs (in place)."""
     N = y.shape[0]
     for _it in range(60):
-        _rhs(y, I, uw, ua, A, Bb, Cinv, tem, p, Tt, Qt, f)
+        _rhs(y, I, ub, A, Bb, Cinv, tem, p, Tt, Qt, f)
         _jac(y, I, 0.0, A, Cinv, tem, p, Tz, Qz, J, dfdI)
         _lu(J, piv)
         for i in range(N):
@@ -285,11 +288,14 @@ def _steady(y, I, uw, ua, A, Bb, Cinv, tem, p, Tt, Qt, Tz, Qz, f, J, dfdI, piv):
 
 
 @njit(cache=True)
-def _integrate_one(t, i_meas, tw, ta, A, Bb, Cinv, tem, p, rec, y, steady_start, atol, hmax, out, vout, stats):
+def _integrate_one(t, i_meas, U, A, Bb, Cinv, tem, p, rec, y, steady_start, atol, hmax, out, vout, stats):
     N = y.shape[0]
     m = tem.shape[0]
     nt = t.shape[0]
     nr = rec.shape[0]
+    nb = U.shape[0]
+    ub = np.empty(nb)  # boundary temperatures at a stage [K]
+    mb = np.empty(nb)  # their slopes over the sampling interval [K/s]
     Tt = np.empty(m)
     Qt = np.empty(m)
     Tz = np.empty(m, dtype=np.complex128)
@@ -310,7 +316,9 @@ def _integrate_one(t, i_meas, tw, ta, A, Bb, Cinv, tem, p, rec, y, steady_start,
 
     I0 = true_current(i_meas[0], p)
     if steady_start:
-        ok = _steady(y, I0, tw[0], ta[0], A, Bb, Cinv, tem, p, Tt, Qt, Tz, Qz, F0, J, dfdI, piv)
+        for k in range(nb):
+            ub[k] = U[k, 0]
+        ok = _steady(y, I0, ub, A, Bb, Cinv, tem, p, Tt, Qt, Tz, Qz, F0, J, dfdI, piv)
         if not ok:
             stats[3] = 1.0
     for r in range(nr):
@@ -322,14 +330,16 @@ def _integrate_one(t, i_meas, tw, ta, A, Bb, Cinv, tem, p, rec, y, steady_start,
     h = hmax
     nsteps = 0
     nrej = 0
-    _rhs(y, I0, tw[0], ta[0], A, Bb, Cinv, tem, p, Tt, Qt, F0)
+    for k in range(nb):
+        ub[k] = U[k, 0]
+    _rhs(y, I0, ub, A, Bb, Cinv, tem, p, Tt, Qt, F0)
     for n in range(nt - 1):
         dt = t[n + 1] - t[n]
         Ia = true_current(i_meas[n], p)
         Ib = true_current(i_meas[n + 1], p)
         mI = (Ib - Ia) / dt
-        mw = (tw[n + 1] - tw[n]) / dt
-        ma = (ta[n + 1] - ta[n]) / dt
+        for k in range(nb):
+            mb[k] = (U[k, n + 1] - U[k, n]) / dt
         s = 0.0  # time into the interval
         h = min(h, hmax)
         budget = MAX_STEPS_PER_POINT * (n + 1) + MIN_STEP_BUDGET
@@ -347,7 +357,10 @@ def _integrate_one(t, i_meas, tw, ta, A, Bb, Cinv, tem, p, rec, y, steady_start,
             I_s = Ia + mI * s
             _jac(y, I_s, mI, A, Cinv, tem, p, Tz, Qz, J, dfdI)
             for i in range(N):
-                dfdt[i] = Bb[i, 0] * mw + Bb[i, 1] * ma + dfdI[i] * mI
+                sb = Bb[i, 0] * mb[0]
+                for k in range(1, nb):
+                    sb += Bb[i, k] * mb[k]
+                dfdt[i] = sb + dfdI[i] * mI
             while True:
                 hd = h * _D
                 for i in range(N):
@@ -361,7 +374,9 @@ def _integrate_one(t, i_meas, tw, ta, A, Bb, Cinv, tem, p, rec, y, steady_start,
                 sh = s + 0.5 * h
                 for i in range(N):
                     ytmp[i] = y[i] + 0.5 * h * k1[i]
-                _rhs(ytmp, Ia + mI * sh, tw[n] + mw * sh, ta[n] + ma * sh, A, Bb, Cinv, tem, p, Tt, Qt, F1)
+                for k in range(nb):
+                    ub[k] = U[k, n] + mb[k] * sh
+                _rhs(ytmp, Ia + mI * sh, ub, A, Bb, Cinv, tem, p, Tt, Qt, F1)
                 for i in range(N):
                     k2[i] = F1[i] - k1[i]
                 _lusolve(W, piv, k2)
@@ -369,7 +384,9 @@ def _integrate_one(t, i_meas, tw, ta, A, Bb, Cinv, tem, p, rec, y, steady_start,
                     k2[i] += k1[i]
                     yn[i] = y[i] + h * k2[i]
                 se = s + h
-                _rhs(yn, Ia + mI * se, tw[n] + mw * se, ta[n] + ma * se, A, Bb, Cinv, tem, p, Tt, Qt, F2)
+                for k in range(nb):
+                    ub[k] = U[k, n] + mb[k] * se
+                _rhs(yn, Ia + mI * se, ub, A, Bb, Cinv, tem, p, Tt, Qt, F2)
                 for i in range(N):
                     k3[i] = F2[i] - _E32 * (k2[i] - F1[i]) - 2.0 * (k1[i] - F0[i]) + hd * dfdt[i]
                 _lusolve(W, piv, k3)
@@ -428,14 +445,13 @@ def writable(a: ArrayLike, dtype: DTypeLike = None) -> np.ndarray:
     return np.require(a, dtype=dtype, requirements=("C", "W"))
 
 
-def _kernel_args(t, i_meas, tw, ta, A, Bb, Cinv, tem, P, rec, Y0, steady_start, atol, hmax):
+def _kernel_args(t, i_meas, U, A, Bb, Cinv, tem, P, rec, Y0, steady_start, atol, hmax):
     """The integrators' arguments as their one compiled signature takes them (see :func:`writable`)."""
     f, i = np.float64, np.int64
     return (
         writable(t, f),
         writable(i_meas, f),
-        writable(tw, f),
-        writable(ta, f),
+        writable(U, f),
         writable(A),
         writable(Bb),
         writable(Cinv),
@@ -460,20 +476,22 @@ def integrate_grids(*args) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 @njit(cache=True)
-def _integrate(t, i_meas, tw, ta, A, Bb, Cinv, tem, P, rec, Y0, steady_start, atol, hmax):
+def _integrate(t, i_meas, U, A, Bb, Cinv, tem, P, rec, Y0, steady_start, atol, hmax):
     """Simulate ``nd`` parameter draws of one experiment.
 
     Parameters
     ----------
     t : ndarray, shape (nt,)
         Sample times [s], strictly increasing.
-    i_meas, tw, ta : ndarray, shape (nt,)
-        Measured current [A], water and ambient temperatures [K], linear
-        between samples.
+    i_meas : ndarray, shape (nt,)
+        Measured current [A], linear between samples.
+    U : ndarray, shape (nb, nt)
+        Measured boundary temperatures [K] in the rig's boundary order,
+        linear between samples.
     A : ndarray, shape (nd, N, N)
         Linear network matrix [1/s].
-    Bb : ndarray, shape (nd, N, 2)
-        Boundary input matrix (water, ambient) [1/s].
+    Bb : ndarray, shape (nd, N, nb)
+        Boundary input matrix [1/s].
     Cinv : ndarray, shape (nd, N)
         Inverse node capacitances [K/J].
     tem : ndarray of int64, shape (m,)
@@ -507,8 +525,7 @@ def _integrate(t, i_meas, tw, ta, A, Bb, Cinv, tem, P, rec, Y0, steady_start, at
     return _integrate_grids(
         T,
         np.broadcast_to(i_meas, (nd, nt)),
-        np.broadcast_to(tw, (nd, nt)),
-        np.broadcast_to(ta, (nd, nt)),
+        np.broadcast_to(U, (nd,) + U.shape),
         A,
         Bb,
         Cinv,
@@ -523,11 +540,11 @@ def _integrate(t, i_meas, tw, ta, A, Bb, Cinv, tem, P, rec, Y0, steady_start, at
 
 
 @njit(cache=True, parallel=True)
-def _integrate_grids(T, I, TW, TA, A, Bb, Cinv, tem, P, rec, Y0, steady_start, atol, hmax):
+def _integrate_grids(T, I, U, A, Bb, Cinv, tem, P, rec, Y0, steady_start, atol, hmax):
     """:func:`_integrate` with a time grid and inputs of its own for every draw.
 
-    Same as :func:`integrate` except ``T``, ``I``, ``TW`` and ``TA`` have shape
-    ``(nd, nt)``: the calibration moves each draw's current steps to its own
+    Same as :func:`integrate` except ``T`` and ``I`` have shape ``(nd, nt)``
+    and ``U`` shape ``(nd, nb, nt)``: the calibration moves each draw's current steps to its own
     instant within the sampling interval.
     """
     nd = P.shape[0]
@@ -541,8 +558,7 @@ def _integrate_grids(T, I, TW, TA, A, Bb, Cinv, tem, P, rec, Y0, steady_start, a
         _integrate_one(
             T[d],
             I[d],
-            TW[d],
-            TA[d],
+            U[d],
             A[d],
             Bb[d],
             Cinv[d],
@@ -564,8 +580,7 @@ def _integrate_grids(T, I, TW, TA, A, Bb, Cinv, tem, P, rec, Y0, steady_start, a
 def rhs_one(
     y: np.ndarray,
     I: float,
-    uw: float,
-    ua: float,
+    ub: np.ndarray,
     A: np.ndarray,
     Bb: np.ndarray,
     Cinv: np.ndarray,
@@ -575,7 +590,7 @@ def rhs_one(
     """Right-hand side ``dT/dt`` [K/s] for one draw (used by the scipy reference and tests)."""
     m = tem.shape[0]
     f = np.empty(y.shape[0])
-    _rhs(y, I, uw, ua, A, Bb, Cinv, tem, p, np.empty(m), np.empty(m), f)
+    _rhs(y, I, ub, A, Bb, Cinv, tem, p, np.empty(m), np.empty(m), f)
     return f
 
 
@@ -593,8 +608,7 @@ def jac_one(y: np.ndarray, I: float, A: np.ndarray, Cinv: np.ndarray, tem: np.nd
 def steady_one(
     y0: np.ndarray,
     I: float,
-    uw: float,
-    ua: float,
+    ub: np.ndarray,
     A: np.ndarray,
     Bb: np.ndarray,
     Cinv: np.ndarray,
@@ -608,8 +622,7 @@ def steady_one(
     ok = _steady(
         y,
         I,
-        uw,
-        ua,
+        ub,
         A,
         Bb,
         Cinv,

@@ -73,17 +73,17 @@ def simulate_reference(
 
         def u(tt, p=p):
             i_true = K.true_current(np.interp(tt, t, inputs.current), p)
-            return i_true, np.interp(tt, t, inputs.t_water), np.interp(tt, t, inputs.t_amb)
+            return i_true, np.array([np.interp(tt, t, ub) for ub in inputs.boundaries])
 
         def fun(tt, y, A=A, Bb=Bb, Cinv=Cinv, p=p):
-            i_true, tw, ta = u(tt)
-            return K.rhs_one(y, i_true, tw, ta, A, Bb, Cinv, tem, p)
+            i_true, ub = u(tt)
+            return K.rhs_one(y, i_true, ub, A, Bb, Cinv, tem, p)
 
         def jacf(tt, y, A=A, Cinv=Cinv, p=p):
             return K.jac_one(y, u(tt)[0], A, Cinv, tem, p)
 
-        i0, tw0, ta0 = u(t[0])
-        y0, ok = K.steady_one(np.full(len(names), tw0), i0, tw0, ta0, A, Bb, Cinv, tem, p)
+        i0, ub0 = u(t[0])
+        y0, ok = K.steady_one(np.full(len(names), ub0[0]), i0, ub0, A, Bb, Cinv, tem, p)
         if not ok:
             raise ModelError("reference: steady-state start did not converge")
         sol = solve_ivp(

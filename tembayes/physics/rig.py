@@ -18,6 +18,7 @@ Capacitance and conductance entries are *expressions* over the parameters:
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import TYPE_CHECKING
@@ -25,12 +26,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from tembayes.errors import ModelError
+from tembayes.physics.layout import Layout, sensor_layout
 
 if TYPE_CHECKING:
     from collections.abc import Mapping, Sequence
-
-#: The reference rig's measured boundaries and their CSV columns.
-BOUNDARIES = MappingProxyType({"water": "T_water_C", "ambient": "T_amb_C"})
 
 
 @dataclass(frozen=True)
@@ -146,7 +145,7 @@ class RigDescription:
     hot, cold : str
         The nodes of the module's hot and cold plates.
     sensors : mapping of str to str
-        CSV sensor channel (``"T1_C"``...) to the node it reads.
+        CSV sensor column to the node it reads.
     legs : tuple of str
         Nodes of the module's legs from the hot to the cold plate, for a
         module resolved into cells (the virtual bench); empty for the paper's
@@ -178,7 +177,7 @@ class RigDescription:
     physics: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
     depths: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
     faces: tuple = ()
-    boundaries: MappingProxyType = field(default_factory=lambda: BOUNDARIES)
+    boundaries: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
 
     def __post_init__(self):
         names = [p.name for p in self.parameters]
@@ -261,6 +260,11 @@ class RigDescription:
     def module_faces(self) -> tuple[str, str]:
         """``(hot, cold)`` outer nodes of the module: :attr:`faces`, or the plates."""
         return tuple(self.faces) or (self.hot, self.cold)
+
+    @functools.cached_property
+    def layout(self) -> Layout:
+        """The rig's columns and where its sensors sit (:func:`~tembayes.physics.layout.sensor_layout`)."""
+        return sensor_layout(self)
 
     @property
     def tem_chain(self) -> tuple[str, ...]:

@@ -493,6 +493,13 @@ def _reach(adj, start) -> set:
 
 
 # -- a batch's rig --------------------------------------------------------------
+def rig_source(text: str) -> dict:
+    """The ``[rig]`` table a command-line RIG names: ``{"file": absolute path}`` for a TOML file, else ``{"preset": name}``."""
+    if str(text).endswith(".toml") or Path(text).is_file():
+        return {"file": str(Path(text).resolve())}
+    return {"preset": str(text)}
+
+
 def rig_file_of(config: Mapping | None) -> RigFile:
     """The rig file a batch.toml ``[rig]`` table names (``preset`` or an absolute ``file``), without its overrides."""
     config = dict(config or {})

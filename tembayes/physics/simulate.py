@@ -48,34 +48,38 @@ class Inputs:
         [s], strictly increasing.
     current : ndarray, shape (nt,)
         Measured module current [A].
-    t_water, t_amb : ndarray, shape (nt,)
-        Measured water and ambient temperatures [K].
+    boundaries : ndarray, shape (nb, nt)
+        Measured boundary temperatures [K], in the rig's boundary order
+        (:attr:`~tembayes.physics.rig.RigDescription.boundaries`); a 1-D
+        array is one boundary.
     """
 
     time: np.ndarray
     current: np.ndarray
-    t_water: np.ndarray
-    t_amb: np.ndarray
+    boundaries: np.ndarray
 
     def __post_init__(self):
-        n = np.shape(self.time)
-        for name in ("current", "t_water", "t_amb"):
-            if np.shape(getattr(self, name)) != n:
-                raise ModelError(f"Inputs.{name}: expected shape {n}, found {np.shape(getattr(self, name))}")
-        for name in ("time", "current", "t_water", "t_amb"):
-            object.__setattr__(self, name, np.ascontiguousarray(getattr(self, name), dtype=float))
+        set_ = object.__setattr__
+        for name in ("time", "current"):
+            set_(self, name, np.ascontiguousarray(getattr(self, name), dtype=float))
+        set_(self, "boundaries", np.ascontiguousarray(np.atleast_2d(np.asarray(self.boundaries, dtype=float))))
+        n = self.time.shape
+        if self.current.shape != n:
+            raise ModelError(f"Inputs.current: expected shape {n}, found {self.current.shape}")
+        if self.boundaries.ndim != 2 or self.boundaries.shape[1:] != n:
+            raise ModelError(f"Inputs.boundaries: expected shape (nb, {n[0]}), found {self.boundaries.shape}")
         if len(self.time) < 2 or np.any(np.diff(self.time) <= 0):
             raise ModelError("Inputs.time must have at least 2 strictly increasing samples")
 
     @classmethod
     def from_experiment(cls, exp: Experiment) -> Inputs:
         """Inputs of a loaded :class:`tembayes.data.Experiment`."""
-        return cls(exp.time, exp.current, exp.t_water, exp.t_amb)
+        return cls(exp.time, exp.current, exp.boundaries)
 
     def slice(self, start: int | None, stop: int | None) -> Inputs:
         """Samples ``start:stop``."""
         s = slice(start, stop)
-        return Inputs(self.time[s], self.current[s], self.t_water[s], self.t_amb[s])
+        return Inputs(self.time[s], self.current[s], self.boundaries[:, s])
 
 
 @dataclass(frozen=True)
@@ -86,7 +90,7 @@ class Simulation:
     ----------
     time : ndarray, shape (nt,)
     channels : tuple of str
-        Sensor channel names, e.g. ``("T1_C", ..., "T4_C")``.
+        Sensor channel names: the rig's sensor columns, in its order.
     sensors : ndarray, shape (nd, nch, nt)
         Sensor readings [K] (after any sensor effect).
     voltage : ndarray, shape (nd, nt)
@@ -192,14 +196,14 @@ def simulate(
     Parameters
     ----------
     inputs : Inputs
-        Measured current [A], water and ambient temperatures [K] over time [s].
+        Measured current [A] and boundary temperatures [K] over time [s].
     params : mapping of str to float or ndarray of shape (nd,)
         Model parameters (see the module docstring).
     rig : RigDescription, optional
         The rig; the reference rig by default.
     y0 : ndarray, shape (nd, N) or (N,), optional
-        Initial node temperatures [K]; default: all nodes at the first water
-        temperature, refined to the steady state (``steady_start``).
+        Initial node temperatures [K]; default: all nodes at the first
+        boundary's first temperature, refined to the steady state (``steady_start``).
     steady_start : bool, optional
         Start from the steady state at the first sample's inputs (the rig at
         rest before the experiment), default True.
@@ -214,6 +218,7 @@ def simulate(
     """
     if not isinstance(inputs, Inputs):
         raise TypeError(f"inputs must be tembayes.physics.Inputs, got {type(inputs).__name__}")
+    _check_boundaries(inputs.boundaries, rig)
     m = build(params, rig)
     nd = m["nd"]
     names = m["network"].nodes
@@ -222,7 +227,7 @@ def simulate(
     a, b, f = rig.readout(channels, m["params"])
     rec = np.concatenate([a, [names.index(rig.hot), names.index(rig.cold)], b]).astype(np.int64)
     if y0 is None:
-        Y0 = np.full((nd, N), inputs.t_water[0])
+        Y0 = np.full((nd, N), inputs.boundaries[0, 0])
     else:
         Y0 = np.array(np.broadcast_to(np.asarray(y0, dtype=float), (nd, N)))
     if hmax is None:
@@ -230,8 +235,7 @@ def simulate(
     out, volt, stats = K.integrate(
         inputs.time,
         inputs.current,
-        inputs.t_water,
-        inputs.t_amb,
+        inputs.boundaries,
         m["A"],
         m["Bb"],
         m["Cinv"],
@@ -267,12 +271,19 @@ def simulate(
     )
 
 
+def _check_boundaries(boundaries: np.ndarray, rig: RigDescription) -> None:
+    if boundaries.shape[0] != len(rig.boundaries):
+        raise ModelError(
+            f"the inputs have {boundaries.shape[0]} boundary temperature(s), rig '{rig.name}' has "
+            f"{len(rig.boundaries)} ({', '.join(rig.boundaries.values())})"
+        )
+
+
 def integrate_on_grids(
     m: dict,
     grids: np.ndarray,
     current: np.ndarray,
-    t_water: np.ndarray,
-    t_amb: np.ndarray,
+    boundaries: np.ndarray,
     rec: np.ndarray,
     atol: float,
     hmax: float,
@@ -288,8 +299,9 @@ def integrate_on_grids(
         Time points per draw [s].
     current : ndarray, shape (nd, nt)
         Current at the points [A].
-    t_water, t_amb : ndarray, shape (nt,)
-        Boundary temperatures at the points [K] (shared by the draws).
+    boundaries : ndarray, shape (nb, nt)
+        Boundary temperatures at the points [K] in the rig's order (shared
+        by the draws).
     rec : ndarray of int
         Nodes to record.
     atol, hmax : float
@@ -308,12 +320,12 @@ def integrate_on_grids(
         Accepted integrator steps per draw.
     """
     nd = m["nd"]
-    TW = np.repeat(np.asarray(t_water, float)[None, :], nd, axis=0)
-    TA = np.repeat(np.asarray(t_amb, float)[None, :], nd, axis=0)
+    boundaries = np.atleast_2d(np.asarray(boundaries, float))
+    U = np.repeat(boundaries[None], nd, axis=0)
     steady = y0 is None
-    Y0 = np.full((nd, len(m["network"].nodes)), float(t_water[0])) if steady else np.array(y0, dtype=float)
+    Y0 = np.full((nd, len(m["network"].nodes)), float(boundaries[0, 0])) if steady else np.array(y0, dtype=float)
     out, volt, stats = K.integrate_grids(
-        grids, current, TW, TA, m["A"], m["Bb"], m["Cinv"], m["tem"], m["P"], rec, Y0, steady, float(atol), float(hmax)
+        grids, current, U, m["A"], m["Bb"], m["Cinv"], m["tem"], m["P"], rec, Y0, steady, float(atol), float(hmax)
     )
     failed = (stats[:, 3] != 0) | ~np.all(np.isfinite(volt), axis=1)
     out[failed] = np.nan

@@ -92,7 +92,7 @@ def plot_residual_patterns(pred: Prediction, *, fig: Figure | None = None) -> Fi
         ax.set_yscale("log")
         ax.grid(True, which="both", alpha=0.3)
     ax_s.set_xscale("log")
-    ax_t.set_xlabel("T̄ ≈ (T2 + T3)/2 [°C]")
+    ax_t.set_xlabel("T̄ ≈ the face sensors' mean [°C]")
     ax_s.set_xlabel("time since the last current step [s]")
     ax_t.set_ylabel("RMS standardised residual per bin")
     ax_t.legend(fontsize=8)
@@ -128,7 +128,7 @@ def plot_ranking(diag: GapDiagnosis, *, fig: Figure | None = None) -> Figure:
         after = np.array([r.gaps.on()[1] for r in rows][::-1]) * 1e3
         ax2.barh(y + 0.2, before, height=0.4, color="0.6", label="base model")
         ax2.barh(y - 0.2, after, height=0.4, color="C1", label="with the effect")
-        ax2.set_xlabel("held-out gap (excess RMSE over T1..T4) [mK]")
+        ax2.set_xlabel("held-out gap (excess RMSE over the sensors) [mK]")
         ax2.legend(fontsize=8)
     else:
         for ax in (ax1, ax2):

@@ -64,7 +64,7 @@ BIN_WIDTH_K = 2.0
 #: fast transient would otherwise draw a spike).
 MIN_BIN_SAMPLES = 10
 
-#: Sensor colours: hot side (T1 water side, T2) warm, cold side (T3, T4) cool.
+#: Sensor colours, in the rig's order (on the reference rig: the hot side warm, the cold side cool).
 SENSOR_COLORS = ("C1", "C3", "C0", "C9")
 
 #: Resolution of the saved PNG files [dots per inch].
@@ -120,7 +120,7 @@ def _hours(exp):
 
 
 def _sim_sensors(exp, sim):
-    """Draw 0 of a simulation's sensors on the experiment's time grid, shape (4, n) [K]."""
+    """Draw 0 of a simulation's sensors on the experiment's time grid, shape (ns, n) [K]."""
     T = np.asarray(sim.sensors)[0]
     st = np.asarray(sim.time)
     if st.shape == exp.time.shape and np.allclose(st, exp.time):
@@ -136,22 +136,25 @@ def _run_name(exp):
     return f"{parent}/{exp.path.name}" if parent else exp.path.name
 
 
-def _channel_names(sim, n):
-    names = getattr(sim, "channels", None) or [f"T{c + 1}_C" for c in range(n)]
-    return [str(ch).removesuffix("_C") for ch in names]
+def _channel_names(sim):
+    return [str(ch).removesuffix("_C") for ch in sim.channels]
 
 
-def plot_identification_run(experiments: Mapping[str, Experiment], *, fig: Figure | None = None) -> Figure:
+def plot_identification_run(
+    experiments: Mapping[str, Experiment], *, face: tuple[str, str], fig: Figure | None = None
+) -> Figure:
     """The identification runs of a batch (the paper's Fig. 5).
 
     Three stacked panels over a shared time axis: module current, terminal
-    voltage and the sensor temperature difference ``T2 - T3`` across the
+    voltage and the temperature difference of the face sensors across the
     module, one colour per module (C0, C1, ... as the paper's TEM1..3).
 
     Parameters
     ----------
     experiments : dict of str to Experiment
         Module id -> its identification run (SI: s, A, V, K).
+    face : tuple of (str, str)
+        The hot- and cold-face sensor columns (the rig's ``layout.face``).
     fig : matplotlib.figure.Figure, optional
         An empty figure to draw into; a new one (9 x 7.5 in) if absent.
 
@@ -171,13 +174,14 @@ def plot_identification_run(experiments: Mapping[str, Experiment], *, fig: Figur
         t = _hours(exp)
         ax_i.plot(t, exp.current, color=color, lw=1.0, label=mid, gid=f"run:{mid}")
         ax_v.plot(t, exp.voltage, color=color, lw=0.8, gid=f"run:{mid}")
-        ax_dt.plot(t, exp.sensors[1] - exp.sensors[2], color=color, lw=1.0, gid=f"run:{mid}")
+        ax_dt.plot(t, exp.channel(face[0]) - exp.channel(face[1]), color=color, lw=1.0, gid=f"run:{mid}")
     for ax in (ax_i, ax_v, ax_dt):
         ax.axhline(0.0, color="0.6", lw=0.6, zorder=0)
         ax.grid(True, alpha=0.3)
     ax_i.set_ylabel("Current I [A]")
     ax_v.set_ylabel("Voltage V [V]")
-    ax_dt.set_ylabel("Sensor ΔT = T2 − T3 [K]")
+    hot, cold = (c.removesuffix("_C") for c in face)
+    ax_dt.set_ylabel(f"Sensor ΔT = {hot} − {cold} [K]")
     ax_dt.set_xlabel("Time since start of run [h]")
     ax_i.legend(ncols=min(len(experiments), 6), loc="upper right", fontsize=9)
     ax_i.set_title("Identification run: current staircase (paper Fig. 5)")
@@ -360,9 +364,9 @@ def plot_law(
 def plot_validation(exp: Experiment, sim: Simulation, *, title: str | None = None, fig: Figure | None = None) -> Figure:
     """Measured against simulated sensor temperatures of one run (the paper's Figs. 8 and 9).
 
-    Top panel: T1..T4 measured (solid) and simulated (dashed) [degC], hot
-    side in warm colours (T1 orange, T2 red), cold side in cool ones (T3
-    blue, T4 cyan).  Bottom panel: residuals measured - simulated [K] with the
+    Top panel: the rig's sensors measured (solid) and simulated (dashed)
+    [degC], in the rig's order (on the reference rig the hot side in warm
+    colours, the cold side in cool ones).  Bottom panel: residuals measured - simulated [K] with the
     paper's +-0.5 K accuracy claim as a grey band and each sensor's RMSE in
     the legend.
 
@@ -382,19 +386,20 @@ def plot_validation(exp: Experiment, sim: Simulation, *, title: str | None = Non
     -------
     matplotlib.figure.Figure
         With two axes (temperatures, residuals) over time [h]; the traces
-        carry ``gid`` ``"measured:T1"``, ``"simulated:T1"``, ``"residual:T1"``...
+        carry ``gid`` ``"measured:<sensor>"``, ``"simulated:<sensor>"``, ``"residual:<sensor>"``.
     """
     fig = _empty_figure(fig, (10.0, 6.5))
     ax_t, ax_r = fig.subplots(2, 1, sharex=True, height_ratios=[2, 1])
     t = _hours(exp)
     Tsim = _sim_sensors(exp, sim)
-    names = _channel_names(sim, len(Tsim))
+    names = _channel_names(sim)
     handles = []
     for c, name in enumerate(names):
         color = SENSOR_COLORS[c % len(SENSOR_COLORS)]
-        ax_t.plot(t, exp.sensors[c] - KELVIN, color=color, lw=1.2, gid=f"measured:{name}")
+        measured = exp.channel(sim.channels[c])
+        ax_t.plot(t, measured - KELVIN, color=color, lw=1.2, gid=f"measured:{name}")
         ax_t.plot(t, Tsim[c] - KELVIN, color=color, lw=1.2, ls="--", gid=f"simulated:{name}")
-        r = exp.sensors[c] - Tsim[c]
+        r = measured - Tsim[c]
         rmse = float(np.sqrt(np.mean(r**2)))
         ax_r.plot(t, r, color=color, lw=0.9, label=f"{name}: RMSE {rmse:.2f} K", gid=f"residual:{name}")
         handles.append(Line2D([], [], color=color, lw=1.5, label=name))
@@ -430,13 +435,15 @@ def _binned_rms(x, r, edges, min_count=MIN_BIN_SAMPLES):
     return np.array(centres), np.array(rms)
 
 
-def plot_error_vs_tavg(exp: Experiment, sims: Mapping[str, Simulation], *, fig: Figure | None = None) -> Figure:
+def plot_error_vs_tavg(
+    exp: Experiment, sims: Mapping[str, Simulation], *, face: tuple[str, str], fig: Figure | None = None
+) -> Figure:
     """Cold-side sensor error against the mean sensor temperature, for several models.
 
     The paper's argument for temperature-dependent laws: a model with R and
     S frozen at 35 degC is right near 35 degC and drifts away from it.  For
-    each model: the T3 error (measured - simulated) of every sample as faint
-    dots (rasterized) and its RMS in 2 K bins of ``(T2 + T3) / 2`` as a line
+    each model: the cold-face sensor's error (measured - simulated) of every sample as faint
+    dots (rasterized) and its RMS in 2 K bins of the face sensors' mean as a line
     with markers; a vertical line marks 35 degC and the grey band the
     paper's +-0.5 K claim.
 
@@ -459,7 +466,9 @@ def plot_error_vs_tavg(exp: Experiment, sims: Mapping[str, Simulation], *, fig: 
         raise ValueError("sims is empty: give at least one model's simulation")
     fig = _empty_figure(fig, (10.0, 5.0))
     ax = fig.add_subplot()
-    x = 0.5 * (exp.sensors[1] + exp.sensors[2]) - KELVIN
+    hot, cold = face
+    h_name, c_name = hot.removesuffix("_C"), cold.removesuffix("_C")
+    x = 0.5 * (exp.channel(hot) + exp.channel(cold)) - KELVIN
     lo = np.floor(x.min() / BIN_WIDTH_K) * BIN_WIDTH_K
     edges = np.arange(lo, x.max() + BIN_WIDTH_K, BIN_WIDTH_K)
     if len(edges) < 2:
@@ -469,7 +478,7 @@ def plot_error_vs_tavg(exp: Experiment, sims: Mapping[str, Simulation], *, fig: 
     handles = []
     for i, (label, sim) in enumerate(sims.items()):
         color = _module_color(i)
-        r = exp.sensors[2] - _sim_sensors(exp, sim)[2]
+        r = exp.channel(cold) - _sim_sensors(exp, sim)[sim.channels.index(cold)]
         ax.scatter(x, r, s=4, alpha=0.15, color=color, lw=0, rasterized=True, zorder=1)
         centres, rms = _binned_rms(x, r, edges)
         ax.plot(centres, rms, color=color, lw=2.0, marker="o", ms=5, zorder=3, gid=f"rms:{label}")
@@ -478,15 +487,15 @@ def plot_error_vs_tavg(exp: Experiment, sims: Mapping[str, Simulation], *, fig: 
     ax.axvline(CONSTANT_MODEL_T_C, color="k", ls=":", lw=1.2, zorder=2)
     handles += [
         Line2D([], [], color="k", ls=":", lw=1.2, label=f"{CONSTANT_MODEL_T_C:g} °C (constant model's T)"),
-        Line2D([], [], color="0.4", marker=".", ls="none", label="T3 error per sample"),
+        Line2D([], [], color="0.4", marker=".", ls="none", label=f"{c_name} error per sample"),
         Line2D([], [], color="0.4", marker="o", lw=2.0, label=f"RMS per {BIN_WIDTH_K:g} K bin"),
         Patch(facecolor="0.9", label=f"±{ACCURACY_BAND_K:g} K (paper's accuracy)"),
     ]
     # beside the axes: the dots fill the whole plane
     ax.legend(handles=handles, fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
-    ax.set_xlabel("Mean sensor temperature (T2 + T3)/2 [°C]")
-    ax.set_ylabel("T3 error, measured − simulated [K]")
-    ax.set_title(f"Cold-side sensor (T3) error vs temperature: {_run_name(exp)}")
+    ax.set_xlabel(f"Mean sensor temperature ({h_name} + {c_name})/2 [°C]")
+    ax.set_ylabel(f"{c_name} error, measured − simulated [K]")
+    ax.set_title(f"Cold-side sensor ({c_name}) error vs temperature: {_run_name(exp)}")
     ax.grid(True, alpha=0.3)
     return fig
 
@@ -535,7 +544,9 @@ def save_identify_figures(results: Mapping[str, ModuleIdentification], batch: Ba
         )
     written = [
         _save_png(
-            plot_identification_run({mid: batch.modules[mid].identification for mid in results}),
+            plot_identification_run(
+                {mid: batch.modules[mid].identification for mid in results}, face=batch.layout.face
+            ),
             out / "identification_run.png",
         )
     ]
@@ -560,5 +571,6 @@ def save_identify_figures(results: Mapping[str, ModuleIdentification], batch: Ba
                 f"R, S constant at {CONSTANT_MODEL_T_C:g} °C": models["constant"]["simulation"],
                 "linear laws": models["linear"]["simulation"],
             }
-            written.append(_save_png(plot_error_vs_tavg(exp, sims), out / f"error_vs_tavg_{mid}_{stem}.png"))
+            fig = plot_error_vs_tavg(exp, sims, face=batch.layout.face)
+            written.append(_save_png(fig, out / f"error_vs_tavg_{mid}_{stem}.png"))
     return written

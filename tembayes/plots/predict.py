@@ -27,14 +27,8 @@ if TYPE_CHECKING:
 
 #: Band shades, widest first (95, 90, 50 %).
 _BAND_ALPHA = {95: 0.18, 90: 0.3, 50: 0.55}
-_COLORS = {"T1_C": "C1", "T2_C": "C3", "T3_C": "C0", "T4_C": "C9", "voltage_V": "C2"}
-_LABELS = {
-    "T1_C": "T1 (top, at cooler)",
-    "T2_C": "T2 (top, at module)",
-    "T3_C": "T3 (bottom, at module)",
-    "T4_C": "T4 (bottom, far)",
-    "voltage_V": "voltage",
-}
+#: Colours of the sensor channels in the rig's order; the voltage is C2.
+_SENSOR_COLORS = ("C1", "C3", "C0", "C9", "C4", "C5", "C6", "C8")
 #: The paper's stated accuracy of its validation [K].
 PAPER_ACCURACY_K = 0.5
 DPI = 120
@@ -45,6 +39,12 @@ def _scale(ch):
     return (KELVIN, 1.0, "°C") if ch != "voltage_V" else (0.0, 1.0, "V")
 
 
+def _color(pred, ch):
+    if ch == "voltage_V":
+        return "C2"
+    return _SENSOR_COLORS[pred.channels.index(ch) % len(_SENSOR_COLORS)]
+
+
 def _title(pred):
     laws = "R, S linear in T̄" if pred.laws == "linear" else "R, S constant at 35 °C"
     return f"{Path(pred.source).name} — {pred.label}, {laws} ({pred.n_draws} posterior draws)"
@@ -53,7 +53,7 @@ def _title(pred):
 def plot_prediction(pred: Prediction, *, fig: Figure | None = None) -> Figure:
     """Measured vs predicted channels with the 50/90/95 % bands (paper Fig. 9 with bands).
 
-    One panel per channel (T1..T4, voltage) plus the current on top.
+    One panel per channel (the rig's sensors, the voltage) plus the current on top.
     """
     fig = fig or Figure(figsize=(11.0, 12.0), layout="constrained")
     axes = fig.subplots(len(pred.channels) + 1, 1, sharex=True, height_ratios=[0.6] + [1.0] * len(pred.channels))
@@ -64,7 +64,7 @@ def plot_prediction(pred: Prediction, *, fig: Figure | None = None) -> Figure:
     cov = {lv: pred.coverage(lv) for lv in pred.bands}
     for c, (ax, ch) in enumerate(zip(axes[1:], pred.channels)):
         off, fac, unit = _scale(ch)
-        color = _COLORS.get(ch, "C0")
+        color = _color(pred, ch)
         for lv in sorted(pred.bands, reverse=True):
             lo, hi = pred.bands[lv]
             ax.fill_between(
@@ -78,7 +78,7 @@ def plot_prediction(pred: Prediction, *, fig: Figure | None = None) -> Figure:
             )
         ax.plot(t, (pred.measured[c] - off) * fac, color="k", lw=0.6, gid=f"measured:{ch}")
         ax.plot(t, (pred.median[c] - off) * fac, color=color, lw=0.8, ls="--", gid=f"median:{ch}")
-        ax.set_ylabel(f"{_LABELS.get(ch, ch)} [{unit}]", fontsize=8)
+        ax.set_ylabel(f"{pred.labels.get(ch, ch)} [{unit}]", fontsize=8)
         ax.grid(True, alpha=0.3)
         ax.set_title(
             "band coverage " + ", ".join(f"{lv} %: {100 * cov[lv][c]:.0f} %" for lv in sorted(pred.bands)),
@@ -107,7 +107,7 @@ def plot_residuals(pred: Prediction, *, fig: Figure | None = None) -> Figure:
     m = pred.metrics()
     for c, (ax, ch) in enumerate(zip(axes, pred.channels)):
         fac, unit = (1e3, "mV") if ch == "voltage_V" else (1.0, "K")
-        color = _COLORS.get(ch, "C0")
+        color = _color(pred, ch)
         for lv in sorted(pred.bands, reverse=True):
             lo, hi = pred.bands[lv]
             ax.fill_between(
@@ -147,7 +147,7 @@ def plot_error_vs_tavg(preds: Mapping[str, Prediction], *, fig: Figure | None = 
     for i, (label, pred) in enumerate(preds.items()):
         rows = pred.by_tavg()
         x = np.array([0.5 * (r["Tavg_C_low"] + r["Tavg_C_high"]) for r in rows])
-        for ch, ls in (("T3_C", "-"), ("T2_C", ":")):
+        for ch, ls in zip(pred.face[::-1], ("-", ":")):
             ax_t.plot(
                 x,
                 [r["rmse"][ch] for r in rows],
@@ -169,7 +169,7 @@ def plot_error_vs_tavg(preds: Mapping[str, Prediction], *, fig: Figure | None = 
         )
     for ax in (ax_t, ax_v):
         ax.axvline(35.0, color="k", ls=":", lw=1.0)
-        ax.set_xlabel("T̄ ≈ (T2 + T3)/2, measured [°C]")
+        ax.set_xlabel("T̄ ≈ the face sensors' mean, measured [°C]")
         ax.set_yscale("log")
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=8)

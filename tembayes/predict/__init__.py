@@ -10,11 +10,11 @@
 
 from tembayes.predict.anchor import anchor_rig, unpinned
 from tembayes.predict.predictive import Prediction, PredictResult, constant_laws, predict, simulate_predictive
-from tembayes.predict.runmodel import CHANNELS, RunModel
+from tembayes.predict.runmodel import VOLTAGE, RunModel
 
 __all__ = [
     "RunModel",
-    "CHANNELS",
+    "VOLTAGE",
     "anchor_rig",
     "unpinned",
     "predict",

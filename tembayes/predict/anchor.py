@@ -1,12 +1,13 @@
 """Anchor the rig on the identification run's absolute temperatures.
 
-The step likelihood looks at the voltage and at ``T2 - T3`` and ``(T2 + T3)/2``
-with one free offset per step window: it learns R, S and K from how the run
-*moves*, and leaves what sets the block temperatures' *levels* -- the water
-cooler's conductance, the enclosure leaks, the tabs -- close to their priors
-(``g_cooler`` is known to +-10 %: +-0.15 K on T1 at 15 W).  A prediction of T1..T4
-needs those levels, so they are calibrated here, from the same run's four
-block sensors at every grid point of :class:`~tembayes.predict.runmodel.RunModel`.
+The step likelihood looks at the voltage and at the face sensors' difference
+and mean with one free offset per step window: it learns R, S and K from how
+the run *moves*, and leaves what sets the rig's temperature *levels* -- on the
+reference rig the water cooler's conductance, the enclosure leaks, the tabs --
+close to their priors (``g_cooler`` is known to +-10 %: +-0.15 K on T1 at
+15 W).  A prediction of every sensor needs those levels, so they are calibrated
+here, from the same run's sensors at every grid point of
+:class:`~tembayes.predict.runmodel.RunModel`.
 
 The update is Gaussian in the step posterior's whitened coordinates ``u``
 (``z = mu + L u``, ``z`` the log of every positive parameter, the slopes as
@@ -43,7 +44,7 @@ from tembayes.constants import MODULE_PARAMETERS
 from tembayes.data.quality import noise_estimate
 from tembayes.errors import ModelError
 from tembayes.physics.effects import EFFECT_PARAMETERS
-from tembayes.predict.runmodel import CHANNELS, SENSOR_CHANNELS
+from tembayes.predict.runmodel import VOLTAGE
 
 #: Parameters sampled on their natural scale (can be negative); every other
 #: simulation parameter is positive and handled in log.
@@ -162,7 +163,7 @@ class Anchored:
         Sd of each updated parameter's coordinate in the step posterior and
         after the update (log for positive parameters).
     residual : dict
-        Channel (``T1_C``.. ``voltage_V``) -> :class:`ResidualProcess` at the
+        Channel (the rig's sensor columns, ``voltage_V``) -> :class:`ResidualProcess` at the
         updated mode.
     shift : float
         Step shift used for the identification run [s].
@@ -237,9 +238,10 @@ def anchor_rig(model, draws, names, *, shift=None, fixed=None):
     exp = model.exp
     idx = model.grid_samples
     t = model.time[idx]
-    y = np.asarray(exp.sensors, float)[:, idx]
-    v = np.asarray(exp.voltage, float)[idx]
-    floor = np.array([noise_estimate(np.asarray(exp.sensors[c], float)) for c in range(4)])
+    y = model.measured[:-1, idx]
+    v = model.measured[-1, idx]
+    ns = len(model.sensor_channels)
+    floor = np.array([noise_estimate(x) for x in model.measured[:-1]])
     floor = np.where(np.isfinite(floor) & (floor > 0), floor, 1e-3)
     calls = {"n": 0}
 
@@ -270,7 +272,7 @@ def anchor_rig(model, draws, names, *, shift=None, fixed=None):
             def fun(u):
                 U = np.vstack([u, u[None] + FD_STEP * np.eye(p)])
                 sens, _ = simulate(mu[None] + U @ Lc.T, mg)
-                W = np.concatenate([processes[c].whiten(t, y[c][None] - sens[:, c]) for c in range(4)], axis=1)
+                W = np.concatenate([processes[c].whiten(t, y[c][None] - sens[:, c]) for c in range(ns)], axis=1)
                 cache["u"], cache["J"] = u.copy(), ((W[1:] - W[0][None]) / FD_STEP).T
                 return np.concatenate([u, W[0]])
 
@@ -289,10 +291,10 @@ def anchor_rig(model, draws, names, *, shift=None, fixed=None):
             jac(res.x)
             return res.x, cache["J"]
 
-        white = {c: ResidualProcess(float(floor[c]), 1e-6, float(floor[c])) for c in range(4)}
+        white = {c: ResidualProcess(float(floor[c]), 1e-6, float(floor[c])) for c in range(ns)}
         u1, _ = solve(white, np.zeros(p))
         sens1, _ = simulate(mu[None] + u1[None] @ Lc.T, mg)
-        processes = {c: fit_residual_process(t, y[c] - sens1[0, c], floor[c]) for c in range(4)}
+        processes = {c: fit_residual_process(t, y[c] - sens1[0, c], floor[c]) for c in range(ns)}
         u_star, Ju = solve(processes, u1)
         zu_star = mu + Lc @ u_star
         # the data's pull on the given parameters, for the per-draw correction
@@ -300,7 +302,7 @@ def anchor_rig(model, draws, names, *, shift=None, fixed=None):
         sg = np.where(sg > 0, sg, 1e-9)
         Gz = np.vstack([mg, mg[None] + np.diag(sg)])
         sens, _ = simulate(np.broadcast_to(zu_star, (len(Gz), p)), Gz)
-        W = np.concatenate([processes[c].whiten(t, y[c][None] - sens[:, c]) for c in range(4)], axis=1)
+        W = np.concatenate([processes[c].whiten(t, y[c][None] - sens[:, c]) for c in range(ns)], axis=1)
         Jg = ((W[1:] - W[0][None]) / sg[:, None]).T
         P = np.linalg.inv(np.eye(p) + Ju.T @ Ju)
         Lp = np.linalg.cholesky(0.5 * (P + P.T))
@@ -322,10 +324,10 @@ def anchor_rig(model, draws, names, *, shift=None, fixed=None):
         new["step_shift_s"] = np.asarray(draws["step_shift_s"], float)
     # the residual processes at the updated mode, voltage included: the predictive's noise
     sens2, volt2 = simulate(*mode)
-    residual = {ch: fit_residual_process(t, y[c] - sens2[0, c], floor[c]) for c, ch in enumerate(SENSOR_CHANNELS)}
-    vfloor = noise_estimate(np.asarray(exp.voltage, float))
+    residual = {ch: fit_residual_process(t, y[c] - sens2[0, c], floor[c]) for c, ch in enumerate(model.sensor_channels)}
+    vfloor = noise_estimate(model.measured[-1])
     vfloor = float(vfloor) if np.isfinite(vfloor) and vfloor > 0 else 1e-4
-    residual[CHANNELS[-1]] = fit_residual_process(t, v - volt2[0], vfloor)
+    residual[VOLTAGE] = fit_residual_process(t, v - volt2[0], vfloor)
     return Anchored(
         names=names,
         draws=new,

@@ -2,7 +2,7 @@
 
 Groups, every data variable with a ``units`` attribute (as in ``posterior.nc``):
 
-- ``posterior_predictive``: per channel (``T1_C`` .. ``T4_C`` [K],
+- ``posterior_predictive``: per channel (the rig's sensor columns [K],
   ``voltage_V`` [V]) every predictive draw with its noise, dims
   ``(chain, draw, time)`` (one chain: the draws are independent), the values
   the bands of ``metrics.json`` are quantiles of;
@@ -12,7 +12,7 @@ Groups, every data variable with a ``units`` attribute (as in ``posterior.nc``):
 
 The coordinate ``time`` is the experiment's sample times [s].  Channels keep
 their CSV names and hold SI values (K; a deviation in K is one in degC), so
-``az.plot_ppc(idata, var_names=["T3_C"])`` compares like with like.  The
+``az.plot_ppc(idata, var_names=[SENSOR])`` compares like with like.  The
 noise of a draw is white with the sd of the channel's residual process (as
 in the bands); its correlation in time is not drawn.
 """
@@ -22,12 +22,10 @@ from __future__ import annotations
 import numpy as np
 
 import tembayes
-from tembayes.predict.runmodel import CHANNELS, SENSOR_CHANNELS
+from tembayes.predict.runmodel import VOLTAGE
 
 #: File name of the predictive in a ``tembayes predict`` output folder.
 PREDICTIVE_FILE = "predictive.nc"
-#: Unit of each channel's values.
-CHANNEL_UNITS = {**{c: "K" for c in SENSOR_CHANNELS}, "voltage_V": "V"}
 #: Units of the ``constant_data`` variables.
 CONSTANT_UNITS = {"current_A": "A", "time_since_step_s": "s"}
 
@@ -59,13 +57,14 @@ def to_inference_data(result):
         raise ValueError("the prediction kept no draws: call predict(..., keep_predictive=True)")
     time = {"time": p.time}
     pp = xr.Dataset(
-        {ch: (("chain", "draw", "time"), p.predictive[None, :, c]) for c, ch in enumerate(CHANNELS)},
+        {ch: (("chain", "draw", "time"), p.predictive[None, :, c]) for c, ch in enumerate(p.channels)},
         coords={"chain": [0], "draw": np.arange(p.predictive.shape[0]), **time},
     )
-    obs = xr.Dataset({ch: (("time",), p.measured[c]) for c, ch in enumerate(CHANNELS)}, coords=time)
+    obs = xr.Dataset({ch: (("time",), p.measured[c]) for c, ch in enumerate(p.channels)}, coords=time)
+    channel_units = {c: "V" if c == VOLTAGE else "K" for c in p.channels}
     since = p.since_step if p.since_step is not None else np.full(len(p.time), np.nan)
     const = xr.Dataset({"current_A": (("time",), p.current), "time_since_step_s": (("time",), since)}, coords=time)
-    for ds, units in ((pp, CHANNEL_UNITS), (obs, CHANNEL_UNITS), (const, CONSTANT_UNITS)):
+    for ds, units in ((pp, channel_units), (obs, channel_units), (const, CONSTANT_UNITS)):
         for name, unit in units.items():
             ds[name].attrs["units"] = unit
         ds["time"].attrs["units"] = "s"

@@ -39,7 +39,7 @@ from tembayes.errors import DataError, ModelError, TembayesError
 from tembayes.physics import effects as E
 from tembayes.physics.effects import EFFECT_PARAMETERS
 from tembayes.predict.anchor import UNPINNED_FRACTION, anchor_rig, unpinned
-from tembayes.predict.runmodel import CHANNELS, RunModel
+from tembayes.predict.runmodel import RunModel
 
 #: Central band levels [%] (docs/outputs.md, 'metrics.json (predict)').
 LEVELS = (50, 90, 95)
@@ -161,13 +161,14 @@ def posterior_draws(raw, priors, label, identification, rig, *, laws="linear"):
         names = tuple(names) + ("K_W_per_K",)
     elif laws != "linear":
         raise ValueError(f"laws must be 'linear' or 'constant', got {laws!r}")
-    a = anchor_rig(RunModel(identification, rig), raw, names, fixed=fixed)
+    model = RunModel(identification, rig)
+    a = anchor_rig(model, raw, names, fixed=fixed)
     params = {k: a.draws[k] for k in _sim_names(a.draws, rig)}
     for k in params:
         if k in EFFECT_PARAMETERS and E.CATALOGUE[EFFECT_PARAMETERS[k]].parameter(k).nonnegative:
             params[k] = np.maximum(params[k], 0.0)
-    sd = np.array([a.residual[c].sd for c in CHANNELS])
-    tau = np.array([a.residual[c].tau_s for c in CHANNELS])
+    sd = np.array([a.residual[c].sd for c in model.channels])
+    tau = np.array([a.residual[c].tau_s for c in model.channels])
     M = len(params["R0_ohm"])
     return PredictiveDraws(
         params=params,
@@ -235,8 +236,9 @@ def population_draws(run, module_draws_by_id, rng, n):
     params = {k: pop[rows, j] for j, k in enumerate(MODULE_PARAMETERS)}
     rig_names = [k for k in module_draws_by_id[ids[0]].params if k not in MODULE_PARAMETERS]
     out = {k: np.empty(n) for k in rig_names}
-    noise = np.empty((n, len(CHANNELS)))
-    tau = np.empty((n, len(CHANNELS)))
+    nch = module_draws_by_id[ids[0]].noise_sd.shape[1]
+    noise = np.empty((n, nch))
+    tau = np.empty((n, nch))
     for i, mid in enumerate(ids):
         sel = np.flatnonzero(which == i)
         d = module_draws_by_id[mid]
@@ -280,15 +282,16 @@ class Prediction:
     time : ndarray, shape (n,)
         [s].
     channels : tuple of str
-        :data:`~tembayes.predict.runmodel.CHANNELS`.
-    measured, mean, median : ndarray, shape (5, n)
-        Measured values, predictive mean and median (K for T1..T4, V).
+        The rig's sensor columns and ``voltage_V``
+        (:attr:`~tembayes.predict.runmodel.RunModel.channels`).
+    measured, mean, median : ndarray, shape (nch, n)
+        Measured values, predictive mean and median (K for the sensors, V).
     bands : dict
-        Level [%] -> ``(lower, upper)``, each ``(5, n)``: the central band of
+        Level [%] -> ``(lower, upper)``, each ``(nch, n)``: the central band of
         the predictive (measurement noise included).
     tavg : ndarray, shape (n,)
-        Measured ``(T2 + T3)/2`` [K], the stand-in for T-bar in the error
-        summary.
+        The measured mean of the two face sensors [K], the stand-in for
+        T-bar in the error summary.
     current : ndarray, shape (n,)
         Measured current [A].
     n_draws : int
@@ -296,10 +299,10 @@ class Prediction:
         Wall time of the simulation and the bands.
     since_step : ndarray, shape (n,), optional
         Time since the last current step [s] (since the start before the first).
-    deviations : ndarray, shape (M, 5, n), optional
+    deviations : ndarray, shape (M, nch, n), optional
         The draws' noise-free predictions minus ``mean`` (float32), kept with
         ``keep_draws=True`` for posterior-predictive checks.
-    noise_sd, noise_tau : ndarray, shape (M, 5), optional
+    noise_sd, noise_tau : ndarray, shape (M, nch), optional
         The draws' residual processes (kept with ``keep_draws=True``).
     n_failed : int
         Draws the rig could not simulate, left out (at most
@@ -307,9 +310,13 @@ class Prediction:
     start_current : float or None
         The pre-history current the run's initial state was taken from [A]
         (:meth:`~tembayes.predict.runmodel.RunModel.fit_start`).
-    predictive : ndarray, shape (M, 5, n), optional
+    predictive : ndarray, shape (M, nch, n), optional
         Every draw's prediction with its noise, the values the bands are
         quantiles of (float32; kept with ``keep_predictive=True``).
+    face : tuple of str
+        The hot- and cold-face sensor columns (``tavg`` is their mean).
+    labels : dict of str to str
+        Channel -> a label for figures (where the sensor sits).
     """
 
     source: str
@@ -332,14 +339,16 @@ class Prediction:
     n_failed: int = 0
     start_current: float | None = None
     predictive: np.ndarray | None = None
+    face: tuple = ()
+    labels: dict = field(default_factory=dict)
 
     @property
     def residual(self):
-        """Measured minus predictive mean, ``(5, n)``."""
+        """Measured minus predictive mean, ``(nch, n)``."""
         return self.measured - self.mean
 
     def coverage(self, level):
-        """Fraction of samples inside the central ``level`` % band, per channel ``(5,)``."""
+        """Fraction of samples inside the central ``level`` % band, per channel ``(nch,)``."""
         lo, hi = self.bands[level]
         return np.mean((self.measured >= lo) & (self.measured <= hi), axis=1)
 
@@ -360,7 +369,7 @@ class Prediction:
         }
 
     def by_tavg(self, width=TAVG_BIN_K, min_samples=30):
-        """RMSE per channel in bins of T-bar (measured ``(T2 + T3)/2``).
+        """RMSE per channel in bins of T-bar (the measured mean of the face sensors).
 
         Returns
         -------
@@ -420,7 +429,7 @@ def simulate_predictive(model, draws, rng, *, progress=None, keep_draws=False, k
     n = len(model.time)
     if model.start == "data" and model.start_current is None:  # the run's initial state, from its first minute
         model.fit_start({k: float(np.median(v)) for k, v in draws.params.items()})
-    Y = np.empty((M, len(CHANNELS), n))
+    Y = np.empty((M, len(model.channels), n))
     # one phase per draw, common to the run's steps (see RunModel), unless the run's is given
     drawn = rng.uniform(-1.0, 1.0, M) * model.shift_bound
     shift = drawn if shift is None else np.full(M, float(shift))
@@ -428,8 +437,8 @@ def simulate_predictive(model, draws, rng, *, progress=None, keep_draws=False, k
         b = min(a + CHUNK, M)
         params = {k: np.asarray(v)[a:b] for k, v in draws.params.items()}
         sens, volt = model.simulate(params, shift[a:b], strict=False)  # a failed draw comes back NaN
-        Y[a:b, :4] = sens
-        Y[a:b, 4] = volt
+        Y[a:b, :-1] = sens
+        Y[a:b, -1] = volt
         if progress:
             progress(f"  predictive draws {b}/{M}")
     ok = np.all(np.isfinite(Y), axis=(1, 2))
@@ -457,8 +466,9 @@ def simulate_predictive(model, draws, rng, *, progress=None, keep_draws=False, k
     Q = np.quantile(Y, qs, axis=0)
     qi = {q: i for i, q in enumerate(qs)}
     bands = {lv: (Q[qi[0.5 - lv / 200.0]], Q[qi[0.5 + lv / 200.0]]) for lv in LEVELS}
-    measured = np.vstack([np.asarray(exp.sensors, float), np.asarray(exp.voltage, float)[None]])
-    tavg = 0.5 * (measured[1] + measured[2])
+    measured = model.measured
+    hot, cold = (model.channels.index(c) for c in model.rig.layout.face)
+    tavg = 0.5 * (measured[hot] + measured[cold])
     starts = np.concatenate([[model.time[0]], model.step_time])
     since = model.time - starts[model.sample_hold]
     return Prediction(
@@ -466,7 +476,7 @@ def simulate_predictive(model, draws, rng, *, progress=None, keep_draws=False, k
         label=draws.label,
         laws=draws.laws,
         time=model.time.copy(),
-        channels=CHANNELS,
+        channels=model.channels,
         measured=measured,
         mean=mean,
         median=Q[qi[0.5]],
@@ -482,6 +492,8 @@ def simulate_predictive(model, draws, rng, *, progress=None, keep_draws=False, k
         n_failed=n_failed,
         start_current=model.start_current,
         predictive=Y.astype(np.float32) if keep_predictive else None,
+        face=model.rig.layout.face,
+        labels={**{c: model.rig.layout.describe(c) for c in model.sensor_channels}, "voltage_V": "voltage"},
     )
 
 
@@ -518,7 +530,7 @@ class PredictResult:
                 "n_draws": self.linear.n_draws,
                 "seed": self.seed,
                 "levels_percent": list(LEVELS),
-                "units": {"T1_C": "K (= degC difference)", "T2_C": "K", "T3_C": "K", "T4_C": "K", "voltage_V": "V"},
+                "units": {c: "K (= degC difference)" if c.endswith("_C") else "V" for c in self.linear.channels},
                 "rmse_about": "the posterior-predictive mean",
                 "by_Tavg": self.linear.by_tavg(),
                 "anchor": self.draws.anchor,

@@ -1,11 +1,11 @@
 """A whole experiment as the calibration model sees it, for many draws at once.
 
 The calibration looks at step windows; prediction needs every sample of a run
-(all four block sensors and the voltage).  :class:`RunModel` simulates a run
+(every sensor of the rig and the voltage).  :class:`RunModel` simulates a run
 the way :class:`~tembayes.calibrate.model.StepResponseModel` simulates the
 windows -- the same rig, the current as the ideal staircase of the measured
 hold levels (the amplifier's current is clean; the shunt's 1 mA noise is the
-*measurement's*), the smoothed water and ambient temperatures, and every
+*measurement's*), the smoothed boundary temperatures, and every
 current step at its own instant within its sampling interval -- but over the
 whole run:
 
@@ -48,10 +48,8 @@ from tembayes.errors import DataError, ModelError
 from tembayes.physics import effects
 from tembayes.physics.simulate import build, integrate_on_grids
 
-#: Sensor channels in the order of the sensor axis (docs/data-format.md, 'CSV columns').
-SENSOR_CHANNELS = ("T1_C", "T2_C", "T3_C", "T4_C")
-#: All predicted channels (``metrics.json``): the sensors and the voltage.
-CHANNELS = SENSOR_CHANNELS + ("voltage_V",)
+#: The voltage channel, predicted after the rig's sensors (``metrics.json``).
+VOLTAGE = "voltage_V"
 
 #: Integrator tolerance [K], as in the calibration.
 ATOL = 1e-4
@@ -75,7 +73,7 @@ class RunModel:
     spacing : float, optional
         Grid spacing elsewhere [s].
     smooth : float, optional
-        Moving-average width of the water and ambient inputs [s].
+        Moving-average width of the boundary inputs [s].
     atol, hmax : float, optional
         Integrator tolerance [K] and largest step [s].
     start : {"steady", "data"}
@@ -85,6 +83,12 @@ class RunModel:
 
     Attributes
     ----------
+    sensor_channels : tuple of str
+        The rig's sensor columns, the order of every sensor axis.
+    channels : tuple of str
+        ``sensor_channels`` and ``"voltage_V"``: the predicted channels.
+    measured : ndarray, shape (nch, n)
+        The run's measured channels in that order (K, V).
     time : ndarray, shape (n,)
         The run's sample times [s].
     step_time, step_window : ndarray, shape (ns,)
@@ -102,6 +106,16 @@ class RunModel:
             raise ValueError(f"start must be 'steady' or 'data', got {start!r}")
         self.exp = exp
         self.rig = rig
+        self.sensor_channels = tuple(rig.sensors)
+        self.channels = self.sensor_channels + (VOLTAGE,)
+        missing = [c for c in self.channels if c not in exp.columns]
+        if missing:
+            raise DataError(
+                str(exp.path),
+                f"the run has no column {missing[0]!r}, which rig '{rig.name}' reads",
+                "Predict a run recorded on the calibration's rig (its columns: " + ", ".join(self.channels) + ")",
+            )
+        self.measured = np.vstack([np.asarray(exp.channel(c), float) for c in self.channels])
         self.start = start
         self.start_current = None
         self.atol = float(atol)
@@ -150,10 +164,8 @@ class RunModel:
         hold[pos_step] = np.arange(ns)
         hold[pos_step + 1] = np.arange(ns) + 1
         self._grid_hold = hold
-        tw = _smooth(t, np.asarray(exp.t_water, float), smooth)
-        ta = _smooth(t, np.asarray(exp.t_amb, float), smooth)
-        self._tw = np.interp(grid, t, tw)
-        self._ta = np.interp(grid, t, ta)
+        bounds = [exp.channel(c) for c in rig.boundaries.values()]
+        self._bounds = np.array([np.interp(grid, t, _smooth(t, np.asarray(b, float), smooth)) for b in bounds])
         self.shift_bound = sg.shift_bound
         # segments (holds) for the interpolation: grid samples and all samples per hold
         self._segments = []
@@ -198,14 +210,14 @@ class RunModel:
 
         Returns
         -------
-        sensors : ndarray, shape (nd, 4, n)
-            T1..T4 [K].
+        sensors : ndarray, shape (nd, ns, n)
+            The rig's sensors (:attr:`sensor_channels`) [K].
         voltage : ndarray, shape (nd, n)
             Terminal voltage [V].
         """
         m = build(params, self.rig)
         nd = m["nd"]
-        a, b, f = self.rig.readout(SENSOR_CHANNELS, m["params"])
+        a, b, f = self.rig.readout(self.sensor_channels, m["params"])
         rec = np.concatenate([a, b]).astype(np.int64)
         shift = np.broadcast_to(np.atleast_1d(np.asarray(shift, dtype=float)), (nd,))
         G = self.grid(shift)
@@ -215,9 +227,9 @@ class RunModel:
         G = np.concatenate([G[:, :1] - 1e-3, G], axis=1)
         first = Ic[:, :1] if start is None else np.broadcast_to(np.asarray(start, float), (nd,))[:, None]
         Ic = np.ascontiguousarray(np.concatenate([first, Ic], axis=1))
-        tw, ta = np.concatenate([self._tw[:1], self._tw]), np.concatenate([self._ta[:1], self._ta])
+        bounds = np.concatenate([self._bounds[:, :1], self._bounds], axis=1)
         y0 = self._initial_states(m, Ic[:, 0], G[:, 0], (a, b, f)) if self.start == "data" else None
-        out, volt, failed, _ = integrate_on_grids(m, G, Ic, tw, ta, rec, self.atol, self.hmax, y0=y0)
+        out, volt, failed, _ = integrate_on_grids(m, G, Ic, bounds, rec, self.atol, self.hmax, y0=y0)
         if strict and np.any(failed):
             raise ModelError(
                 f"the simulation of {self.exp.path} failed for {int(failed.sum())} of {nd} draws "
@@ -239,14 +251,13 @@ class RunModel:
 
     @cached_property
     def noise(self):
-        """White measurement noise of T1..T4 and the voltage, ``(5,)`` (K, V).
+        """White measurement noise of every channel (:attr:`channels`), ``(nch,)`` (K, V).
 
         Read off the run (:func:`~tembayes.data.quality.noise_estimate`:
         second differences, robust), so a model's misfit never enters it; a
         channel without any gets 1e-4.
         """
-        ys = [np.asarray(self.exp.sensors[c], float) for c in range(4)] + [np.asarray(self.exp.voltage, float)]
-        sd = np.array([noise_estimate(y) for y in ys])
+        sd = np.array([noise_estimate(y) for y in self.measured])
         return np.where(np.isfinite(sd) & (sd > 0), sd, 1e-4)
 
     def fit_phase(self, params, n=21):
@@ -256,8 +267,8 @@ class RunModel:
         interval, see the module docstring) belongs to the run's clocks, not
         to the module: a model compared with a run may take it from the run.
         It matters for minutes: a step 0.45 s late moves a heat impulse of
-        ``S T dI`` x 0.45 s (~7 J at 1 A) into a block, ~0.1 K on T3 that
-        decays with the block.  Least squares over the four sensors and the
+        ``S T dI`` x 0.45 s (~7 J at 1 A) into a block, ~0.1 K on the reference rig's cold-face sensor that
+        decays with the block.  Least squares over the sensors and the
         voltage (each scaled by its measurement noise) on ``n`` phases across
         the interval, refined by the parabola through the best three.
 
@@ -278,9 +289,9 @@ class RunModel:
         P = {k: np.repeat(np.ravel(np.asarray(v, float))[:1], n) for k, v in params.items()}
         sens, volt = self.simulate(P, s, at="grid", strict=False)
         idx = self.grid_samples
-        y = np.vstack([np.asarray(self.exp.sensors, float)[:, idx], np.asarray(self.exp.voltage, float)[idx][None]])
+        y = self.measured[:, idx]
         # the weights from the samples compared (the grid's), as the benchmark ran;
-        # there second differences see some of the blocks' response on T3/T4
+        # there second differences see some of the blocks' response on the far sensors
         sd = np.array([noise_estimate(np.asarray(y[c], float)) for c in range(len(y))])
         sd = np.where(np.isfinite(sd) & (sd > 0), sd, 1e-3)
         F = np.concatenate([sens, volt[:, None]], axis=1)
@@ -308,8 +319,7 @@ class RunModel:
             m,
             G,
             I,
-            np.full(2, self._tw[0]),
-            np.full(2, self._ta[0]),
+            np.repeat(self._bounds[:, :1], 2, axis=1),
             np.arange(N, dtype=np.int64),
             self.atol,
             self.hmax,
@@ -329,7 +339,7 @@ class RunModel:
         root = np.sqrt(net.C)
         w, U = np.linalg.eigh(L / root[:, :, None] / root[:, None, :])
         V = U[:, :, -modes:] / root[:, :, None]  # the slowest: eigenvalues nearest zero
-        first = np.asarray(self.exp.sensors, float)[:, 0]
+        first = self.measured[:-1, 0]
         a, b, f = readout
         M = V[:, a, :] + f[:, :, None] * (V[:, b, :] - V[:, a, :])
         r = first[None] - (xs[:, a] + f * (xs[:, b] - xs[:, a]))
@@ -343,7 +353,7 @@ class RunModel:
         """Take the run's initial state from its first minute; sets and returns :attr:`start_current`.
 
         The pre-history current whose steady state, followed by the run's own
-        current, fits the four sensors and the voltage over the first
+        current, fits the sensors and the voltage over the first
         :data:`START_WINDOW_S` seconds best (least squares, each channel in
         units of its noise), on
         ``n`` currents across +-:data:`START_SPAN` x the run's largest level,
@@ -367,11 +377,11 @@ class RunModel:
         sens, volt = self.simulate(P, 0.0, at="grid", strict=False, start=cand)
         idx = self.grid_samples
         early = self.time[idx] <= self.time[0] + START_WINDOW_S
-        y = np.asarray(self.exp.sensors, float)[:, idx][:, early]
-        v = np.asarray(self.exp.voltage, float)[idx][early]
+        y = self.measured[:-1, idx][:, early]
+        v = self.measured[-1, idx][early]
         # the voltage too: it reads the junctions, whose fast modes the block sensors barely see
-        cost = np.sum(((y[None] - sens[:, :, early]) / self.noise[None, :4, None]) ** 2, axis=(1, 2)) + np.sum(
-            ((v[None] - volt[:, early]) / self.noise[4]) ** 2, axis=1
+        cost = np.sum(((y[None] - sens[:, :, early]) / self.noise[None, :-1, None]) ** 2, axis=(1, 2)) + np.sum(
+            ((v[None] - volt[:, early]) / self.noise[-1]) ** 2, axis=1
         )
         cost = np.where(np.isfinite(cost), cost, np.inf)
         k = int(np.argmin(cost))

@@ -31,13 +31,12 @@ _UNITS = {  # display unit and factor (display = SI x factor)
     "S1_V_per_K2": ("S1", "µV/K²", 1e6),
     "K_W_per_K": ("K", "W/K", 1.0),
 }
-_CHANNEL_UNITS = {
-    "T1_C": ("T1", "mK", 1e3),
-    "T2_C": ("T2", "mK", 1e3),
-    "T3_C": ("T3", "mK", 1e3),
-    "T4_C": ("T4", "mK", 1e3),
-    "voltage_V": ("V", "mV", 1e3),
-}
+
+
+def _channel_unit(column):
+    """Display name, unit and factor of a predicted channel: a sensor column in mK, the voltage in mV."""
+    return ("V", "mV", 1e3) if column == "voltage_V" else (column.removesuffix("_C"), "mK", 1e3)
+
 
 _CSS = """
 body{font-family:system-ui,-apple-system,"Segoe UI",Roboto,sans-serif;margin:0 auto;max-width:1180px;padding:1em 2em;
@@ -139,6 +138,8 @@ def _overview(rep):
         ["batch folder", f"<code>{_e(o['batch'])}</code>"],
         ["run folder", f"<code>{_e(o['run'])}</code>"],
         ["calibration rig model", _e(o.get("rig") or "–")],
+        ["rig sensors", "<br>".join(_e(d) for d in o.get("sensors", {}).values()) or "–"],
+        ["rig boundaries", _e(", ".join(o.get("boundaries", [])) or "–")],
         [
             "calibration model",
             _e(_MODELS.get(o.get("model", "paper"), o.get("model")))
@@ -153,6 +154,8 @@ def _overview(rep):
 
 
 def _quality(rep):
+    hot, cold = rep.overview["face_sensors"]
+    h, c = hot.removesuffix("_C"), cold.removesuffix("_C")
     rows = []
     for q in rep.quality:
         rows.append(
@@ -163,10 +166,10 @@ def _quality(rep):
                 f"{q['duration_s'] / 3600:.2f}",
                 f"{q['dt_median_s']:.3g}",
                 f"{q['current_min_A']:.2f} … {q['current_max_A']:.2f}",
-                f"{q['T2_C_min']:.1f} … {q['T2_C_max']:.1f}",
-                f"{q['T3_C_min']:.1f} … {q['T3_C_max']:.1f}",
+                f"{q[hot + '_min']:.1f} … {q[hot + '_max']:.1f}",
+                f"{q[cold + '_min']:.1f} … {q[cold + '_max']:.1f}",
                 f"{1e3 * q['voltage_V_noise']:.2f}",
-                f"{1e3 * q['T3_C_noise']:.2f}",
+                f"{1e3 * q[cold + '_noise']:.2f}",
                 f"{1e3 * q['current_A_noise']:.2f}",
             ]
         )
@@ -178,10 +181,10 @@ def _quality(rep):
             "hours",
             "Δt median [s]",
             "current [A]",
-            "T2 [°C]",
-            "T3 [°C]",
+            f"{h} [°C]",
+            f"{c} [°C]",
             "V noise [mV]",
-            "T3 noise [mK]",
+            f"{c} noise [mK]",
             "I noise [mA]",
         ],
         rows,
@@ -340,19 +343,21 @@ def _adequacy(rep):
 def _validation(rep):
     if not rep.validation:
         return "<p>No validation runs in this report.</p>"
+    channels = list(dict.fromkeys(c for v in rep.validation for c in v["channels"]))
+    units = {c: _channel_unit(c) for c in channels}
     header = (
         ["module", "run"]
-        + [f"{_CHANNEL_UNITS[c][0]} RMSE [{_CHANNEL_UNITS[c][1]}]" for c in _CHANNEL_UNITS]
-        + [f"{_CHANNEL_UNITS[c][0]} cover 50/90/95 %" for c in _CHANNEL_UNITS]
+        + [f"{units[c][0]} RMSE [{units[c][1]}]" for c in channels]
+        + [f"{units[c][0]} cover 50/90/95 %" for c in channels]
         + ["source"]
     )
     rows = []
     for v in rep.validation:
         ch = v["channels"]
         cells = [_e(v["module"]), _e(v["experiment"])]
-        for c, (_, _, f) in _CHANNEL_UNITS.items():
-            cells.append(_num(ch.get(c, {}).get("rmse", float("nan")) * f, "{:.3g}"))
-        for c in _CHANNEL_UNITS:
+        for c in channels:
+            cells.append(_num(ch.get(c, {}).get("rmse", float("nan")) * units[c][2], "{:.3g}"))
+        for c in channels:
             m = ch.get(c, {})
             cov90 = m.get("coverage90", float("nan"))
             cls = "warn" if math.isfinite(cov90) and not 0.8 <= cov90 <= 0.97 else ""

@@ -1,0 +1,165 @@
+"""Where a rig's sensors sit: sides of the module, the face sensors, heat paths.
+
+Every stage that reads temperatures by role asks the rig's graph, not a list
+of column names: the sensor next to each module face (their difference
+carries the module's response), which sensors are on the hot and which on
+the cold side, and the series heat paths from a boundary through the
+sensors to a face (the preflight's sensor-order check).
+
+    >>> from tembayes.physics import REFERENCE
+    >>> REFERENCE.layout.face                      # doctest: +SKIP
+    ('T2_C', 'T3_C')
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from tembayes.physics.rig import RigDescription
+
+__all__ = ["Layout", "BASE_COLUMNS", "sensor_layout"]
+
+#: The columns every experiment CSV has before its rig's temperature columns.
+BASE_COLUMNS = ("time_s", "current_A", "voltage_V")
+#: The module's thermal conductance [W/K] in :attr:`Layout.slowest_tau_s` (a TEC1-12706's).
+TAU_MODULE_K = 0.5
+
+
+@dataclass(frozen=True)
+class Layout:
+    """A rig's measured columns and the sensors' places in its network.
+
+    Attributes
+    ----------
+    sensors : tuple of str
+        Sensor columns, in the rig file's order.
+    boundaries : tuple of str
+        Boundary columns, in the rig's boundary order.
+    nodes : dict of str to str
+        Sensor column -> the node it reads.
+    hot_side, cold_side : tuple of str
+        Sensor columns on each side of the module, nearest the face first.
+    face : tuple of (str, str)
+        ``(hot, cold)``: the sensor nearest each module face.
+    paths : tuple of tuple of str
+        Series heat paths, one per side with a boundary: the boundary
+        column that feeds the side most, then that side's sensors from the
+        farthest to the face sensor.
+    leak_boundary : str
+        The boundary (its name in the rig) linked to the most nodes: the
+        room the rig leaks to, where the ``ambient_leak`` effect adds its
+        conductance.
+    slowest_tau_s : float
+        The network's slowest time constant at nominal values, the module a
+        conductance of :data:`TAU_MODULE_K` [s]: how fast the rig settles.
+    """
+
+    sensors: tuple
+    boundaries: tuple
+    nodes: dict
+    hot_side: tuple
+    cold_side: tuple
+    face: tuple
+    paths: tuple
+    leak_boundary: str
+    slowest_tau_s: float
+
+    @property
+    def temperatures(self) -> tuple[str, ...]:
+        """All temperature columns: sensors, then boundaries."""
+        return self.sensors + self.boundaries
+
+    @property
+    def csv_columns(self) -> tuple[str, ...]:
+        """The columns an experiment CSV on this rig must carry."""
+        return BASE_COLUMNS + self.temperatures
+
+    def describe(self, column: str) -> str:
+        """A short label for a temperature column: ``"T2_C (hot side, at node top_6)"``."""
+        if column in self.boundaries:
+            return f"{column} (boundary)"
+        side = "hot side" if column in self.hot_side else "cold side"
+        at = ", at the module face" if column in self.face else ""
+        return f"{column} ({side}{at}, node {self.nodes[column]})"
+
+
+def sensor_layout(rig: RigDescription) -> Layout:
+    """The :class:`Layout` of ``rig``, read from its links.
+
+    A sensor belongs to the side whose module face it is fewer links from
+    (the legs are not links, and boundaries are not crossed).
+    """
+    neighbours = {n: [] for n in rig.node_names}
+    feeds = {}  # node -> [(boundary, nominal conductance)]
+    nominal = rig.nominal()
+    for a, b, expr in rig.links:
+        if a in rig.boundaries or b in rig.boundaries:
+            node, bnd = (b, a) if a in rig.boundaries else (a, b)
+            feeds.setdefault(node, []).append((bnd, float(rig.evaluate(expr, nominal))))
+        else:
+            neighbours[a].append(b)
+            neighbours[b].append(a)
+    hot, cold = rig.module_faces
+    d_hot, d_cold = _hops(neighbours, hot), _hops(neighbours, cold)
+    far = len(neighbours) + 1
+    sides = {"hot": [], "cold": []}
+    for col, node in rig.sensors.items():
+        dh, dc = d_hot.get(node, far), d_cold.get(node, far)
+        sides["hot" if dh <= dc else "cold"].append((dh if dh <= dc else dc, col))
+    ordered = {k: tuple(c for _, c in sorted(v, key=lambda x: x[0])) for k, v in sides.items()}
+    paths = []
+    for side, dist in (("hot", d_hot), ("cold", d_cold)):
+        if not ordered[side]:
+            continue
+        total = {}
+        for node in dist:
+            for bnd, g in feeds.get(node, ()):
+                total[bnd] = total.get(bnd, 0.0) + g
+        if total:
+            bnd = max(total, key=total.get)
+            paths.append((rig.boundaries[bnd], *ordered[side][::-1]))
+    hot_side, cold_side = ordered["hot"], ordered["cold"]
+    linked = {bnd: sum(any(b == bnd for b, _ in f) for f in feeds.values()) for bnd in rig.boundaries}
+    return Layout(
+        sensors=tuple(rig.sensors),
+        boundaries=tuple(rig.boundaries.values()),
+        nodes=dict(rig.sensors),
+        hot_side=hot_side,
+        cold_side=cold_side,
+        face=(hot_side[0] if hot_side else None, cold_side[0] if cold_side else None),
+        paths=tuple(paths),
+        leak_boundary=max(reversed(tuple(linked)), key=linked.get),
+        slowest_tau_s=_slowest_tau(rig),
+    )
+
+
+def _slowest_tau(rig: RigDescription) -> float:
+    """The slowest time constant of ``C dT/dt = -L T`` with the module as a conductance along its chain [s]."""
+    net = rig.network()
+    chain = [net.index(n) for n in rig.tem_chain]
+    G = net.G[0].copy()
+    g = TAU_MODULE_K * (len(chain) - 1)
+    for a, b in zip(chain[:-1], chain[1:]):
+        G[a, b] += g
+        G[b, a] += g
+    L = np.diag(G.sum(axis=1) + net.Gb[0].sum(axis=1)) - G
+    s = 1.0 / np.sqrt(net.C[0])
+    return float(1.0 / np.linalg.eigvalsh(s[:, None] * L * s[None, :]).min())
+
+
+def _hops(neighbours: dict, start: str) -> dict:
+    """Links from ``start`` to every node reachable from it (breadth first)."""
+    dist = {start: 0}
+    queue = deque([start])
+    while queue:
+        n = queue.popleft()
+        for m in neighbours[n]:
+            if m not in dist:
+                dist[m] = dist[n] + 1
+                queue.append(m)
+    return dist

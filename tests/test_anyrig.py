@@ -1,0 +1,193 @@
+"""Every stage on rigs other than the reference one: layout, simulator, bench, preflight, step data."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tembayes.bench import BenchConfig, simulate_batch
+from tembayes.bench.anyrig import mounting_parameters
+from tembayes.constants import KELVIN
+from tembayes.data import load_batch
+from tembayes.errors import DataError, ModelError
+from tembayes.physics import Inputs, shipped_rig, simulate
+from tembayes.physics.rigread import REFERENCE, rig_from_config
+
+PAPER = {"R0_ohm": 1.7, "R1_ohm_per_K": 0.0085, "S0_V_per_K": 0.048, "S1_V_per_K2": 1e-4, "K_W_per_K": 0.54}
+
+
+@pytest.mark.parametrize(
+    "name, face, hot, cold, paths",
+    [
+        ("reference", ("T2_C", "T3_C"), ("T2_C", "T1_C"), ("T3_C", "T4_C"),
+         (("T_water_C", "T1_C", "T2_C"), ("T_amb_C", "T4_C", "T3_C"))),
+        ("reference-faces", ("T2_C", "T3_C"), ("T2_C",), ("T3_C",), (("T_water_C", "T2_C"), ("T_amb_C", "T3_C"))),
+        ("heatsink-al", ("T_hot_C", "T_cold_C"), ("T_hot_C",), ("T_cold_C", "T_load_C"),
+         (("T_amb_C", "T_hot_C"), ("T_amb_C", "T_load_C", "T_cold_C"))),
+        ("liquid-plates", ("T_hot_C", "T_cold_C"), ("T_hot_C",), ("T_cold_C",),
+         (("T_hot_liquid_C", "T_hot_C"), ("T_cold_liquid_C", "T_cold_C"))),
+    ],
+)  # fmt: skip
+@pytest.mark.parametrize("resolution", [{}, {"leg_cells": 3, "split": 5, "layers": True}])
+def test_layout_reads_the_sensors_places_from_the_graph(name, face, hot, cold, paths, resolution):
+    """The face sensors, the sides and the heat paths do not depend on the resolution the rig is built at."""
+    layout = shipped_rig(name).build(**resolution).layout
+    assert layout.face == face and layout.hot_side == hot and layout.cold_side == cold
+    assert layout.paths == paths
+    assert layout.leak_boundary == "ambient"
+
+
+def test_reference_layout_is_the_contract_default():
+    layout = REFERENCE.layout
+    assert layout.csv_columns == (
+        "time_s", "current_A", "voltage_V", "T1_C", "T2_C", "T3_C", "T4_C", "T_water_C", "T_amb_C",
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize("name", ["heatsink-al", "liquid-plates"])
+def test_at_zero_current_the_rig_settles_between_its_boundaries(name):
+    """One, two or three boundaries: with no heat source every node ends inside their range, and with all
+    boundaries at one temperature exactly there."""
+    rig = shipped_rig(name).build(leg_cells=2, split=3, layers=True)
+    nb = len(rig.boundaries)
+    t = np.linspace(0.0, 20000.0, 401)
+    levels = 290.0 + 5.0 * np.arange(nb)
+    start = np.full(len(rig.node_names), 330.0)
+    sim = simulate(
+        Inputs(t, np.zeros_like(t), np.repeat(levels[:, None], len(t), axis=1)),
+        PAPER,
+        rig=rig,
+        y0=start,
+        steady_start=False,
+    )
+    end = sim.sensors[0, :, -1]
+    assert np.all(end >= levels.min() - 1e-6) and np.all(end <= levels.max() + 1e-6)
+    same = simulate(Inputs(t, np.zeros_like(t), np.full((nb, len(t)), 300.0)), PAPER, rig=rig)
+    np.testing.assert_allclose(same.sensors[0], 300.0, atol=1e-9)
+
+
+def test_inputs_with_another_number_of_boundaries_are_refused():
+    rig = shipped_rig("heatsink-al").build()
+    t = np.arange(3.0)
+    with pytest.raises(ModelError, match="2 boundary temperature.*'heatsink-al' has 1 \\(T_amb_C\\)"):
+        simulate(Inputs(t, np.zeros(3), np.full((2, 3), 300.0)), PAPER, rig=rig)
+
+
+def test_mounting_parameters_are_the_module_and_its_contacts():
+    assert mounting_parameters(rig_from_config(None, 2, 3, layers=True)) == {
+        "c_legs", "c_plate_hot", "c_plate_cold", "g_ceramic", "g_paste_hot", "g_paste_cold",
+    }  # fmt: skip
+    assert mounting_parameters(shipped_rig("heatsink-al").build(layers=True)) == {
+        "c_legs", "c_plate", "g_ceramic", "g_paste",
+    }  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def heatsink_batch(tmp_path_factory):
+    out = tmp_path_factory.mktemp("anyrig") / "batch"
+    config = BenchConfig(n_modules=2, seed=5, n_validations=0, hold=300.0, rig={"preset": "heatsink-al"})
+    truth = simulate_batch(out, config, progress=lambda msg: None)
+    return out, truth
+
+
+def test_bench_writes_the_rigs_columns_and_rig_entry(heatsink_batch):
+    out, truth = heatsink_batch
+    assert (out / "TEM1" / "identification.csv").read_text().splitlines()[0] == (
+        "time_s,current_A,voltage_V,T_hot_C,T_cold_C,T_load_C,T_amb_C"
+    )
+    assert '[rig]\npreset = "heatsink-al"' in (out / "batch.toml").read_text()
+    batch = load_batch(out)
+    exp = batch.modules["TEM2"].identification
+    assert exp.boundary_names == ("T_amb_C",) and batch.layout.face == ("T_hot_C", "T_cold_C")
+    # the module's mounting drawn per module, the rig's own values once for the batch
+    a, b = (truth["modules"][m]["rig_bench"] for m in ("TEM1", "TEM2"))
+    assert a["g_sink"] == b["g_sink"] and a["c_sink"] == b["c_sink"]
+    assert a["g_paste"] != b["g_paste"] and a["c_plate"] != b["c_plate"]
+    p = {q.name: q for q in shipped_rig("heatsink-al").parameters}
+    assert all(p[k].low <= v <= p[k].high for k, v in a.items() if k in p)
+    # heating the hot side: the sink side's sensor warms above the room, the load cools below it
+    i = np.argmax(exp.current)
+    assert exp.channel("T_hot_C")[i] > exp.channel("T_amb_C")[i] > exp.channel("T_cold_C")[i]
+
+
+def test_bench_copies_a_rig_file_into_the_batch(tmp_path):
+    rig_file = tmp_path / "mine.toml"
+    rig_file.write_text(shipped_rig("liquid-plates").path.read_text())
+    out = tmp_path / "batch"
+    config = BenchConfig(n_modules=1, seed=1, n_validations=0, hold=60.0, rig={"file": str(rig_file)}, physics="paper")
+    simulate_batch(out, config, progress=lambda msg: None)
+    assert (out / "rig.toml").read_text() == rig_file.read_text()
+    assert '[rig]\nfile = "rig.toml"' in (out / "batch.toml").read_text()
+    batch = load_batch(out)
+    exp = batch.modules["TEM1"].identification
+    assert exp.boundary_names == ("T_hot_liquid_C", "T_cold_liquid_C", "T_amb_C")
+    # a run records the rig file's digest with the batch's inputs
+    from tembayes.data.digest import batch_inputs, file_sha256
+
+    assert batch_inputs(batch)["rig.toml"] == file_sha256(rig_file)
+
+
+def test_out_of_model_bench_is_the_reference_rigs_only():
+    with pytest.raises(ModelError, match="reference rig only"):
+        BenchConfig(fidelity="high", rig={"preset": "heatsink-al"})
+
+
+def test_swapped_sensors_on_a_heat_path_are_refused_by_name(heatsink_batch, tmp_path):
+    """The load and the cold-plate thermocouple swapped: the path T_amb -> T_load -> T_cold runs backwards."""
+    import shutil
+
+    from tembayes.data import write_experiment_csv
+    from tembayes.data.write import experiment_from_arrays
+
+    out, _ = heatsink_batch
+    copy = tmp_path / "swapped"
+    shutil.copytree(out, copy)
+    exp = load_batch(out).modules["TEM1"].identification
+    swapped = experiment_from_arrays(
+        exp.time,
+        exp.current,
+        exp.voltage,
+        exp.sensors[[0, 2, 1]],
+        exp.boundaries,
+        sensor_names=exp.sensor_names,
+        boundary_names=exp.boundary_names,
+    )
+    write_experiment_csv(copy / "TEM1" / "identification.csv", swapped)
+    with pytest.raises(DataError, match="T_load_C") as err:
+        load_batch(copy)
+    assert "identification.csv" in str(err.value)
+
+
+def test_step_data_reads_the_face_sensors(heatsink_batch):
+    from tembayes.calibrate.stepdata import step_data
+
+    out, _ = heatsink_batch
+    batch = load_batch(out)
+    exp = batch.modules["TEM1"].identification
+    data = step_data(exp, face=batch.layout.face)
+    i = np.searchsorted(exp.time, data.time[5])
+    assert data.obs[1, 5] == pytest.approx(exp.channel("T_hot_C")[i] - exp.channel("T_cold_C")[i])
+    assert data.boundaries(data.time[:3]).shape == (1, 3)
+    assert abs(data.boundaries([exp.time[0]])[0, 0] - (22.0 + KELVIN)) < 1.5
+
+
+def test_a_fast_rigs_time_unit_check_scales_with_its_time_constant(tmp_path):
+    """Liquid-cooled plates settle in seconds: accepted in seconds (the batch loads), refused in minutes."""
+    from tembayes.data.preflight import ERROR, check_experiment
+    from tembayes.data.write import experiment_from_arrays
+
+    out = tmp_path / "batch"
+    simulate_batch(
+        out, BenchConfig(n_modules=1, seed=2, n_validations=0, rig={"preset": "liquid-plates"}),
+        progress=lambda msg: None,
+    )  # fmt: skip
+    batch = load_batch(out)
+    exp = batch.modules["TEM1"].identification
+    assert batch.layout.slowest_tau_s < 10.0
+    minutes = experiment_from_arrays(
+        exp.time / 60.0, exp.current, exp.voltage, exp.sensors, exp.boundaries,
+        sensor_names=exp.sensor_names, boundary_names=exp.boundary_names,
+    )  # fmt: skip
+    found = [f for f in check_experiment(minutes, layout=batch.layout) if f.severity == ERROR]
+    assert found and found[0].column == "time_s" and "minutes or hours" in found[0].problem
+    assert "this rig settles in about" in found[0].problem
