@@ -727,7 +727,7 @@ def _add_simulate(sub):
         help="make a synthetic batch on the virtual bench",
         description="Make a synthetic batch folder (docs/data-format.md, 'The batch folder') plus truth.json on the "
         "virtual bench: a higher-fidelity rig and module than the calibration model, with "
-        "unit-to-unit spread, sensor noise and water/ambient drifts.",
+        "unit-to-unit spread, sensor noise and drifts of the boundary temperatures.",
         epilog=_EPILOG_SIMULATE.format(effects=_effects_table()),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -906,8 +906,8 @@ def _add_predict(sub):
         help="posterior-predictive bands of an experiment for a calibrated module or a new unit",
         description="Simulate an experiment (e.g. a validation run) for posterior draws of a module "
         "-- laws, K, the rig's thermal parameters (those the step likelihood leaves open anchored on "
-        "the identification run), the step instants and the noise -- from its measured current, water "
-        "and ambient temperatures, and compare the measurements with the central 50/90/95 % bands.",
+        "the identification run), the step instants and the noise -- from its measured current and "
+        "boundary temperatures, and compare the measurements with the central 50/90/95 % bands.",
         epilog=_EPILOG_PREDICT,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

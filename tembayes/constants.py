@@ -11,6 +11,9 @@ KELVIN = 273.15
 #: Reference temperature of the linear laws, 25 degC [K].
 T_REF = 25.0 + KELVIN
 
+#: The columns every experiment CSV carries before its rig's temperature columns.
+BASE_COLUMNS = ("time_s", "current_A", "voltage_V")
+
 #: Law parameter names, in the order used by every parameter vector.
 LAW_PARAMETERS = ("R0_ohm", "R1_ohm_per_K", "S0_V_per_K", "S1_V_per_K2")
 

@@ -37,11 +37,18 @@ def test_layout_reads_the_sensors_places_from_the_graph(name, face, hot, cold, p
     assert layout.leak_boundary == "ambient"
 
 
-def test_reference_layout_is_the_contract_default():
-    layout = REFERENCE.layout
-    assert layout.csv_columns == (
+def test_without_a_rig_the_columns_are_the_contract_defaults(tmp_path):
+    """An experiment made or read with no rig named has the reference rig's columns (contract section 2)."""
+    from tembayes.data import experiment_from_arrays, load_experiment, write_experiment_csv
+
+    assert REFERENCE.layout.csv_columns == (
         "time_s", "current_A", "voltage_V", "T1_C", "T2_C", "T3_C", "T4_C", "T_water_C", "T_amb_C",
     )  # fmt: skip
+    t = np.arange(5.0)
+    exp = experiment_from_arrays(t, np.zeros(5), np.zeros(5), np.full((4, 5), 300.0), np.full((2, 5), 295.0))
+    assert exp.columns == REFERENCE.layout.csv_columns
+    path = write_experiment_csv(tmp_path / "x.csv", exp)
+    assert load_experiment(path).boundary_names == ("T_water_C", "T_amb_C")
 
 
 @pytest.mark.parametrize("name", ["heatsink-al", "liquid-plates"])
@@ -153,7 +160,7 @@ def test_swapped_sensors_on_a_heat_path_are_refused_by_name(heatsink_batch, tmp_
         boundary_names=exp.boundary_names,
     )
     write_experiment_csv(copy / "TEM1" / "identification.csv", swapped)
-    with pytest.raises(DataError, match="T_load_C") as err:
+    with pytest.raises(DataError, match="T_amb_C -> T_load_C -> T_cold_C is not the order of the heat path") as err:
         load_batch(copy)
     assert "identification.csv" in str(err.value)
 
@@ -191,3 +198,87 @@ def test_a_fast_rigs_time_unit_check_scales_with_its_time_constant(tmp_path):
     found = [f for f in check_experiment(minutes, layout=batch.layout) if f.severity == ERROR]
     assert found and found[0].column == "time_s" and "minutes or hours" in found[0].problem
     assert "this rig settles in about" in found[0].problem
+
+
+def test_gap_suspects_follow_the_parameters_roles():
+    """The reference rig's table is the one its parameters always had; on the heat-sink rig the sink's fins
+    are its main path, not a leak, and the paste both faces share is a contact of no one side."""
+    from tembayes.gap.conflicts import parameter_roles, suspect_start, suspect_table
+
+    assert suspect_table(rig_from_config(None, 2, 3, layers=True)) == {
+        ("leak_top", "high"): ("ambient_leak",),
+        ("leak_bottom", "high"): ("ambient_leak",),
+        ("c_plate_hot", "high"): ("sensor_lag", "contact_resistance"),
+        ("c_plate_cold", "high"): ("sensor_lag", "contact_resistance"),
+        ("g_paste_hot", "low"): ("contact_resistance",),
+        ("g_paste_cold", "low"): ("contact_resistance",),
+    }
+    rig = shipped_rig("heatsink-al").build(layers=True)
+    roles = parameter_roles(rig)
+    assert "g_sink" not in roles and roles["leak"] == ("leak", None) and roles["g_paste"] == ("contact", None)
+    row = {"parameter": "g_paste", "conflict": True, "median": 10.0, "low": 15.0, "high": 60.0}
+    start = suspect_start("contact_resistance", [row], rig)
+    assert start["contact_R_hot_K_per_W"] == start["contact_R_cold_K_per_W"] == pytest.approx(1 / 10 - 1 / 15)
+
+
+def test_an_extra_leak_goes_where_the_rig_leaks_not_through_the_heat_sink():
+    from tembayes.physics.simulate import build
+
+    rig = shipped_rig("heatsink-al").build()
+    base = build(PAPER, rig)["network"].Gb[0, :, 0]
+    more = build({**PAPER, "extra_leak_W_per_K": 0.1}, rig)["network"].Gb[0, :, 0]
+    i = rig.node_names.index
+    assert more[i("load")] - base[i("load")] == pytest.approx(0.1)
+    assert more[i("sink")] == base[i("sink")]
+
+
+def test_inputs_and_the_step_model_read_boundaries_by_name():
+    """An experiment whose boundary columns come in another order than the rig's: the inputs follow the rig,
+    and the step model refuses data cut in the other order rather than mixing them up."""
+    from tembayes.calibrate.model import StepResponseModel
+    from tembayes.data.write import experiment_from_arrays
+
+    rig = shipped_rig("liquid-plates").build()
+    t = np.arange(0.0, 5.0)
+    cols = ("T_amb_C", "T_cold_liquid_C", "T_hot_liquid_C")
+    b = np.array([np.full(5, 295.0), np.full(5, 290.0), np.full(5, 300.0)])
+    exp = experiment_from_arrays(
+        t, np.zeros(5), np.zeros(5), np.full((2, 5), 295.0), b,
+        sensor_names=("T_hot_C", "T_cold_C"), boundary_names=cols,
+    )  # fmt: skip
+    np.testing.assert_array_equal(Inputs.from_experiment(exp, rig).boundaries[:, 0], [300.0, 290.0, 295.0])
+
+    class Data:  # what the step model reads of StepData before anything else
+        boundary_names = cols
+        source = "x.csv"
+
+    with pytest.raises(ModelError, match="T_hot_liquid_C, T_cold_liquid_C, T_amb_C in this order"):
+        StepResponseModel(Data, rig)
+
+
+def test_identify_on_a_rig_with_three_sensors(heatsink_batch):
+    """The step method and the rig fit on the heat-sink rig: its fit parameters, the laws near the truth."""
+    from tembayes.identify.pipeline import identify_module
+
+    out, truth = heatsink_batch
+    batch = load_batch(out)
+    res = identify_module(batch.modules["TEM1"], batch.datasheet, rig_config=batch.rig_config)
+    assert set(res.rig_fit.values) == {"K_W_per_K", "g_sink", "c_sink", "g_paste", "leak", "c_plate"}
+    t = truth["modules"]["TEM1"]
+    # the bench's layered plates and finer legs against the lumped step method: within a few per cent
+    for k in ("R0_ohm", "S0_V_per_K"):
+        assert res.fit[k] == pytest.approx(t[k], rel=0.05), k
+
+
+def test_identify_refuses_a_run_whose_temperature_the_boundaries_hold(tmp_path):
+    """Liquid plates at one temperature: the reference staircase moves the mean junction temperature by
+    tenths of a kelvin, too little for the laws' slopes; identify says so instead of fitting a line."""
+    from tembayes.identify.pipeline import identify_module
+
+    out = tmp_path / "batch"
+    config = BenchConfig(n_modules=1, seed=3, n_validations=0, hold=300.0, rig={"preset": "liquid-plates"})
+    simulate_batch(out, config, progress=lambda msg: None)
+    batch = load_batch(out)
+    with pytest.raises(DataError, match=r"spans only 0\.\d+ K") as err:
+        identify_module(batch.modules["TEM1"], batch.datasheet, rig_config=batch.rig_config)
+    assert "identification.csv" in str(err.value) and "step the boundaries' temperature" in str(err.value)

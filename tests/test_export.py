@@ -270,8 +270,10 @@ def test_boundary_warnings_name_a_point_whose_water_is_far_from_the_runs():
         SimpleNamespace(tavg_C=t, current_A=i, u0=np.array([i, tw + KELVIN, 295.0]), inputs=inputs)
         for t, i, tw in ((20.0, 0.0, 20.5), (45.0, 0.5, 20.2 + BOUNDARY_MARGIN_K + 1.0))
     )
-    assert boundary_warnings([[near]], covered=covered, room_C=22.0, room="T_amb_C") == []
-    out = boundary_warnings([[near, far], [near, near]], covered=covered, room_C=30.0, room="T_amb_C")
+    assert boundary_warnings([[near]], covered=covered, room_C=22.0, room="T_amb_C", controlled=("T_water_C",)) == []
+    out = boundary_warnings(
+        [[near, far], [near, near]], covered=covered, room_C=30.0, room="T_amb_C", controlled=("T_water_C",)
+    )
     assert len(out) == 2 and "T_amb_C 30 C" in out[0] and "T_avg 45 C, I 0.5 A needs T_water_C" in out[1]
 
 

@@ -144,7 +144,7 @@ def test_junction_temperatures_recover_the_plates_at_steady_state(current):
         sensors=sensors,
         sensors_sd=np.zeros(4),
         boundaries=np.array([tw, ta]),
-        face=(sensors[1], sensors[2]),
+        face_T=(sensors[1], sensors[2]),
         drift=0,
     )
     (th, tc), (sh, sc), _ = junction_temperatures(ss, REFERENCE, rig_values)

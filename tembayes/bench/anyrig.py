@@ -19,10 +19,11 @@ range (the rig is one rig), except the module and its mounting
 
 from __future__ import annotations
 
-import re
 from typing import TYPE_CHECKING
 
 import numpy as np
+
+from tembayes.physics.rigfile import expression_names
 
 if TYPE_CHECKING:
     from tembayes.physics.rig import RigDescription, RigParameter
@@ -47,15 +48,10 @@ def mounting_parameters(rig: RigDescription) -> frozenset[str]:
     """
     own = {*rig.tem_chain, *rig.module_faces}
 
-    def names(expr):
-        if isinstance(expr, (list, tuple)):
-            return {n for e in expr for n in names(e)}
-        return set(re.findall(r"[A-Za-z_][A-Za-z0-9_]*", expr)) if isinstance(expr, str) else set()
-
     module, elsewhere = set(), set()
     for a, b, expr in rig.links:
-        (module if a in own or b in own else elsewhere).update(names(expr))
-    module |= {n for node, expr in rig.nodes if node in own for n in names(expr)}
+        (module if a in own or b in own else elsewhere).update(expression_names(expr))
+    module |= {n for node, expr in rig.nodes if node in own for n in expression_names(expr)}
     return frozenset((module - elsewhere) & set(rig.parameter_names))
 
 

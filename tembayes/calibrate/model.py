@@ -63,6 +63,11 @@ class StepResponseModel:
     """
 
     def __init__(self, data, rig, *, input_spacing=20.0, atol=ATOL, hmax=60.0):
+        if data.boundary_names != rig.layout.boundaries:
+            raise ModelError(
+                f"{data.source}: boundaries {', '.join(data.boundary_names)}; rig '{rig.name}' reads "
+                f"{', '.join(rig.layout.boundaries)} in this order"
+            )
         self.data = data
         self.rig = rig
         self.atol = float(atol)

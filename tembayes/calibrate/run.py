@@ -386,8 +386,10 @@ def load_run_batch(run: CalibrationRun, path: Path | str | None = None) -> tuple
         )
         return batch, notes
     ids = set(run.module_ids)
-    key = lambda k: k == "batch.toml" or (k.endswith("/identification.csv") and k.split("/")[0] in ids)  # noqa: E731
     now = batch_inputs(batch)
+    # what the posterior depends on: batch.toml, the rig file it names, the identification runs
+    rig_key = set(now) - {"batch.toml"} - {k for k in now if k.endswith(".csv")}
+    key = lambda k: k == "batch.toml" or k in rig_key or (k.endswith("/identification.csv") and k.split("/")[0] in ids)  # noqa: E731
     diff = compare_inputs(inputs, now, only=key)
     if diff.changed or diff.missing:
         what = ", ".join([*(f"{k} changed" for k in diff.changed), *(f"{k} missing" for k in diff.missing)][:4])

@@ -103,6 +103,8 @@ class StepData:
         Measurement noise sd of each channel, estimated from the whole run.
     face : tuple of (str, str)
         The hot- and cold-face sensor columns ``dT`` is read from.
+    boundary_names : tuple of str
+        The boundary columns of ``boundary_values``, in order.
     boundary_time : ndarray, shape (m,)
         The run's sample times [s].
     boundary_values : ndarray, shape (nb, m)
@@ -122,6 +124,7 @@ class StepData:
     obs: np.ndarray
     noise: np.ndarray
     face: tuple
+    boundary_names: tuple
     boundary_time: np.ndarray
     boundary_values: np.ndarray
 
@@ -348,6 +351,7 @@ def step_data(
         obs=obs,
         noise=noise,
         face=tuple(face),
+        boundary_names=exp.boundary_names,
         boundary_time=t.copy(),
         boundary_values=bounds,
     )

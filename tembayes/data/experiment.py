@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..constants import KELVIN
+from ..constants import BASE_COLUMNS, KELVIN
 from ..errors import DataError
 
 if TYPE_CHECKING:  # batch.py imports this module
@@ -103,7 +103,7 @@ class Experiment:
                 raise ValueError(f"Experiment.{name}: expected shape ({n},) like time, found {arr.shape}")
             set_(self, name, arr)
         if self.sensor_names is None or self.boundary_names is None:
-            layout = _reference_layout()
+            layout = reference_layout()
             set_(self, "sensor_names", layout.sensors if self.sensor_names is None else self.sensor_names)
             set_(self, "boundary_names", layout.boundaries if self.boundary_names is None else self.boundary_names)
         for name, names in (("sensors", "sensor_names"), ("boundaries", "boundary_names")):
@@ -186,7 +186,7 @@ class Experiment:
     @property
     def columns(self) -> tuple[str, ...]:
         """The contract columns of this experiment: time, current, voltage, then its rig's temperatures."""
-        return ("time_s", "current_A", "voltage_V") + self.sensor_names + self.boundary_names
+        return BASE_COLUMNS + self.sensor_names + self.boundary_names
 
     def __repr__(self):
         return (
@@ -194,7 +194,8 @@ class Experiment:
         )
 
 
-def _reference_layout() -> Layout:
+def reference_layout() -> Layout:
+    """The reference rig's :class:`~tembayes.physics.layout.Layout`: the columns when no rig is named."""
     from ..physics.rigread import REFERENCE  # lazy: physics is heavier than data
 
     return REFERENCE.layout
@@ -259,7 +260,7 @@ def load_experiment(
     arrays' size plus a constant, whatever the file's size.
     """
     path = Path(path)
-    layout = layout or _reference_layout()
+    layout = layout or reference_layout()
     columns = layout.csv_columns
     _check_file(path)
     with path.open("rb") as f:

@@ -202,9 +202,9 @@ def check_experiment(
         Errors first.
     """
     if layout is None:
-        from ..physics.rigread import REFERENCE  # lazy: physics is heavier than data
+        from .experiment import reference_layout  # experiment.py imports this module
 
-        layout = REFERENCE.layout
+        layout = reference_layout()
     steps = detect_steps(exp.time, exp.current)
     settle, slow, sure = _settling_time(exp, steps, layout.face)
     scale = min(1.0, layout.slowest_tau_s / SETTLE_REFERENCE_TAU_S)
@@ -471,7 +471,7 @@ def _polarity(exp, steps, settle, layout):
                     f"the voltage falls as the current rises ({volt:+.3g} V per A)",
                     "The voltage has the "
                     "current's sign (V = R I + S dT): negate voltage_V (or current_A, if positive current warms the "
-                    "bottom block)",
+                    "cold side)",
                     column="voltage_V",
                 )
             ]
@@ -483,8 +483,8 @@ def _polarity(exp, steps, settle, layout):
                 ERROR,
                 exp,
                 side + "; the voltage follows the current, so both are reversed",
-                "Negate current_A and voltage_V (positive current must cool the bottom, cold-side "
-                "block); if the module is mounted the right way, check that "
+                "Negate current_A and voltage_V (positive current must cool the module's cold side, "
+                f"where {layout.face[1]} is); if the module is mounted the right way, check that "
                 f"{', '.join(layout.hot_side)} are the hot side's sensors",
                 column="current_A",
             )
@@ -495,7 +495,7 @@ def _polarity(exp, steps, settle, layout):
                 ERROR,
                 exp,
                 side + f"; the voltage falls as the current rises ({volt:+.3g} V per A)",
-                "Negate current_A (positive current must cool the bottom, cold-side block)",
+                f"Negate current_A (positive current must cool the module's cold side, where {layout.face[1]} is)",
                 column="current_A",
             )
         ]

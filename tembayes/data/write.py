@@ -22,7 +22,7 @@ import numpy as np
 from ..constants import KELVIN
 from ..errors import TembayesError
 from .batch import Datasheet
-from .experiment import Experiment
+from .experiment import Experiment, reference_layout
 from .outputs import MARKER, marker, refuse_existing
 
 if TYPE_CHECKING:
@@ -406,10 +406,9 @@ def experiment_from_arrays(
             raise ValueError(f"{name}: expected shape ({n},) like time, found {shape}")
     boundaries_K = np.atleast_2d(np.asarray(boundaries_K, dtype=np.float64))
     if sensor_names is None or boundary_names is None:
-        from ..physics.rigread import REFERENCE  # lazy: physics is heavier than data
-
-        sensor_names = REFERENCE.layout.sensors if sensor_names is None else sensor_names
-        boundary_names = REFERENCE.layout.boundaries if boundary_names is None else boundary_names
+        ref = reference_layout()
+        sensor_names = ref.sensors if sensor_names is None else sensor_names
+        boundary_names = ref.boundaries if boundary_names is None else boundary_names
     for name, a, names in (("sensors_K", sensors_K, sensor_names), ("boundaries_K", boundaries_K, boundary_names)):
         if np.shape(a) != (len(names), n):
             raise ValueError(f"{name}: expected shape ({len(names)}, {n}) for {', '.join(names)}, found {np.shape(a)}")

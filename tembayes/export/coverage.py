@@ -239,7 +239,7 @@ def check_points(points, *, covered, allow_extrapolation):
     ]
 
 
-def boundary_warnings(linear, *, covered, room_C, room):
+def boundary_warnings(linear, *, covered, room_C, room, controlled):
     """Warnings for operating points whose boundary temperatures are far from what the runs saw.
 
     Parameters
@@ -252,6 +252,9 @@ def boundary_warnings(linear, *, covered, room_C, room):
         The temperature given for the room the rig leaks to [degC].
     room : str
         The room's boundary column.
+    controlled : sequence of str
+        The boundary columns the points solve
+        (:attr:`~tembayes.physics.layout.Layout.controlled`).
 
     Returns
     -------
@@ -261,8 +264,8 @@ def boundary_warnings(linear, *, covered, room_C, room):
     """
     out = []
     columns = linear[0][0].inputs[1:]
-    solved = [j for j, c in enumerate(columns) if c != room] or [columns.index(room)]
-    if room not in (columns[j] for j in solved):
+    solved = [j for j, c in enumerate(columns) if c in controlled]
+    if room not in controlled:
         lo, hi = covered.boundaries_C[room]
         if not lo - BOUNDARY_MARGIN_K <= room_C <= hi + BOUNDARY_MARGIN_K:
             out.append(f"{room} {room_C:g} C is outside the {_span(lo, hi)} C the identification runs saw")

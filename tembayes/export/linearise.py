@@ -109,9 +109,8 @@ class _Rig:
         self.read[np.arange(len(a)), a] += 1.0 - f[0]
         self.read[np.arange(len(a)), b] += f[0]
         self.hot, self.cold = self.nodes.index(rig.hot), self.nodes.index(rig.cold)
-        names = tuple(rig.boundaries)
-        self.room = names.index(rig.layout.leak_boundary)
-        self.controlled = np.array([k != self.room for k in range(len(names))]) if len(names) > 1 else np.ones(1, bool)
+        layout = rig.layout
+        self.controlled = np.array([c in layout.controlled for c in layout.boundaries])
 
     def steady(self, current, ub, guess=None):
         y0 = np.full(len(self.nodes), ub[0]) if guess is None else guess

@@ -353,7 +353,13 @@ def observer_inputs(
     pop = run.population_draws(MODULE_PARAMETERS)
     if pop is not None:
         out["population"] = _population_export(pop, out, draws_by_id, names, n_draws=n_draws, seed=seed, ctx=ctx)
-    warned += boundary_warnings([m.linear for m in out.values()], covered=covered, room_C=float(room_C), room=room)
+    warned += boundary_warnings(
+        [m.linear for m in out.values()],
+        covered=covered,
+        room_C=float(room_C),
+        room=room,
+        controlled=rig.layout.controlled,
+    )
     units = {**{p.name: p.unit for p in rig.parameters}, **MODULE_UNITS}
     meta = {
         "run": str(run.path),

@@ -20,11 +20,10 @@ refit starts from the conflict moved into the effect (:func:`suspect_start`).
 
 from __future__ import annotations
 
-import re
-
 import numpy as np
 
 from tembayes.calibrate.priors import rig_prior
+from tembayes.physics.rigfile import expression_names
 
 #: What a rig parameter beyond its documented range can stand for, by its role:
 #: an extra leak absorbs more heat exchange with the room; a module plate's
@@ -41,12 +40,15 @@ ROLE_SUSPECTS = {
 def parameter_roles(rig):
     """``{parameter: (role, side)}`` of the rig parameters that can absorb an effect.
 
-    ``leak``: a conductance to the room (:attr:`~tembayes.physics.layout.Layout.leak_boundary`);
-    ``plate``: a capacitance of the module's plates; ``contact``: a
-    conductance between a module face and the rig that no other link uses
-    (steel in series with the paste is not one).  ``side`` is ``"hot"``,
-    ``"cold"`` or None.  Shares and the module's own ``c_legs`` have no role.
+    ``leak``: a conductance of a leak to the room
+    (:attr:`~tembayes.physics.layout.Layout.leaks`; a heat sink's fins are the
+    rig's main path, not a leak); ``plate``: a capacitance of the module's
+    plates; ``contact``: a conductance between a module face and the rig that
+    no other link uses (steel in series with the paste is not one).  ``side``
+    is ``"hot"`` or ``"cold"``, or None for a leak and for a parameter both
+    sides share.  Shares and the module's own ``c_legs`` have no role.
     """
+    layout = rig.layout
     skip = {p.name for p in rig.parameters if p.is_share} | {"c_legs"}
     faces = dict(zip(rig.module_faces, ("hot", "cold")))
     own = {*rig.tem_chain, *rig.module_faces}
@@ -57,23 +59,20 @@ def parameter_roles(rig):
                 return faces[x]
         return None
 
-    elsewhere = {n for a, b, expr in rig.links if face_of(a, b) is None for n in _names(expr)}
-    roles = {}
+    elsewhere = {n for a, b, expr in rig.links if face_of(a, b) is None for n in expression_names(expr)}
+    found = {}  # name -> (role, {sides})
     for a, b, expr in rig.links:
         side = face_of(a, b)
-        for name in _names(expr):
-            if name in skip:
-                continue
-            if rig.layout.leak_boundary in (a, b):
-                roles.setdefault(name, ("leak", None))
+        for name in set(expression_names(expr)) - skip:
+            if layout.leak_boundary in (a, b) and (a in layout.leaks or b in layout.leaks):
+                found.setdefault(name, ("leak", set()))
             elif side is not None and name not in elsewhere:
-                roles.setdefault(name, ("contact", side))
+                found.setdefault(name, ("contact", set()))[1].add(side)
     for node, expr in rig.nodes:
         if node in (rig.hot, rig.cold):
-            for name in _names(expr):
-                if name not in skip:
-                    roles.setdefault(name, ("plate", "hot" if node == rig.hot else "cold"))
-    return roles
+            for name in set(expression_names(expr)) - skip:
+                found.setdefault(name, ("plate", set()))[1].add("hot" if node == rig.hot else "cold")
+    return {name: (role, sides.pop() if len(sides) == 1 else None) for name, (role, sides) in found.items()}
 
 
 def suspect_table(rig):
@@ -84,14 +83,6 @@ def suspect_table(rig):
         for (r, direction), effects in ROLE_SUSPECTS.items()
         if r == role
     }
-
-
-def _names(expr):
-    if isinstance(expr, (list, tuple)):
-        return [n for e in expr for n in _names(e)]
-    if not isinstance(expr, str):
-        return []
-    return [t for t in re.findall(r"[A-Za-z_][A-Za-z0-9_]*", expr)]
 
 
 def range_conflicts(draws, rig, *, level=0.90):
@@ -214,5 +205,6 @@ def suspect_start(effect, rows, rig):
             out["extra_leak_W_per_K"] = out.get("extra_leak_W_per_K", 0.0) + med - r["high"]
         elif effect == "contact_resistance" and role == "contact" and med < r["low"]:
             out[p] = r["low"]
-            out[f"contact_R_{side}_K_per_W"] = 1.0 / med - 1.0 / r["low"]
+            for s in (side,) if side else ("hot", "cold"):  # a paste both faces share: both contacts
+                out[f"contact_R_{s}_K_per_W"] = 1.0 / med - 1.0 / r["low"]
     return out

@@ -66,12 +66,12 @@ def block_log_density(Y, measured, t, sd, tau, block_s=BLOCK_S):
 
     Parameters
     ----------
-    Y : ndarray, shape (M, 5, n)
+    Y : ndarray, shape (M, nch, n)
         The draws' noise-free predictions (SI).
-    measured : ndarray, shape (5, n)
+    measured : ndarray, shape (nch, n)
     t : ndarray, shape (n,)
         [s].
-    sd, tau : ndarray, shape (5,)
+    sd, tau : ndarray, shape (nch,)
         The model's residual process per channel (stationary sd, correlation time [s]).
     block_s : float
         Block length [s].

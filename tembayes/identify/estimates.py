@@ -157,8 +157,8 @@ class Steady:
     """The end of a hold: averages over its last ``window`` seconds.
 
     Temperatures in kelvin, ``sensors`` in the experiment's (the rig's)
-    order, ``boundaries`` in the rig's boundary order, ``face`` the hot- and
-    cold-face sensors (:attr:`~tembayes.physics.layout.Layout.face`).
+    order, ``boundaries`` in the rig's boundary order, ``face_T`` the hot- and
+    cold-face sensors' temperatures (:attr:`~tembayes.physics.layout.Layout.face`).
     """
 
     t_end: float
@@ -169,7 +169,7 @@ class Steady:
     sensors: np.ndarray
     sensors_sd: np.ndarray
     boundaries: np.ndarray
-    face: tuple
+    face_T: tuple
     drift: float  # slope of the cold-face sensor over the window [K/s]: how far from steady
 
 
@@ -201,7 +201,7 @@ def hold_end(exp: Experiment, start: int, stop: int, *, face: tuple[str, str], w
         sensors=sens[:, 0],
         sensors_sd=sens[:, 1],
         boundaries=np.mean(exp.boundaries[:, sl], axis=1),
-        face=at_face,
+        face_T=at_face,
         drift=drift,
     )
 

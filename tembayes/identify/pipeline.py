@@ -29,8 +29,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from tembayes.constants import KELVIN, LAW_PARAMETERS, MODULE_PARAMETERS
+from tembayes.data.preflight import TAVG_SPAN_MIN_K
 from tembayes.data.steps import detect_steps
-from tembayes.errors import ModelError
+from tembayes.errors import DataError, ModelError
 from tembayes.identify.estimates import hold_end, jump_resistance, junction_temperatures
 from tembayes.identify.fits import LineFit, fit_line, hysteresis
 from tembayes.identify.rigfit import RigFit, constant_laws, fit_rig, validation_errors
@@ -137,7 +138,7 @@ def _step_table(exp, rig, rig_values=None, rig_sds=None, *, seed=0):
                 # state at the step instant: the end of the previous hold
                 "Tavg_R": 0.5 * (prev[1] + prev[2]),
                 "Tavg_R_sd": 0.5 * float(np.hypot(prev[3], prev[4])),
-                "Tavg_R_paper": 0.5 * (prev[0].face[0] + prev[0].face[1]),
+                "Tavg_R_paper": 0.5 * (prev[0].face_T[0] + prev[0].face_T[1]),
                 # state at the end of this hold
                 "steady": ss,
                 "Th": this[1],
@@ -149,11 +150,25 @@ def _step_table(exp, rig, rig_values=None, rig_sds=None, *, seed=0):
                 "dT_sd": float(np.hypot(this[3], this[4])),
                 "Th_draws": this[5],
                 "Tc_draws": this[6],
-                "Tavg_paper": 0.5 * (ss.face[0] + ss.face[1]),
-                "dT_paper": ss.face[0] - ss.face[1],
+                "Tavg_paper": 0.5 * (ss.face_T[0] + ss.face_T[1]),
+                "dT_paper": ss.face_T[0] - ss.face_T[1],
             }
         )
     return rows
+
+
+def _refuse_flat(exp, rows):
+    """A run whose holds span too little mean temperature for a line through R(T) and S(T)."""
+    tavg = [r["Tavg"] for r in rows]
+    span = max(tavg) - min(tavg)
+    if span < TAVG_SPAN_MIN_K:
+        raise DataError(
+            exp.path,
+            f"the holds' mean junction temperature spans only {span:.3g} K (the step method needs "
+            f"{TAVG_SPAN_MIN_K:g} K for the slopes of R(T) and S(T))",
+            "Use larger currents in both directions, or on a rig whose boundaries hold the module's temperature "
+            "(liquid-cooled plates) step the boundaries' temperature between holds",
+        )
 
 
 def _laws_from_rows(rows):
@@ -281,6 +296,7 @@ def identify_module(
     exp = module.identification
     say(f"identify: {module.id} steps and pass 1")
     rows = _step_table(exp, rig)
+    _refuse_flat(exp, rows)
     lines = _laws_from_rows(rows)
     say(f"identify: {module.id} rig fit")
     opts = dict(rig_fit_options or {})

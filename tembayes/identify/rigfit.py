@@ -142,9 +142,11 @@ def fit_rig(
     RigFit
     """
     parameters = fit_parameters(rig) if parameters is None else tuple(parameters)
-    idx = decimate(Inputs.from_experiment(exp), max_rate)
-    inputs = Inputs(exp.time[idx], exp.current[idx], exp.boundaries[:, idx])
-    meas = np.vstack([exp.sensors[:, idx]] + ([exp.voltage[idx][None]] if voltage else []))
+    whole = Inputs.from_experiment(exp, rig)
+    idx = decimate(whole, max_rate)
+    inputs = Inputs(whole.time[idx], whole.current[idx], whole.boundaries[:, idx])
+    sensors = [exp.channel(c)[idx] for c in rig.sensors]
+    meas = np.vstack(sensors + ([exp.voltage[idx]] if voltage else []))
     nch = meas.shape[0]
     nominal = rig.nominal()
     x0, psd = [], []
@@ -203,7 +205,7 @@ def fit_rig(
             max_nfev=200,
         )
 
-    noise = np.array([SENSOR_NOISE_K] * 4 + [VOLTAGE_NOISE_V])[:nch]
+    noise = np.r_[np.full(len(sensors), SENSOR_NOISE_K), VOLTAGE_NOISE_V][:nch]
     res1 = solve(1.0 / noise, False)
     r1 = model(res1.x[None])[0]
     scale = np.sqrt(np.mean(r1**2, axis=1))
@@ -249,10 +251,10 @@ def validation_errors(
         ``voltage_V``), plus ``"simulation"`` (the :class:`Simulation`).
     """
     params = {k: laws[k] for k in LAW_PARAMETERS} | dict(rig_values)
-    sim = simulate(Inputs.from_experiment(exp), params, rig=rig)
+    sim = simulate(Inputs.from_experiment(exp, rig), params, rig=rig)
     out = {}
     for c, ch in enumerate(sim.channels):
-        r = exp.sensors[c] - sim.sensors[0, c]
+        r = exp.channel(ch) - sim.sensors[0, c]
         out[ch] = {"rmse": float(np.sqrt(np.mean(r**2))), "max_abs": float(np.max(np.abs(r)))}
     rv = exp.voltage - sim.voltage[0]
     out["voltage_V"] = {"rmse": float(np.sqrt(np.mean(rv**2))), "max_abs": float(np.max(np.abs(rv)))}

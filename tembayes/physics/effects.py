@@ -173,10 +173,13 @@ def _network_ambient(net, rig, params):
     if not np.any(extra):
         return
     # into the room the rig leaks to, spread in proportion to the leaks it already has
-    k = tuple(rig.boundaries).index(rig.layout.leak_boundary)
-    amb = net.Gb[:, :, k]
+    # (not through a heat sink: its fins are the rig's main path, not a leak)
+    layout = rig.layout
+    k = tuple(rig.boundaries).index(layout.leak_boundary)
+    leaky = np.isin(np.array(rig.node_names), layout.leaks)
+    amb = net.Gb[:, :, k] * leaky
     share = amb / amb.sum(axis=1, keepdims=True)
-    net.Gb[:, :, k] = amb + share * extra[:, None]
+    net.Gb[:, :, k] += share * extra[:, None]
 
 
 def _sensor_lag(time, Y, params):

@@ -19,15 +19,18 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from tembayes.constants import BASE_COLUMNS
+
 if TYPE_CHECKING:
     from tembayes.physics.rig import RigDescription
 
-__all__ = ["Layout", "BASE_COLUMNS", "sensor_layout"]
+__all__ = ["Layout", "sensor_layout"]
 
-#: The columns every experiment CSV has before its rig's temperature columns.
-BASE_COLUMNS = ("time_s", "current_A", "voltage_V")
 #: The module's thermal conductance [W/K] in :attr:`Layout.slowest_tau_s` (a TEC1-12706's).
 TAU_MODULE_K = 0.5
+#: A link to the room conducting less than this at nominal values is a leak [W/K] (a heat
+#: sink's fan-cooled fins, a main heat path, conduct watts per kelvin; an enclosure, hundredths).
+LEAK_MAX_W_PER_K = 0.25
 
 
 @dataclass(frozen=True)
@@ -40,6 +43,8 @@ class Layout:
         Sensor columns, in the rig file's order.
     boundaries : tuple of str
         Boundary columns, in the rig's boundary order.
+    boundary_names : tuple of str
+        The boundaries' names in the rig, in the same order.
     nodes : dict of str to str
         Sensor column -> the node it reads.
     hot_side, cold_side : tuple of str
@@ -52,8 +57,10 @@ class Layout:
         farthest to the face sensor.
     leak_boundary : str
         The boundary (its name in the rig) linked to the most nodes: the
-        room the rig leaks to, where the ``ambient_leak`` effect adds its
-        conductance.
+        room the rig leaks to.
+    leaks : tuple of str
+        Nodes linked to the room by a leak (below :data:`LEAK_MAX_W_PER_K`),
+        where the ``ambient_leak`` effect adds its conductance.
     slowest_tau_s : float
         The network's slowest time constant at nominal values, the module a
         conductance of :data:`TAU_MODULE_K` [s]: how fast the rig settles.
@@ -61,13 +68,21 @@ class Layout:
 
     sensors: tuple
     boundaries: tuple
+    boundary_names: tuple
     nodes: dict
     hot_side: tuple
     cold_side: tuple
     face: tuple
     paths: tuple
     leak_boundary: str
+    leaks: tuple
     slowest_tau_s: float
+
+    @property
+    def controlled(self) -> tuple[str, ...]:
+        """The boundary columns other than the room's: what a rig's operator sets (all of them if the room is alone)."""
+        room = self.boundaries[self.boundary_names.index(self.leak_boundary)]
+        return tuple(c for c in self.boundaries if c != room) or (room,)
 
     @property
     def temperatures(self) -> tuple[str, ...]:
@@ -80,7 +95,7 @@ class Layout:
         return BASE_COLUMNS + self.temperatures
 
     def describe(self, column: str) -> str:
-        """A short label for a temperature column: ``"T2_C (hot side, at node top_6)"``."""
+        """A short label for a temperature column: ``"T2_C (hot side, at the module face, node top_6)"``."""
         if column in self.boundaries:
             return f"{column} (boundary)"
         side = "hot side" if column in self.hot_side else "cold side"
@@ -94,8 +109,36 @@ def sensor_layout(rig: RigDescription) -> Layout:
     A sensor belongs to the side whose module face it is fewer links from
     (the legs are not links, and boundaries are not crossed).
     """
+    neighbours, feeds = _graph(rig)
+    hops = {side: _hops(neighbours, face) for side, face in zip(("hot", "cold"), rig.module_faces)}
+    ordered = _sides(rig, hops, far=len(neighbours) + 1)
+    paths = []
+    for side in ("hot", "cold"):
+        bnd = _main_feed(feeds, hops[side])
+        if ordered[side] and bnd is not None:
+            paths.append((rig.boundaries[bnd], *ordered[side][::-1]))
+    linked = {bnd: sum(any(b == bnd for b, _ in f) for f in feeds.values()) for bnd in rig.boundaries}
+    room = max(reversed(tuple(linked)), key=linked.get)
+    hot_side, cold_side = ordered["hot"], ordered["cold"]
+    return Layout(
+        sensors=tuple(rig.sensors),
+        boundaries=tuple(rig.boundaries.values()),
+        boundary_names=tuple(rig.boundaries),
+        nodes=dict(rig.sensors),
+        hot_side=hot_side,
+        cold_side=cold_side,
+        face=(hot_side[0] if hot_side else None, cold_side[0] if cold_side else None),
+        paths=tuple(paths),
+        leak_boundary=room,
+        leaks=tuple(n for n, f in feeds.items() if any(b == room and g < LEAK_MAX_W_PER_K for b, g in f)),
+        slowest_tau_s=_slowest_tau(rig),
+    )
+
+
+def _graph(rig: RigDescription) -> tuple[dict, dict]:
+    """``(neighbours, feeds)``: node -> linked nodes; node -> ``[(boundary, nominal conductance [W/K])]``."""
     neighbours = {n: [] for n in rig.node_names}
-    feeds = {}  # node -> [(boundary, nominal conductance)]
+    feeds = {}
     nominal = rig.nominal()
     for a, b, expr in rig.links:
         if a in rig.boundaries or b in rig.boundaries:
@@ -104,38 +147,25 @@ def sensor_layout(rig: RigDescription) -> Layout:
         else:
             neighbours[a].append(b)
             neighbours[b].append(a)
-    hot, cold = rig.module_faces
-    d_hot, d_cold = _hops(neighbours, hot), _hops(neighbours, cold)
-    far = len(neighbours) + 1
+    return neighbours, feeds
+
+
+def _sides(rig: RigDescription, hops: dict, far: int) -> dict:
+    """``{"hot": columns, "cold": columns}``: each side's sensors, nearest its face first."""
     sides = {"hot": [], "cold": []}
     for col, node in rig.sensors.items():
-        dh, dc = d_hot.get(node, far), d_cold.get(node, far)
-        sides["hot" if dh <= dc else "cold"].append((dh if dh <= dc else dc, col))
-    ordered = {k: tuple(c for _, c in sorted(v, key=lambda x: x[0])) for k, v in sides.items()}
-    paths = []
-    for side, dist in (("hot", d_hot), ("cold", d_cold)):
-        if not ordered[side]:
-            continue
-        total = {}
-        for node in dist:
-            for bnd, g in feeds.get(node, ()):
-                total[bnd] = total.get(bnd, 0.0) + g
-        if total:
-            bnd = max(total, key=total.get)
-            paths.append((rig.boundaries[bnd], *ordered[side][::-1]))
-    hot_side, cold_side = ordered["hot"], ordered["cold"]
-    linked = {bnd: sum(any(b == bnd for b, _ in f) for f in feeds.values()) for bnd in rig.boundaries}
-    return Layout(
-        sensors=tuple(rig.sensors),
-        boundaries=tuple(rig.boundaries.values()),
-        nodes=dict(rig.sensors),
-        hot_side=hot_side,
-        cold_side=cold_side,
-        face=(hot_side[0] if hot_side else None, cold_side[0] if cold_side else None),
-        paths=tuple(paths),
-        leak_boundary=max(reversed(tuple(linked)), key=linked.get),
-        slowest_tau_s=_slowest_tau(rig),
-    )
+        dh, dc = hops["hot"].get(node, far), hops["cold"].get(node, far)
+        sides["hot" if dh <= dc else "cold"].append((min(dh, dc), col))
+    return {k: tuple(c for _, c in sorted(v, key=lambda x: x[0])) for k, v in sides.items()}
+
+
+def _main_feed(feeds: dict, reached: dict) -> str | None:
+    """The boundary that feeds the nodes ``reached`` most (largest total nominal conductance), or None."""
+    total = {}
+    for node in reached:
+        for bnd, g in feeds.get(node, ()):
+            total[bnd] = total.get(bnd, 0.0) + g
+    return max(total, key=total.get) if total else None
 
 
 def _slowest_tau(rig: RigDescription) -> float:

@@ -187,6 +187,8 @@ class RigDescription:
         if len(set(node_names)) != len(node_names):
             raise ModelError(f"rig '{self.name}': duplicate node names")
         known = set(node_names)
+        if not self.boundaries:
+            raise ModelError(f"rig '{self.name}': no boundary (a measured temperature the network is held to)")
         for a, b, expr in self.links:
             for end in (a, b):
                 if end not in known and end not in self.boundaries:

@@ -41,7 +41,7 @@ if TYPE_CHECKING:
     from pathlib import Path
     from types import MappingProxyType
 
-__all__ = ["RigFile", "Link", "Block", "SensorSpec", "CERAMIC", "JUNCTION_SHARE", "ADDED_NODES"]
+__all__ = ["RigFile", "Link", "Block", "SensorSpec", "CERAMIC", "JUNCTION_SHARE", "ADDED_NODES", "expression_names"]
 
 #: Names :meth:`RigFile.build` gives the nodes it adds for the module's layered plates.
 ADDED_NODES = ("hot_ceramic", "cold_ceramic")
@@ -194,6 +194,15 @@ def canonical(expr) -> tuple:
     if isinstance(expr, (int, float)):
         return ((float(expr), ()),)
     return tuple(sorted((coef, tuple(sorted(names))) for coef, names in _terms(expr)))
+
+
+def expression_names(expr) -> set[str]:
+    """The parameter names an expression (a number, a text, or a series list of them) uses."""
+    if isinstance(expr, (list, tuple)):
+        return {n for e in expr for n in expression_names(e)}
+    if not isinstance(expr, str):
+        return set()
+    return {n for _, names in _terms(expr) for n in names}
 
 
 def _terms(expr: str) -> list:

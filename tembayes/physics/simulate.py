@@ -72,9 +72,14 @@ class Inputs:
             raise ModelError("Inputs.time must have at least 2 strictly increasing samples")
 
     @classmethod
-    def from_experiment(cls, exp: Experiment) -> Inputs:
-        """Inputs of a loaded :class:`tembayes.data.Experiment`."""
-        return cls(exp.time, exp.current, exp.boundaries)
+    def from_experiment(cls, exp: Experiment, rig: RigDescription | None = None) -> Inputs:
+        """Inputs of a loaded :class:`tembayes.data.Experiment`, its boundaries in ``rig``'s order (by column name).
+
+        Without ``rig``, the experiment's own boundary order.
+        """
+        if rig is None:
+            return cls(exp.time, exp.current, exp.boundaries)
+        return cls(exp.time, exp.current, [exp.channel(c) for c in rig.boundaries.values()])
 
     def slice(self, start: int | None, stop: int | None) -> Inputs:
         """Samples ``start:stop``."""

@@ -65,7 +65,7 @@ BIN_WIDTH_K = 2.0
 MIN_BIN_SAMPLES = 10
 
 #: Sensor colours, in the rig's order (on the reference rig: the hot side warm, the cold side cool).
-SENSOR_COLORS = ("C1", "C3", "C0", "C9")
+SENSOR_COLORS = ("C1", "C3", "C0", "C9", "C4", "C5", "C6", "C8")
 
 #: Resolution of the saved PNG files [dots per inch].
 DPI = 120

@@ -19,6 +19,7 @@ from matplotlib.patches import Patch
 
 from tembayes.constants import KELVIN
 from tembayes.data.write import atomic_write_bytes
+from tembayes.plots.identify import SENSOR_COLORS
 
 if TYPE_CHECKING:
     from collections.abc import Mapping
@@ -27,8 +28,6 @@ if TYPE_CHECKING:
 
 #: Band shades, widest first (95, 90, 50 %).
 _BAND_ALPHA = {95: 0.18, 90: 0.3, 50: 0.55}
-#: Colours of the sensor channels in the rig's order; the voltage is C2.
-_SENSOR_COLORS = ("C1", "C3", "C0", "C9", "C4", "C5", "C6", "C8")
 #: The paper's stated accuracy of its validation [K].
 PAPER_ACCURACY_K = 0.5
 DPI = 120
@@ -42,7 +41,7 @@ def _scale(ch):
 def _color(pred, ch):
     if ch == "voltage_V":
         return "C2"
-    return _SENSOR_COLORS[pred.channels.index(ch) % len(_SENSOR_COLORS)]
+    return SENSOR_COLORS[pred.channels.index(ch) % len(SENSOR_COLORS)]
 
 
 def _title(pred):
