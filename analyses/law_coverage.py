@@ -49,14 +49,13 @@ TYPES = {
 }
 
 
-def label(args):
-    rig = "" if args.rig == "reference" else f"{args.rig}-"
-    return f"{rig}{args.fidelity}-{args.physics}-{args.model}-{args.discrepancy}" + (f"-{args.tag}" if args.tag else "")
-
-
 def bench_label(args):
     rig = "" if args.rig == "reference" else f"{args.rig}-"
     return f"{rig}{args.fidelity}-{args.physics}"
+
+
+def label(args):
+    return f"{bench_label(args)}-{args.model}-{args.discrepancy}" + (f"-{args.tag}" if args.tag else "")
 
 
 def run(cmd):

@@ -489,7 +489,7 @@ def _cmd_rig(args):
 
     rig = rig_file_of(rig_source(args.rig))  # refused input: nothing is written
     check_output(args.out, kind="rig", inputs=[(rig.path, "rig file")], overwrite=args.overwrite)
-    summary = summarise_rig(rig, args.module_k)
+    summary = summarise_rig(rig) if args.module_k is None else summarise_rig(rig, args.module_k)
 
     def figures(tmp):
         from tembayes.plots.rig import save_rig_figure
@@ -1123,7 +1123,7 @@ def _add_rig(sub):
     p.add_argument(
         "--module-k",
         type=float,
-        default=0.5,
+        default=None,
         metavar="W_PER_K",
         help="the module's thermal conductance for the time constants (default 0.5 W/K, a 40 mm 6 A module)",
     )

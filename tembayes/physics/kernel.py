@@ -180,14 +180,27 @@ def true_current(i_meas: float | np.ndarray, p: np.ndarray) -> float | np.ndarra
 
 
 @njit(cache=True)
+def _boundary_term(Bb, i, u):
+    """``sum_k Bb[i, k] u[k]``: node ``i``'s drive from the boundaries ``u`` (or their slopes)."""
+    s = Bb[i, 0] * u[0]
+    for k in range(1, u.shape[0]):
+        s += Bb[i, k] * u[k]
+    return s
+
+
+@njit(cache=True)
+def _boundaries_at(U, mb, n, t, ub):
+    """The boundaries ``t`` seconds into sampling interval ``n``, linear between samples (into ``ub``)."""
+    for k in range(ub.shape[0]):
+        ub[k] = U[k, n] + mb[k] * t
+
+
+@njit(cache=True)
 def _rhs(y, I, ub, A, Bb, Cinv, tem, p, Tt, Qt, f):
     N = y.shape[0]
     m = tem.shape[0]
-    nb = ub.shape[0]
     for i in range(N):
-        s = Bb[i, 0] * ub[0]
-        for k in range(1, nb):
-            s += Bb[i, k] * ub[k]
+        s = _boundary_term(Bb, i, ub)
         for j in range(N):
             s += A[i, j] * y[j]
         f[i] = s
@@ -316,8 +329,7 @@ def _integrate_one(t, i_meas, U, A, Bb, Cinv, tem, p, rec, y, steady_start, atol
 
     I0 = true_current(i_meas[0], p)
     if steady_start:
-        for k in range(nb):
-            ub[k] = U[k, 0]
+        ub[:] = U[:, 0]
         ok = _steady(y, I0, ub, A, Bb, Cinv, tem, p, Tt, Qt, Tz, Qz, F0, J, dfdI, piv)
         if not ok:
             stats[3] = 1.0
@@ -330,8 +342,7 @@ def _integrate_one(t, i_meas, U, A, Bb, Cinv, tem, p, rec, y, steady_start, atol
     h = hmax
     nsteps = 0
     nrej = 0
-    for k in range(nb):
-        ub[k] = U[k, 0]
+    ub[:] = U[:, 0]
     _rhs(y, I0, ub, A, Bb, Cinv, tem, p, Tt, Qt, F0)
     for n in range(nt - 1):
         dt = t[n + 1] - t[n]
@@ -357,10 +368,7 @@ def _integrate_one(t, i_meas, U, A, Bb, Cinv, tem, p, rec, y, steady_start, atol
             I_s = Ia + mI * s
             _jac(y, I_s, mI, A, Cinv, tem, p, Tz, Qz, J, dfdI)
             for i in range(N):
-                sb = Bb[i, 0] * mb[0]
-                for k in range(1, nb):
-                    sb += Bb[i, k] * mb[k]
-                dfdt[i] = sb + dfdI[i] * mI
+                dfdt[i] = _boundary_term(Bb, i, mb) + dfdI[i] * mI
             while True:
                 hd = h * _D
                 for i in range(N):
@@ -374,8 +382,7 @@ def _integrate_one(t, i_meas, U, A, Bb, Cinv, tem, p, rec, y, steady_start, atol
                 sh = s + 0.5 * h
                 for i in range(N):
                     ytmp[i] = y[i] + 0.5 * h * k1[i]
-                for k in range(nb):
-                    ub[k] = U[k, n] + mb[k] * sh
+                _boundaries_at(U, mb, n, sh, ub)
                 _rhs(ytmp, Ia + mI * sh, ub, A, Bb, Cinv, tem, p, Tt, Qt, F1)
                 for i in range(N):
                     k2[i] = F1[i] - k1[i]
@@ -384,8 +391,7 @@ def _integrate_one(t, i_meas, U, A, Bb, Cinv, tem, p, rec, y, steady_start, atol
                     k2[i] += k1[i]
                     yn[i] = y[i] + h * k2[i]
                 se = s + h
-                for k in range(nb):
-                    ub[k] = U[k, n] + mb[k] * se
+                _boundaries_at(U, mb, n, se, ub)
                 _rhs(yn, Ia + mI * se, ub, A, Bb, Cinv, tem, p, Tt, Qt, F2)
                 for i in range(N):
                     k3[i] = F2[i] - _E32 * (k2[i] - F1[i]) - 2.0 * (k1[i] - F0[i]) + hd * dfdt[i]

@@ -18,16 +18,17 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
+from scipy.linalg import eigh
 
 from tembayes.constants import BASE_COLUMNS
 
 if TYPE_CHECKING:
     from tembayes.physics.rig import RigDescription
 
-__all__ = ["Layout", "sensor_layout"]
+__all__ = ["Layout", "sensor_layout", "conduction_modes", "DEFAULT_MODULE_K"]
 
-#: The module's thermal conductance [W/K] in :attr:`Layout.slowest_tau_s` (a TEC1-12706's).
-TAU_MODULE_K = 0.5
+#: Module conductance assumed where none is given [W/K]: a 40 mm, 6 A module (TEC1-12706's datasheet: 0.54 W/K).
+DEFAULT_MODULE_K = 0.5
 #: A link to the room conducting less than this at nominal values is a leak [W/K] (a heat
 #: sink's fan-cooled fins, a main heat path, conduct watts per kelvin; an enclosure, hundredths).
 LEAK_MAX_W_PER_K = 0.25
@@ -63,7 +64,7 @@ class Layout:
         where the ``ambient_leak`` effect adds its conductance.
     slowest_tau_s : float
         The network's slowest time constant at nominal values, the module a
-        conductance of :data:`TAU_MODULE_K` [s]: how fast the rig settles.
+        conductance of :data:`DEFAULT_MODULE_K` [s]: how fast the rig settles.
     """
 
     sensors: tuple
@@ -131,7 +132,7 @@ def sensor_layout(rig: RigDescription) -> Layout:
         paths=tuple(paths),
         leak_boundary=room,
         leaks=tuple(n for n, f in feeds.items() if any(b == room and g < LEAK_MAX_W_PER_K for b, g in f)),
-        slowest_tau_s=_slowest_tau(rig),
+        slowest_tau_s=float(1.0 / conduction_modes(rig)[0].min()),
     )
 
 
@@ -168,18 +169,36 @@ def _main_feed(feeds: dict, reached: dict) -> str | None:
     return max(total, key=total.get) if total else None
 
 
-def _slowest_tau(rig: RigDescription) -> float:
-    """The slowest time constant of ``C dT/dt = -L T`` with the module as a conductance along its chain [s]."""
+def conduction_modes(rig: RigDescription, module_k: float = DEFAULT_MODULE_K) -> tuple:
+    """The modes of ``C dT/dt = -L T`` at nominal values, the module a conductance along its chain.
+
+    Parameters
+    ----------
+    rig : RigDescription
+    module_k : float
+        The module's thermal conductance [W/K], face to face.
+
+    Returns
+    -------
+    lam : ndarray, shape (N,)
+        Rates [1/s], ascending (time constants ``1 / lam``).
+    W : ndarray, shape (N, N)
+        Eigenvectors of ``C^-1/2 L C^-1/2`` (columns).
+    s : ndarray, shape (N,)
+        ``C^-1/2`` [K^(1/2) / J^(1/2)]: node temperatures of a mode are ``s * W[:, k]``.
+    network : Network
+    """
     net = rig.network()
     chain = [net.index(n) for n in rig.tem_chain]
     G = net.G[0].copy()
-    g = TAU_MODULE_K * (len(chain) - 1)
+    g = module_k * (len(chain) - 1)
     for a, b in zip(chain[:-1], chain[1:]):
         G[a, b] += g
         G[b, a] += g
     L = np.diag(G.sum(axis=1) + net.Gb[0].sum(axis=1)) - G
     s = 1.0 / np.sqrt(net.C[0])
-    return float(1.0 / np.linalg.eigvalsh(s[:, None] * L * s[None, :]).min())
+    lam, W = eigh(s[:, None] * L * s[None, :])
+    return lam, W, s, net
 
 
 def _hops(neighbours: dict, start: str) -> dict:

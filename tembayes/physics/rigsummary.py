@@ -14,16 +14,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import eigh
 
+from tembayes.physics.layout import DEFAULT_MODULE_K, conduction_modes
 from tembayes.physics.rigfile import RigFile
 
-__all__ = ["RigSummary", "summarise_rig", "SETTLED", "DEFAULT_MODULE_K"]
+__all__ = ["RigSummary", "summarise_rig", "SETTLED"]
 
 #: A sensor has settled when its distance from the final value is this share of the largest sensor's move.
 SETTLED = (0.01, 0.001)
-#: Module conductance assumed when none is given [W/K]: a 40 mm, 6 A module (TEC1-12706's datasheet: 0.54 W/K).
-DEFAULT_MODULE_K = 0.5
 
 
 @dataclass(frozen=True)
@@ -88,19 +86,12 @@ def summarise_rig(rig: RigFile, module_k: float = DEFAULT_MODULE_K) -> RigSummar
     RigSummary
     """
     desc = rig.build()
-    net = desc.network()
+    lam, W, s, net = conduction_modes(desc, module_k)  # the module a conductance between its faces
     names = net.nodes
     vals = {p.name: np.atleast_1d(p.nominal) for p in desc.parameters}
     links = tuple((a, b, float(np.atleast_1d(desc.evaluate(g, vals))[0])) for a, b, g in desc.links)
     C = net.C[0]
     h, c = names.index(rig.hot), names.index(rig.cold)
-    G = net.G[0].copy()
-    G[h, c] += module_k  # the module as a conductance between its faces
-    G[c, h] += module_k
-    L = np.diag(G.sum(axis=1) + net.Gb[0].sum(axis=1)) - G
-    # C dT/dt = -L T + q: symmetric in C^-1/2 coordinates
-    s = 1.0 / np.sqrt(C)
-    lam, W = eigh(s[:, None] * L * s[None, :])
     tau = 1.0 / lam
     read = [names.index(n) for n in desc.sensors.values()]
     half = np.zeros(len(names))
