@@ -49,8 +49,18 @@ Targets: top-1 >= 0.85 (groups as one), null false alarm <= 10 %, withheld not
     python analyses/gap_benchmark.py --shard 0/2 & python analyses/gap_benchmark.py --shard 1/2; \
         python analyses/gap_benchmark.py --summarise
 
+Another rig (``--rig``, a shipped rig or a rig file, simulated by ``tembayes
+simulate --rig`` at the standard fidelity): the null cases only unless
+``--effects`` names some, cached under ``runs/gap_benchmark_<rig>/`` and
+recorded as ``gap_benchmark_<rig>_null`` (``--label`` overrides).  The null
+cases' verdicts are listed one by one with what raised an alarm (the
+significant cells, the out-of-range parameters, the gap in K):
+
+    python analyses/gap_benchmark.py --rig heatsink-al --seeds 10 --jobs 1
+
 Each case is cached under ``runs/gap_benchmark/<effect>_s<seed>/`` (batch,
-run, ``gap.json``, ``gap_withheld.json``); an interrupted benchmark resumes.
+run, ``gap.json``, ``gap_withheld.json``, ``timing.json``); an interrupted
+benchmark resumes at its first unfinished case.
 About 10 min per effect case on 2 cores (base calibration 2-10 min on one
 core, diagnosis 3-8 min on two).  Results:
 ``analyses/results/gap_benchmark.{json,md}``.
@@ -86,7 +96,7 @@ def _tembayes(*args, check=True):
     )
 
 
-def _case(work, effect, seed, withheld, compute=True, fidelity="standard"):
+def _case(work, effect, seed, withheld, compute=True, fidelity="standard", rig=None, jobs=None):
     from tembayes.calibrate.run import load_run
     from tembayes.data import load_batch
     from tembayes.data.write import write_json
@@ -99,9 +109,11 @@ def _case(work, effect, seed, withheld, compute=True, fidelity="standard"):
         if not all((d / f"{t}.json").is_file() for t in tags):
             return None
         return {t: json.loads((d / f"{t}.json").read_text()) for t in tags}
+    timing = {}
     if not (run / "summary.json").is_file():
         d.mkdir(parents=True, exist_ok=True)
         eff = ["--effect", effect] if effect else []
+        t0 = time.perf_counter()
         _tembayes(
             "simulate",
             str(batch),
@@ -115,7 +127,10 @@ def _case(work, effect, seed, withheld, compute=True, fidelity="standard"):
             fidelity,
             "--overwrite",
             *eff,
+            *(["--rig", rig] if rig else []),
         )
+        timing["simulate_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
         # exit status 1 = a module not converged: a misspecified model often is; the run is written
         _tembayes(
             "calibrate",
@@ -131,12 +146,14 @@ def _case(work, effect, seed, withheld, compute=True, fidelity="standard"):
         )
         if not (run / "summary.json").is_file():
             raise RuntimeError(f"calibrating {batch} wrote no run")
+        timing["calibrate_s"] = time.perf_counter() - t0
+        (d / "timing.json").write_text(json.dumps(timing, indent=1))
     out, cache = {}, {}  # the withheld diagnosis reuses the other candidates' recalibrations
     for tag, exclude in (("gap", ()),) + ((("gap_withheld", (effect,)),) if withheld and effect else ()):
         f = d / f"{tag}.json"
         if not f.is_file():
             t0 = time.perf_counter()
-            diag = diagnose(load_run(run), load_batch(batch), exclude=exclude, seed=seed, cache=cache)
+            diag = diagnose(load_run(run), load_batch(batch), exclude=exclude, seed=seed, cache=cache, jobs=jobs)
             doc = diag.to_json()
             doc["wall_s"] = time.perf_counter() - t0
             if tag == "gap":
@@ -206,6 +223,34 @@ def _true_row(doc, effect):
     return next((r for r in doc["ranking"] if r["effect"] == effect), None)
 
 
+def null_cases(cases):
+    """The null cases one by one: the verdict and what raised it (significant cells, parameters, the gap)."""
+    out = []
+    for (effect, seed), docs in sorted(cases.items(), key=lambda kv: kv[0][1]):
+        if effect:
+            continue
+        doc = docs["gap"]
+        base = doc.get("base") or {}
+        out.append(
+            {
+                "seed": seed,
+                "verdict": doc["verdict"],
+                "best": doc["best"],
+                "gap_in": doc.get("gap_in", []),
+                "validation_gap_K": base.get("gap"),
+                "validation_rmse_T_K": base.get("rmse_T"),
+                "identification_gap_sd": base.get("identification_gap"),
+                "significant_cells_validation": sum(r.get("significant_cells", 0) for r in base.get("runs", [])),
+                "where": [
+                    {k: w.get(k) for k in ("channel", "regime", "kind", "module", "run", "score", "p", "outside90")}
+                    for w in doc.get("where", [])
+                ],
+                "seconds": doc.get("wall_s", doc.get("seconds")),
+            }
+        )
+    return out
+
+
 def summarise(cases):
     """Confusion matrix and the benchmark's scores from ``{(effect, seed): {"gap": doc, "gap_withheld": doc}}``."""
     from tembayes.physics.effects import CATALOGUE
@@ -270,11 +315,16 @@ def summarise(cases):
     }
 
 
-def _markdown(s):
+def _minutes(x):
+    return "–" if x is None else f"{x:.1f} min"
+
+
+def _markdown(s, command="python analyses/gap_benchmark.py"):
+    on = f" on the {s['rig']} rig" if s.get("rig") else ""
     lines = [
-        "# Gap diagnosis: blind benchmark",
+        f"# Gap diagnosis: blind benchmark{on}",
         "",
-        "`python analyses/gap_benchmark.py` (one-module bench batches, 4 h validation at 1 Hz).",
+        f"`{command}` (one-module bench batches, 4 h validation at 1 Hz).",
         "",
         "| true effect | diagnosed (best, or verdict) |",
         "|---|---|",
@@ -329,6 +379,31 @@ def _markdown(s):
             f"| {v['coverage90_after_gap']:.2f} |"
             for k, v in s["law_coverage"].items()
         ]
+    if s.get("null_cases"):
+        lines += [
+            "",
+            "Null cases (no effect on the bench; an alarm is any verdict but `no_gap`):",
+            "",
+            "| seed | verdict | gap in | validation gap | T RMSE | identification gap | alarms (channel, regime, score) "
+            "| case time |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for c in s["null_cases"]:
+            alarms = "; ".join(
+                f"{w['module']} {w['channel']} {w['regime']}"
+                + (f" ({w['run']})" if w.get("run") else "")
+                + (f" score {w['score']:.2f}" if w.get("score") is not None else "")
+                for w in c["where"]
+            )
+            g = c["validation_gap_K"]
+            rm = c["validation_rmse_T_K"]
+            ig = c["identification_gap_sd"]
+            lines.append(
+                f"| {c['seed']} | {c['verdict']}{' (' + c['best'] + ')' if c['best'] else ''} "
+                f"| {', '.join(c['gap_in']) or '–'} | {'–' if g is None else f'{g:.4f} K'} "
+                f"| {'–' if rm is None else f'{rm:.4f} K'} | {'–' if ig is None else f'{ig:.3f} sd'} "
+                f"| {alarms or '–'} | {_minutes(c.get('case_minutes'))} |"
+            )
     lines += [
         "",
         f"- diagnosis time per batch: median {s['diagnosis_seconds']['median']:.0f} s, "
@@ -348,10 +423,10 @@ def main(argv=None):
         epilog="example: python analyses/gap_benchmark.py --seeds 5",
     )
     ap.add_argument("--seeds", type=int, default=5)
-    ap.add_argument("--effects", nargs="*", default=list(CATALOGUE))
+    ap.add_argument("--effects", nargs="*", default=None, help="default: the catalogue (another rig: none)")
     ap.add_argument("--no-null", action="store_true")
     ap.add_argument("--no-withheld", action="store_true")
-    ap.add_argument("--work", type=Path, default=Path("runs/gap_benchmark"))
+    ap.add_argument("--work", type=Path, default=None, help="default runs/gap_benchmark[_RIG]")
     ap.add_argument(
         "--shard",
         default="0/1",
@@ -364,9 +439,23 @@ def main(argv=None):
         default="standard",
         help="the bench: standard (the model's own structure) or high (out-of-model); use one --work per bench",
     )
+    ap.add_argument(
+        "--rig",
+        default="reference",
+        help="the bench's rig (tembayes simulate --rig): a shipped rig or a rig file; standard fidelity only",
+    )
+    ap.add_argument("--jobs", type=int, default=None, help="the diagnosis's worker processes (default: cores + 1)")
     ap.add_argument("--summarise", action="store_true", help="only summarise the cases already cached")
     ap.add_argument("--label", default="", help="results as gap_benchmark_LABEL.{json,md} (a partial rerun)")
     args = ap.parse_args(argv)
+    rig = None if args.rig == "reference" else args.rig
+    rig_tag = Path(rig).stem if rig else ""
+    if args.effects is None:
+        args.effects = [] if rig else list(CATALOGUE)
+    if args.work is None:
+        args.work = Path("runs/gap_benchmark" + (f"_{rig_tag}" if rig else ""))
+    if rig and not args.label:
+        args.label = f"{rig_tag}_null" if not args.effects else rig_tag
     i_shard, n_shard = (int(x) for x in args.shard.split("/"))
     cases = {}
     todo = ([] if args.no_null else [None]) + list(args.effects)
@@ -379,21 +468,40 @@ def main(argv=None):
         if k % n_shard != i_shard:
             continue
         t0 = time.perf_counter()
-        cases[(effect, seed)] = docs = _case(args.work, effect, seed, not args.no_withheld, fidelity=args.fidelity)
+        cases[(effect, seed)] = docs = _case(
+            args.work, effect, seed, not args.no_withheld, fidelity=args.fidelity, rig=rig, jobs=args.jobs
+        )
         msg = f"[{effect or 'null'} s{seed}] {_called(docs['gap'])}"
         if "gap_withheld" in docs:
             msg += f"; withheld: {_called(docs['gap_withheld'])}"
         print(msg + f" ({time.perf_counter() - t0:.0f} s)", flush=True)
+        if rig and n_shard == 1:  # another rig's cases are long: the results so far after each
+            _record(args, cases, rig, argv, quiet=True)
+    _record(args, cases, rig, argv, quiet=False, shard=n_shard > 1 and not args.summarise)
+
+
+def _record(args, cases, rig, argv, *, quiet, shard=False):
+    """Summarise ``cases`` and write ``analyses/results/gap_benchmark[_LABEL].{json,md}`` (a shard: print only)."""
     s = summarise(cases)
     s["law_coverage"] = law_coverage(args.work, cases)
-    if n_shard > 1 and not args.summarise:
-        print(_markdown(s))  # this shard's cases; `--summarise` writes the whole table
+    if rig:
+        s["rig"] = rig
+        s["null_cases"] = null_cases(cases)
+        for c in s["null_cases"]:
+            t = args.work / f"null_s{c['seed']}" / "timing.json"
+            steps = json.loads(t.read_text()) if t.is_file() else {}
+            if steps and c["seconds"] is not None:
+                c["case_minutes"] = (steps["simulate_s"] + steps["calibrate_s"] + c["seconds"]) / 60.0
+    command = "python analyses/gap_benchmark.py" + (" " + " ".join(argv or sys.argv[1:]) if rig else "")
+    if shard:
+        print(_markdown(s, command))  # this shard's cases; `--summarise` writes the whole table
         return
     RESULTS.mkdir(exist_ok=True)
     name = "gap_benchmark" + (f"_{args.label}" if args.label else "")
     (RESULTS / f"{name}.json").write_text(json.dumps(s, indent=1))
-    (RESULTS / f"{name}.md").write_text(_markdown(s))
-    print(_markdown(s))
+    (RESULTS / f"{name}.md").write_text(_markdown(s, command))
+    if not quiet:
+        print(_markdown(s, command))
 
 
 if __name__ == "__main__":

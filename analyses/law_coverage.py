@@ -138,6 +138,9 @@ def rows(work, args):
                 rb = truth["modules"][mid]["rig_bench"]
                 dx_mm = 10.0 / 18
                 row["depth_offset_mm"] = {c: sides[c] * rb[f"v_{c}"] * dx_mm for c in ("T2", "T3")}
+            bench = truth["modules"][mid]["rig_bench"]
+            if "g_lead" in bench:  # any rig's out-of-model bench: how far its sensors read towards the room
+                row["lead_share"] = bench["g_lead"] / bench["g_sensor"]
             held = (m["diagnostics"].get("discrepancy") or {}).get("held_sd_over_posterior_sd") or {}
             for p in PARAMS:
                 tv = truth["modules"][mid][p]

@@ -773,7 +773,8 @@ def _add_simulate(sub):
         help="standard: the calibration model's structure, finer steps (proves the code); high: a rig "
         "and module the model does not contain -- finer steel, the module's layers, sensor bodies "
         "at uncertain depths, Thomson heat, K(T), re-mounting spread, slow sensor noise (measures "
-        "the method)",
+        "the method); with --rig: the rig file's network plus sensor bodies and leads, module edge "
+        "leaks, re-mounting spread and slow sensor noise",
     )
     p.add_argument(
         "--physics",

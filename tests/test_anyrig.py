@@ -6,12 +6,14 @@ import numpy as np
 import pytest
 
 from tembayes.bench import BenchConfig, simulate_batch
-from tembayes.bench.anyrig import mounting_parameters
+from tembayes.bench import bench as bench_module
+from tembayes.bench.anyrig import bench_rig, mounting_parameters, outside_bench_rig
+from tembayes.bench.protocols import identification_staircase
 from tembayes.constants import KELVIN
 from tembayes.data import load_batch
 from tembayes.errors import DataError, ModelError
 from tembayes.physics import Inputs, shipped_rig, simulate
-from tembayes.physics.rigread import REFERENCE, rig_from_config
+from tembayes.physics.rigread import REFERENCE, rig_file_of, rig_from_config
 
 PAPER = {"R0_ohm": 1.7, "R1_ohm_per_K": 0.0085, "S0_V_per_K": 0.048, "S1_V_per_K2": 1e-4, "K_W_per_K": 0.54}
 
@@ -134,9 +136,41 @@ def test_bench_copies_a_rig_file_into_the_batch(tmp_path):
     assert batch_inputs(batch)["rig.toml"] == file_sha256(rig_file)
 
 
-def test_out_of_model_bench_is_the_reference_rigs_only():
-    with pytest.raises(ModelError, match="reference rig only"):
-        BenchConfig(fidelity="high", rig={"preset": "heatsink-al"})
+def test_the_out_of_model_benchs_sensors_read_through_bodies_and_leads():
+    """A sensor body behind its contact reads its node pulled towards the room through the leads by
+    g_lead / (g_sensor + g_lead) of their difference at steady state (the heat-sink rig at 1 A)."""
+    rig = outside_bench_rig(bench_rig(rig_file_of({"preset": "heatsink-al"})))
+    assert {c: rig.sensors[c] for c in ("T_hot_C", "T_load_C")} == {
+        "T_hot_C": "sensor_T_hot_C",
+        "T_load_C": "sensor_T_load_C",
+    }
+    t = np.linspace(0.0, 30000.0, 301)
+    room = np.full((1, len(t)), 295.0)
+    values = {**PAPER, "g_sensor": 0.01, "g_lead": 1e-4}
+    led = simulate(Inputs(t, np.ones_like(t), room), values, rig=rig, steady_start=False)
+    bare = simulate(Inputs(t, np.ones_like(t), room), {**values, "g_lead": 1e-12}, rig=rig, steady_start=False)
+    for k in range(len(rig.sensors)):
+        node, read = bare.sensors[0, k, -1], led.sensors[0, k, -1]
+        assert abs(node - 295.0) > 2.0  # the current moved it well away from the room
+        assert read - node == pytest.approx(1e-4 / 0.0101 * (295.0 - node), rel=0.15), k
+
+
+def test_out_of_model_bench_on_another_rig_draws_its_extras_and_remounts(tmp_path):
+    """Also: holds shorter than the rig's slowest time constant (120 s against 193 s) load; the
+    maximum-principle check once read a hold still relaxing towards the room as 'settled'."""
+    config = BenchConfig(
+        n_modules=2, seed=2, n_validations=0, hold=120.0, fidelity="high", rig={"preset": "heatsink-al"}
+    )
+    truth = simulate_batch(tmp_path / "b", config, progress=lambda msg: None)
+    assert truth["generator"]["bench_rig"].endswith("-outside")
+    one, two = (truth["modules"][m]["rig_bench"] for m in ("TEM1", "TEM2"))
+    for k in ("c_sensor", "g_sensor", "g_lead", "leak_module"):
+        assert k in one
+    assert one["c_sensor"] == two["c_sensor"]  # one rig's sensors
+    assert one["g_sink"] != two["g_sink"] and abs(np.log(one["g_sink"] / two["g_sink"])) < 0.2  # re-mounted
+    assert one["leak_module"] != two["leak_module"]  # the module's own
+    assert "sensor_tau_s" not in truth["bench_layout"]["physics"]  # the bodies lag instead
+    assert load_batch(tmp_path / "b").layout.sensors == ("T_hot_C", "T_cold_C", "T_load_C")
 
 
 def test_swapped_sensors_on_a_heat_path_are_refused_by_name(heatsink_batch, tmp_path):
@@ -270,15 +304,68 @@ def test_identify_on_a_rig_with_three_sensors(heatsink_batch):
         assert res.fit[k] == pytest.approx(t[k], rel=0.05), k
 
 
-def test_identify_refuses_a_run_whose_temperature_the_boundaries_hold(tmp_path):
+@pytest.fixture(scope="module")
+def flat_plates_batch(tmp_path_factory):
+    """Liquid plates held at one temperature through the reference staircase (no plate steps)."""
+    out = tmp_path_factory.mktemp("flat") / "batch"
+    config = BenchConfig(n_modules=1, seed=3, n_validations=0, hold=300.0, rig={"preset": "liquid-plates"})
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(bench_module, "identification_run", lambda rig, imax, hold: identification_staircase(imax, hold))
+        simulate_batch(out, config, progress=lambda msg: None)
+    return out
+
+
+def test_identify_refuses_a_run_whose_temperature_the_boundaries_hold(flat_plates_batch):
     """Liquid plates at one temperature: the reference staircase moves the mean junction temperature by
     tenths of a kelvin, too little for the laws' slopes; identify says so instead of fitting a line."""
     from tembayes.identify.pipeline import identify_module
 
-    out = tmp_path / "batch"
-    config = BenchConfig(n_modules=1, seed=3, n_validations=0, hold=300.0, rig={"preset": "liquid-plates"})
-    simulate_batch(out, config, progress=lambda msg: None)
-    batch = load_batch(out)
+    batch = load_batch(flat_plates_batch)
     with pytest.raises(DataError, match=r"spans only 0\.\d+ K") as err:
         identify_module(batch.modules["TEM1"], batch.datasheet, rig_config=batch.rig_config)
     assert "identification.csv" in str(err.value) and "step the boundaries' temperature" in str(err.value)
+
+
+def test_calibrate_refuses_a_flat_mean_temperature_and_writes_nothing(flat_plates_batch, tmp_path, capsys):
+    """On a flat T-bar the slopes were confidently wrong (S1 18 times the truth, 50 sd): refused, by name."""
+    from tembayes.cli import main
+
+    assert main(["calibrate", str(flat_plates_batch), "--out", str(tmp_path / "run"), "--workers", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "identification.csv" in err and "spans only 0." in err and "calibrate refuses the run" in err
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.fixture(scope="module")
+def plates_batch(tmp_path_factory):
+    out = tmp_path_factory.mktemp("plates") / "batch"
+    config = BenchConfig(n_modules=1, seed=3, n_validations=0, rig={"preset": "liquid-plates"})
+    return out, simulate_batch(out, config, progress=lambda msg: None)
+
+
+def test_the_bench_steps_plates_that_hold_both_faces(plates_batch):
+    """On liquid plates the identification run repeats the staircase at each plate temperature, so the
+    mean temperature at the faces spans about the setpoints' range (40 K) rather than tenths of a kelvin."""
+    out, truth = plates_batch
+    exp = load_batch(out).modules["TEM1"].identification
+    tavg = 0.5 * (exp.channel("T_hot_C") + exp.channel("T_cold_C")) - KELVIN
+    setpoints = truth["generator"]["plate_setpoints_C"]
+    assert np.percentile(tavg, 99) - np.percentile(tavg, 1) > 0.9 * (max(setpoints) - min(setpoints))
+    liquid = exp.channel("T_cold_liquid_C") - KELVIN
+    for sp in setpoints:  # each setpoint held (within the loop's wobble) for a staircase
+        assert np.mean(np.abs(liquid - sp) < 0.5) > 0.25
+
+
+def test_calibration_on_stepped_plates_finds_the_slopes(plates_batch):
+    """With the plates stepped, the laws come out near the truth: the intercepts within 1 %, the slopes
+    within 5 % (posterior sds about 0.2 %, 0.3 %, 0.3 % and 1.3 %; on the flat run S1 came out 18 times
+    too large)."""
+    from tembayes.calibrate.module import CalibrationOptions, calibrate_module
+
+    out, truth = plates_batch
+    batch = load_batch(out)
+    options = CalibrationOptions(max_steps=2000, pilot=500, max_relinearise=1, psis_draws=100)
+    res = calibrate_module(batch.modules["TEM1"], batch.datasheet, rig_config=batch.rig_config, seed=0, options=options)
+    t = truth["modules"]["TEM1"]
+    for k, rel in {"R0_ohm": 0.01, "S0_V_per_K": 0.01, "R1_ohm_per_K": 0.05, "S1_V_per_K2": 0.05}.items():
+        assert np.mean(res.draws[k]) == pytest.approx(t[k], rel=rel), k

@@ -16,9 +16,11 @@ depths, Thomson heat, K(T), re-mounting spread, slow sensor noise) -- it
 measures the method.  Every statistical study reports both.
 
 Those two are the reference rig's.  Any other rig (a shipped preset or a rig
-file, ``BenchConfig.rig``) is simulated by :mod:`tembayes.bench.anyrig`: the
-rig file at a finer resolution than the calibration's, with the standard
-bench's physics.
+file, ``BenchConfig.rig``) is simulated by :mod:`tembayes.bench.anyrig`: at
+``standard``, the rig file at a finer resolution than the calibration's,
+with the standard bench's physics; at ``high``, that network with sensor
+bodies and leads, module edge leaks, re-mounting spread and slow sensor
+noise added (:func:`~tembayes.bench.anyrig.outside_bench_rig`).
 """
 
 from __future__ import annotations
@@ -34,8 +36,10 @@ import tembayes
 from tembayes.bench import anyrig, hifi, outside
 from tembayes.bench.hifi import DEPTHS
 from tembayes.bench.protocols import (
+    PLATE_SETPOINTS_C,
     boundary_drifts,
     identification_staircase,
+    plate_staircase,
     sample_times,
     validation_cycle,
 )
@@ -123,9 +127,8 @@ class BenchConfig:
     rig : dict or None
         A ``[rig]`` table (``{"preset": NAME}`` or ``{"file": PATH}``,
         :func:`tembayes.physics.rigread.rig_source`) for a rig other than the
-        reference one, simulated by :mod:`tembayes.bench.anyrig` at the
-        ``standard`` fidelity; None (or the reference preset): the reference
-        rig's benches.
+        reference one, simulated by :mod:`tembayes.bench.anyrig`; None (or
+        the reference preset): the reference rig's benches.
     """
 
     n_modules: int = 3
@@ -149,11 +152,6 @@ class BenchConfig:
             object.__setattr__(self, "rig", None)
         if self.rig is not None:
             rig_file_of(self.rig)  # an unreadable rig is refused here, before any work
-            if self.fidelity != "standard":
-                raise ModelError(
-                    "the out-of-model bench (fidelity 'high') exists for the reference rig only; "
-                    "simulate other rigs at fidelity 'standard'"
-                )
         if self.fidelity not in FIDELITIES:
             raise ModelError(f"fidelity must be one of {FIDELITIES}, got {self.fidelity!r}")
         if self.physics not in PHYSICS:
@@ -259,19 +257,21 @@ def _draw_unit(config, rng, population, mid):
 def _draw_truth_any_rig(config, rng, population):
     """:func:`draw_truth` on a rig other than the reference one (:mod:`tembayes.bench.anyrig`)."""
     rig = bench_rig_of(config)
+    high = config.fidelity == "high"
     physics = {}
-    if config.physics == "full":
-        physics = {
-            "thomson_fraction": 1.0,
-            "K1_per_K": float(rng.normal(0, K1_SD)),
-            "sensor_tau_s": float(rng.uniform(*SENSOR_TAU_RANGE)),
-        }
+    if high or config.physics == "full":
+        physics = {"thomson_fraction": 1.0, "K1_per_K": float(rng.normal(0, K1_SD))}
+    if config.physics == "full" and not high:  # the out-of-model bench's sensors lag by their bodies
+        physics["sensor_tau_s"] = float(rng.uniform(*SENSOR_TAU_RANGE))
     mounting = anyrig.mounting_parameters(rig)
     shared = anyrig.draw_rig_values(rng, rig.parameters, [p for p in rig.parameter_names if p not in mounting])
+    remount = anyrig.remount_spreads(rig, shared) if high else {}
     modules = {}
     for mid in config.module_ids:
         laws, is_out = _draw_unit(config, rng, population, mid)
         values = {**shared, **anyrig.draw_rig_values(rng, rig.parameters, sorted(mounting))}
+        for k, sd in remount.items():
+            values[k] *= float(np.exp(sd * rng.standard_normal()))
         modules[mid] = {
             **{k: float(v) for k, v in laws.items()},
             "outlier": bool(is_out),
@@ -286,10 +286,16 @@ def _draw_truth_any_rig(config, rng, population):
 
 
 def bench_rig_of(config: BenchConfig) -> RigDescription:
-    """The network the bench simulates for ``config``."""
-    if config.rig is not None:
-        return anyrig.bench_rig(rig_file_of(config.rig), layers=config.physics == "full")
-    return hifi.hifi_rig(layers=config.physics == "full")
+    """The network the bench simulates for ``config``.
+
+    Not the reference rig's out-of-model bench, which needs its drawn sensor depths
+    (:func:`tembayes.bench.outside.outside_rig`).
+    """
+    if config.rig is None:
+        return hifi.hifi_rig(layers=config.physics == "full")
+    if config.fidelity == "high":
+        return anyrig.outside_bench_rig(anyrig.bench_rig(rig_file_of(config.rig)))
+    return anyrig.bench_rig(rig_file_of(config.rig), layers=config.physics == "full")
 
 
 def _draw_rig(rng, name, parameters):
@@ -350,7 +356,7 @@ def run_experiment(
     if start == "rest":  # at rest before the first level is switched on
         i_true[grid < ts[0] - 0.02 + 1e-9] = 0.0
     rooms = [name == rig.layout.leak_boundary for name in rig.boundaries]
-    bounds = boundary_drifts(rng, grid, rooms)
+    bounds = boundary_drifts(rng, grid, rooms, controlled=protocol.setpoint(grid))
     params = {k: module[k] for k in ("R0_ohm", "R1_ohm_per_K", "S0_V_per_K", "S1_V_per_K2", "K_W_per_K")}
     params.update(module["rig_bench"])
     # the current error is in the measurement, not in the module: applied below
@@ -380,6 +386,17 @@ def run_experiment(
         sensor_names=layout.sensors,
         boundary_names=layout.boundaries,
     )
+
+
+def identification_run(rig: RigDescription, imax: float, hold: float) -> Protocol:
+    """The identification run a lab makes on ``rig``.
+
+    The staircase, or on plates that hold both faces (:attr:`~tembayes.physics.layout.Layout.faces_held`)
+    a staircase at each plate temperature.
+    """
+    if rig.layout.faces_held:
+        return plate_staircase(imax, hold=hold)
+    return identification_staircase(imax, hold=hold)
 
 
 def _batch_rig(rig, folder):
@@ -428,7 +445,11 @@ def simulate_batch(
     high = config.fidelity == "high"
     # the catalogue effects asked for come on top of (or replace) the bench's own physics
     eff_flat = {**truth["bench_layout"]["physics"], **eff_flat}
-    rig = outside.outside_rig(truth["bench_layout"]["depth_sides"]) if high else bench_rig_of(config)
+    rig = (
+        outside.outside_rig(truth["bench_layout"]["depth_sides"])
+        if high and config.rig is None
+        else bench_rig_of(config)
+    )
     run = {"rig": rig, "slow_noise": SLOW_NOISE if high else None}
     with atomic_directory(out, overwrite=overwrite, kind="simulate") as tmp:
         write_batch_toml(tmp / "batch.toml", ds, _batch_rig(config.rig, tmp))
@@ -437,7 +458,7 @@ def simulate_batch(
             (tmp / mid).mkdir()
             progress(f"bench: {mid} identification ({config.hold:.0f} s holds)")
             exp = run_experiment(
-                identification_staircase(ds.imax, hold=config.hold),
+                identification_run(rig, ds.imax, config.hold),
                 module,
                 eff_flat,
                 mrng,
@@ -470,6 +491,7 @@ def simulate_batch(
                 "rate_Hz": config.rate,
                 "validation_rate_Hz": config.validation_rate or config.rate,
                 "hold_s": config.hold,
+                **({"plate_setpoints_C": list(PLATE_SETPOINTS_C)} if rig.layout.faces_held else {}),
                 "n_validations": config.n_validations,
                 "validation_duration_s": config.validation_duration,
                 "bench_rig": rig.name,

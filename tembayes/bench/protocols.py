@@ -2,8 +2,10 @@
 
 A protocol is a list of current holds.  :func:`identification_staircase`
 is the paper's identification run (0 -> +0.8 A -> -1.6 A -> 0 in 0.2 A steps,
-each held ~600 s) and :func:`validation_cycle` the diagnostic-device-like
-validation run.  Levels are given for the reference module (Imax 6.4 A) and
+each held ~600 s), :func:`plate_staircase` the same run on a rig whose plates
+hold both module faces (repeated at several plate temperatures, since there
+the current alone barely moves the mean temperature) and
+:func:`validation_cycle` the diagnostic-device-like validation run.  Levels are given for the reference module (Imax 6.4 A) and
 scale with the datasheet's Imax, so another module type sees the same relative
 load.
 """
@@ -15,10 +17,17 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from tembayes.constants import KELVIN
+
 if TYPE_CHECKING:
     from collections.abc import Sequence
 
 REFERENCE_IMAX = 6.4  # [A] the module the reference levels were written for
+#: Plate temperatures of :func:`plate_staircase` [degC]: a 40 K span of the mean temperature,
+#: about the reference staircase's on the reference rig.
+PLATE_SETPOINTS_C = (15.0, 35.0, 55.0)
+#: Time constant of a circulator settling to a new setpoint [s] (a bath of a few litres).
+CIRCULATOR_TAU_S = 90.0
 
 
 @dataclass(frozen=True)
@@ -31,10 +40,14 @@ class Protocol:
         Current of each hold [A].
     durations : ndarray, shape (n,)
         Duration of each hold [s].
+    setpoints : ndarray, shape (n,), optional
+        Setpoint of the rig's controlled boundaries during each hold [K];
+        None: the bench's fixed setpoint.
     """
 
     levels: np.ndarray
     durations: np.ndarray
+    setpoints: np.ndarray | None = None
 
     @property
     def step_times(self) -> np.ndarray:
@@ -50,6 +63,22 @@ class Protocol:
         """True current [A] at times ``t`` [s] from the protocol start."""
         idx = np.searchsorted(self.step_times, t, side="right")
         return self.levels[np.minimum(idx, len(self.levels) - 1)]
+
+    def setpoint(self, t: np.ndarray) -> np.ndarray | None:
+        """The controlled boundaries' temperature [K] at times ``t`` [s]; None without setpoints.
+
+        Each new setpoint is approached with the time constant :data:`CIRCULATOR_TAU_S`.
+        """
+        if self.setpoints is None:
+            return None
+        t = np.asarray(t, dtype=float)
+        out = np.full(t.shape, float(self.setpoints[0]))
+        starts = np.concatenate([[0.0], self.step_times])
+        for k in np.flatnonzero(np.diff(self.setpoints)) + 1:
+            late = t > starts[k]
+            dt = t[late] - starts[k]
+            out[late] += (self.setpoints[k] - self.setpoints[k - 1]) * -np.expm1(-dt / CIRCULATOR_TAU_S)
+        return out
 
 
 def identification_staircase(
@@ -71,6 +100,32 @@ def identification_staircase(
     back = np.arange(bottom + step, 0.0 + 1e-9, step)
     levels = np.round(np.concatenate([up, down, back]), 6) * imax / REFERENCE_IMAX
     return Protocol(levels, np.full(len(levels), float(hold)))
+
+
+def plate_staircase(
+    imax: float = REFERENCE_IMAX, hold: float = 600.0, setpoints_C: Sequence[float] = PLATE_SETPOINTS_C
+) -> Protocol:
+    """The identification run on plates that hold both faces: a staircase at each plate temperature.
+
+    At each setpoint the current runs 0 -> +0.8 -> -1.6 -> 0 A in 0.4 A steps
+    (levels for the reference module, scaled by ``imax / 6.4``); after each
+    staircase's final 0 A hold the plates move to the next setpoint during a
+    further 0 A hold, so the rig is at rest for two holds between staircases.
+
+    Parameters
+    ----------
+    imax : float
+        Datasheet Imax of the module [A].
+    hold : float
+        Duration of each hold [s].
+    setpoints_C : sequence of float
+        Plate temperatures [degC], in the order run.
+    """
+    one = identification_staircase(imax, hold=hold, step=0.4)
+    levels = np.concatenate([one.levels] * len(setpoints_C))
+    n = len(one.levels)
+    setpoints = np.repeat(np.asarray(setpoints_C, dtype=float) + KELVIN, n)
+    return Protocol(levels, np.full(len(levels), float(hold)), setpoints)
 
 
 def validation_cycle(
@@ -127,17 +182,19 @@ def boundary_drifts(
     t: np.ndarray,
     rooms: Sequence[bool] = (False, True),
     *,
-    controlled: float = 20.0 + 273.15,
+    controlled: float | np.ndarray | None = None,
     room: float = 22.0 + 273.15,
 ) -> np.ndarray:
     """True boundary temperatures ``(nb, len(t))`` [K] at times ``t`` [s], in the rig's boundary order.
 
     A controlled boundary (a chiller, a liquid loop) wobbles by a few
-    hundredths of a kelvin about ``controlled`` (a control cycle of a few
-    minutes plus a little wander); the room (``rooms[k]`` true) drifts by a
+    hundredths of a kelvin about ``controlled`` [K] (a control cycle of a few
+    minutes plus a little wander; a constant, the setpoint at each of
+    ``t`` (:meth:`Protocol.setpoint`), or None: 20 degC); the room (``rooms[k]`` true) drifts by a
     few tenths of a kelvin over hours about ``room``.  The default is the
     reference rig's: the water, then the room.
     """
+    controlled = 20.0 + KELVIN if controlled is None else controlled
     out = []
     for is_room in rooms:
         if is_room:

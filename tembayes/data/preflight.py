@@ -514,14 +514,16 @@ def _polarity(exp, steps, settle, layout):
 # -- temperature units --------------------------------------------------------
 
 
-def _settled_holds(exp, steps, settle, *, zero):
+def _settled_holds(exp, steps, settle, layout, *, zero):
     """``(a, b)`` sample ranges of holds at least ZERO_HOLD_SETTLINGS settling times long.
 
-    Only the holds at zero current (``zero=True``) or only the others.
+    Also at least the rig's slowest time constant long: in holds shorter than the rig's slowest
+    mode the face sensors' 63 % time measures the hold, not the rig.  Only the holds at zero
+    current (``zero=True``) or only the others.
     """
     bounds = [(0, steps[0].index if steps else exp.n)] + [(s.hold_start, s.hold_end) for s in steps]
     sigma = max(current_noise(exp.current), 1e-3)
-    need = ZERO_HOLD_SETTLINGS * settle if math.isfinite(settle) else math.inf
+    need = max(ZERO_HOLD_SETTLINGS * settle, layout.slowest_tau_s) if math.isfinite(settle) else math.inf
     out = []
     for a, b in bounds:
         if b - a < 10 or (abs(float(np.median(exp.current[a:b]))) > 5 * sigma) == zero:
@@ -544,7 +546,7 @@ def _sensor_order(exp, steps, settle, layout):
     positive factor; a swap makes one of them change sign.  Slopes across
     holds, not levels, so constant sensor offsets do not matter.
     """
-    holds = _settled_holds(exp, steps, settle, zero=False)
+    holds = _settled_holds(exp, steps, settle, layout, zero=False)
     if len(holds) < SERIES_MIN_HOLDS:
         return []
     for path in layout.paths:
@@ -584,7 +586,7 @@ def _out_of_order(exp, holds, path, levels, first, second, layout):
 
 
 def _zero_current_range(exp, steps, settle, layout):
-    for a, b in _settled_holds(exp, steps, settle, zero=True):
+    for a, b in _settled_holds(exp, steps, settle, layout, zero=True):
         tail = _tail(a, b)
         bounds = np.median(exp.boundaries[:, tail], axis=1)
         lo, hi = float(bounds.min()), float(bounds.max())
@@ -733,9 +735,13 @@ def _identifiability(exp, steps, settle, face):
             _finding(
                 WARNING,
                 exp,
-                f"the mean temperature spans only {span:.3g} K: the slopes R1 and S1 of the laws are poorly determined",
-                "Use larger currents in both directions (" + hint + ")",
+                f"the mean temperature at the module faces spans only {span:.3g} K: the slopes R1 and S1 of the "
+                f"laws cannot be told from the model's shortcomings, so calibrate refuses the run (it needs "
+                f"{TAVG_SPAN_MIN_K:g} K)",
+                "Use larger currents in both directions (" + hint + "), or on a rig whose boundaries hold the "
+                "module's temperature (liquid-cooled plates) step the boundaries' temperature between staircases",
                 column="current_A",
+                refused_by=("calibrate",),
             )
         )
     return out

@@ -86,6 +86,15 @@ class Layout:
         return tuple(c for c in self.boundaries if c != room) or (room,)
 
     @property
+    def faces_held(self) -> bool:
+        """Whether both module sides are fed most by a boundary other than the room (plates on a liquid loop).
+
+        The current then barely moves the mean temperature; the boundaries' setpoints do.
+        """
+        room = self.boundaries[self.boundary_names.index(self.leak_boundary)]
+        return len(self.paths) == 2 and all(path[0] != room for path in self.paths)
+
+    @property
     def temperatures(self) -> tuple[str, ...]:
         """All temperature columns: sensors, then boundaries."""
         return self.sensors + self.boundaries
