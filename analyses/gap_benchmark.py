@@ -442,7 +442,7 @@ def main(argv=None):
     ap.add_argument(
         "--rig",
         default="reference",
-        help="the bench's rig (tembayes simulate --rig): a shipped rig or a rig file; standard fidelity only",
+        help="the bench's rig (tembayes simulate --rig): a shipped rig or a rig file; with --fidelity",
     )
     ap.add_argument("--jobs", type=int, default=None, help="the diagnosis's worker processes (default: cores + 1)")
     ap.add_argument("--summarise", action="store_true", help="only summarise the cases already cached")

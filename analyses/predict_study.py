@@ -83,6 +83,8 @@ def _validation(truth_module, datasheet, seed, path, truth=None, layout=None):
             rig, physics = hifi.hifi_rig(), {}
         else:
             gen = truth["generator"]
+            if gen["fidelity"] != "standard":
+                raise SystemExit(f"{path}: predict_study --rig reads the in-model (standard) benches only")
             rig = B.bench_rig_of(B.BenchConfig(rig=gen["rig"], physics=gen["physics"], datasheet=datasheet))
             physics = dict(truth["bench_layout"]["physics"])
         exp = B.run_experiment(

@@ -18,8 +18,9 @@ range (the rig is one rig), except the module and its mounting
 
 :func:`outside_bench_rig` is the out-of-model bench on any rig file
 (``--fidelity high``): on top of that network it adds what a real rig has
-and no rig file describes, as the reference rig's out-of-model bench
-(:mod:`tembayes.bench.outside`) does:
+and no rig file describes.  The reference rig's out-of-model bench
+(:mod:`tembayes.bench.outside`) has the bodies, edge leaks and re-mounting
+too, but no sensor leads, and draws its edge leak once per batch:
 
 - **sensor bodies**: each sensor a node of its own (``c_sensor``) in contact
   with what it reads (``g_sensor``, a time constant near 1 s); in a block,
@@ -60,8 +61,8 @@ def bench_rig(rig_file: RigFile, *, layers: bool = True) -> RigDescription:
     return rig_file.build(leg_cells=BENCH_LEG_CELLS, split=BENCH_SPLIT, layers=layers)
 
 
-#: What the out-of-model bench adds to any rig (:func:`outside_bench_rig`); values as the reference
-#: rig's out-of-model bench has them (:data:`tembayes.bench.outside.OUTSIDE_PARAMETERS`).
+#: What the out-of-model bench adds to any rig (:func:`outside_bench_rig`); the bodies and edge leaks
+#: as the reference rig's out-of-model bench has them (:data:`tembayes.bench.outside.OUTSIDE_PARAMETERS`).
 OUTSIDE_ANY_PARAMETERS = (
     RigParameter("c_sensor", 0.01, 0.005, 0.02, "J/K", "a sensor body"),
     RigParameter("g_sensor", 0.012, 0.006, 0.03, "W/K", "a sensor's contact with what it reads"),
@@ -77,10 +78,12 @@ REMOUNT_MAIN_SD, REMOUNT_LEAK_SD = 0.03, 0.1
 def outside_bench_rig(rig: RigDescription) -> RigDescription:
     """``rig`` (the bench's network, :func:`bench_rig`) with sensor bodies, leads and module edge leaks.
 
-    Block sensors lose their depth interpolation: a contact share with the
-    next cell (``v_<column>``, held over ``[0, DEPTH_SHARE_MAX]``) replaces it.
+    Block sensors lose their depth interpolation (and its depth parameters): a
+    contact share with the next cell (``v_<column>``, held over
+    ``[0, DEPTH_SHARE_MAX]``) replaces it.
     """
     room = rig.layout.leak_boundary
+    depths = {d.parameter for d in rig.depths.values()}
     nodes, links, sensors, shares = list(rig.nodes), list(rig.links), {}, []
     for column, node in rig.sensors.items():
         body = f"sensor_{column}"
@@ -96,7 +99,7 @@ def outside_bench_rig(rig: RigDescription) -> RigDescription:
     links += [(face, room, "leak_module") for face in rig.faces or rig.module_faces]
     return RigDescription(
         name=rig.name + "-outside",
-        parameters=(*rig.parameters, *OUTSIDE_ANY_PARAMETERS, *shares),
+        parameters=(*(p for p in rig.parameters if p.name not in depths), *OUTSIDE_ANY_PARAMETERS, *shares),
         nodes=tuple(nodes),
         links=tuple(links),
         hot=rig.hot,
@@ -104,17 +107,20 @@ def outside_bench_rig(rig: RigDescription) -> RigDescription:
         sensors=sensors,
         legs=rig.legs,
         faces=rig.faces,
+        physics=dict(rig.physics),
         boundaries=dict(rig.boundaries),
     )
 
 
 def remount_spreads(rig: RigDescription, shared) -> dict[str, float]:
-    """Lognormal sd of each of the ``shared`` parameters only links to a boundary use: re-made at every mounting.
+    """Lognormal sd of each of the ``shared`` conductances only links to a boundary use: re-made at every mounting.
 
-    :data:`REMOUNT_LEAK_SD` for a leak (below :data:`~tembayes.physics.layout.LEAK_MAX_W_PER_K` at nominal
-    values), :data:`REMOUNT_MAIN_SD` for a main heat path.
+    :data:`REMOUNT_LEAK_SD` for a leak (a link below :data:`~tembayes.physics.layout.LEAK_MAX_W_PER_K`
+    at nominal values), :data:`REMOUNT_MAIN_SD` for a main heat path.  Not the sensors' own
+    (:data:`OUTSIDE_ANY_PARAMETERS`) and not the shares (unit ``1``).
     """
     nominal = {p.name: p.nominal for p in rig.parameters}
+    fixed = {p.name for p in rig.parameters if p.unit == "1"} | {p.name for p in OUTSIDE_ANY_PARAMETERS}
     inside = {
         n
         for a, b, expr in rig.links
@@ -127,7 +133,7 @@ def remount_spreads(rig: RigDescription, shared) -> dict[str, float]:
             continue
         sd = REMOUNT_LEAK_SD if rig.evaluate(expr, nominal) < LEAK_MAX_W_PER_K else REMOUNT_MAIN_SD
         for name in expression_names(expr):
-            if name in shared and name not in inside:
+            if name in shared and name not in inside and name not in fixed:
                 out[name] = max(out.get(name, 0.0), sd)
     return out
 

@@ -36,7 +36,6 @@ import tembayes
 from tembayes.bench import anyrig, hifi, outside
 from tembayes.bench.hifi import DEPTHS
 from tembayes.bench.protocols import (
-    PLATE_SETPOINTS_C,
     boundary_drifts,
     identification_staircase,
     plate_staircase,
@@ -270,8 +269,9 @@ def _draw_truth_any_rig(config, rng, population):
     for mid in config.module_ids:
         laws, is_out = _draw_unit(config, rng, population, mid)
         values = {**shared, **anyrig.draw_rig_values(rng, rig.parameters, sorted(mounting))}
-        for k, sd in remount.items():
-            values[k] *= float(np.exp(sd * rng.standard_normal()))
+        for k, sd in remount.items():  # within the documented range: a mounting is still this rig
+            p = rig.parameter(k)
+            values[k] = float(np.clip(values[k] * np.exp(sd * rng.standard_normal()), p.low, p.high))
         modules[mid] = {
             **{k: float(v) for k, v in laws.items()},
             "outlier": bool(is_out),
@@ -399,6 +399,13 @@ def identification_run(rig: RigDescription, imax: float, hold: float) -> Protoco
     return identification_staircase(imax, hold=hold)
 
 
+def _setpoints_C(protocol: Protocol) -> dict:
+    """``{"plate_setpoints_C": [...]}`` of a protocol that steps the controlled boundaries, else ``{}``."""
+    if protocol.setpoints is None:
+        return {}
+    return {"plate_setpoints_C": [round(float(v) - KELVIN, 6) for v in dict.fromkeys(protocol.setpoints)]}
+
+
 def _batch_rig(rig, folder):
     """The batch.toml ``[rig]`` of a bench batch; a rig file is copied into the batch folder."""
     if rig is None:
@@ -451,6 +458,7 @@ def simulate_batch(
         else bench_rig_of(config)
     )
     run = {"rig": rig, "slow_noise": SLOW_NOISE if high else None}
+    identification = identification_run(rig, ds.imax, config.hold)
     with atomic_directory(out, overwrite=overwrite, kind="simulate") as tmp:
         write_batch_toml(tmp / "batch.toml", ds, _batch_rig(config.rig, tmp))
         for (mid, module), mss in zip(truth["modules"].items(), module_ss):
@@ -458,7 +466,7 @@ def simulate_batch(
             (tmp / mid).mkdir()
             progress(f"bench: {mid} identification ({config.hold:.0f} s holds)")
             exp = run_experiment(
-                identification_run(rig, ds.imax, config.hold),
+                identification,
                 module,
                 eff_flat,
                 mrng,
@@ -491,7 +499,7 @@ def simulate_batch(
                 "rate_Hz": config.rate,
                 "validation_rate_Hz": config.validation_rate or config.rate,
                 "hold_s": config.hold,
-                **({"plate_setpoints_C": list(PLATE_SETPOINTS_C)} if rig.layout.faces_held else {}),
+                **_setpoints_C(identification),
                 "n_validations": config.n_validations,
                 "validation_duration_s": config.validation_duration,
                 "bench_rig": rig.name,

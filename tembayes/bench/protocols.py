@@ -5,9 +5,9 @@ is the paper's identification run (0 -> +0.8 A -> -1.6 A -> 0 in 0.2 A steps,
 each held ~600 s), :func:`plate_staircase` the same run on a rig whose plates
 hold both module faces (repeated at several plate temperatures, since there
 the current alone barely moves the mean temperature) and
-:func:`validation_cycle` the diagnostic-device-like validation run.  Levels are given for the reference module (Imax 6.4 A) and
-scale with the datasheet's Imax, so another module type sees the same relative
-load.
+:func:`validation_cycle` the diagnostic-device-like validation run.
+Levels are given for the reference module (Imax 6.4 A) and scale with the
+datasheet's Imax, so another module type sees the same relative load.
 """
 
 from __future__ import annotations
@@ -108,9 +108,10 @@ def plate_staircase(
     """The identification run on plates that hold both faces: a staircase at each plate temperature.
 
     At each setpoint the current runs 0 -> +0.8 -> -1.6 -> 0 A in 0.4 A steps
-    (levels for the reference module, scaled by ``imax / 6.4``); after each
-    staircase's final 0 A hold the plates move to the next setpoint during a
-    further 0 A hold, so the rig is at rest for two holds between staircases.
+    (levels for the reference module, scaled by ``imax / 6.4``).  Each
+    staircase after the first starts with its 0 A hold at the new setpoint,
+    during which the plates move there, so the rig rests for two holds
+    between staircases: the previous one's last and this one's first.
 
     Parameters
     ----------

@@ -111,7 +111,8 @@ SEEBECK_MIN_R2 = 0.8
 SEEBECK_MIN_DT_K = 0.5
 SEEBECK_MIN_SAMPLES = 200
 
-#: Identification-run warnings: holds shorter than this many settling times; T-bar span below this [K].
+#: Identification-run checks: holds shorter than this many settling times (a warning); T-bar span
+#: below this [K] (refused by calibrate).
 HOLD_SETTLINGS = 2.0
 TAVG_SPAN_MIN_K = 5.0
 
@@ -518,8 +519,11 @@ def _settled_holds(exp, steps, settle, layout, *, zero):
     """``(a, b)`` sample ranges of holds at least ZERO_HOLD_SETTLINGS settling times long.
 
     Also at least the rig's slowest time constant long: in holds shorter than the rig's slowest
-    mode the face sensors' 63 % time measures the hold, not the rig.  Only the holds at zero
-    current (``zero=True``) or only the others.
+    mode the face sensors' 63 % time measures the hold, not the rig.  One time constant leaves
+    up to 37 % of a move unrelaxed; the checks that read these holds leave room for it (the
+    zero-current check's margin is ZERO_MARGIN_K plus ZERO_MARGIN_FRACTION of the sensor's move
+    over the hold; the sensor-order check reads correlations, not levels).  Only the holds at zero current
+    (``zero=True``) or only the others.
     """
     bounds = [(0, steps[0].index if steps else exp.n)] + [(s.hold_start, s.hold_end) for s in steps]
     sigma = max(current_noise(exp.current), 1e-3)

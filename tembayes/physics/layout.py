@@ -80,10 +80,14 @@ class Layout:
     slowest_tau_s: float
 
     @property
+    def room(self) -> str:
+        """The room's boundary column (:attr:`leak_boundary`'s)."""
+        return self.boundaries[self.boundary_names.index(self.leak_boundary)]
+
+    @property
     def controlled(self) -> tuple[str, ...]:
         """The boundary columns other than the room's: what a rig's operator sets (all of them if the room is alone)."""
-        room = self.boundaries[self.boundary_names.index(self.leak_boundary)]
-        return tuple(c for c in self.boundaries if c != room) or (room,)
+        return tuple(c for c in self.boundaries if c != self.room) or (self.room,)
 
     @property
     def faces_held(self) -> bool:
@@ -91,8 +95,7 @@ class Layout:
 
         The current then barely moves the mean temperature; the boundaries' setpoints do.
         """
-        room = self.boundaries[self.boundary_names.index(self.leak_boundary)]
-        return len(self.paths) == 2 and all(path[0] != room for path in self.paths)
+        return len(self.paths) == 2 and all(path[0] != self.room for path in self.paths)
 
     @property
     def temperatures(self) -> tuple[str, ...]:
