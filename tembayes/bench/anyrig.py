@@ -121,19 +121,17 @@ def remount_spreads(rig: RigDescription, shared) -> dict[str, float]:
     """
     nominal = {p.name: p.nominal for p in rig.parameters}
     fixed = {p.name for p in rig.parameters if p.unit == "1"} | {p.name for p in OUTSIDE_ANY_PARAMETERS}
-    inside = {
-        n
-        for a, b, expr in rig.links
-        if a not in rig.boundaries and b not in rig.boundaries
-        for n in expression_names(expr)
-    }
-    out = {}
+    at_boundary, skip = [], set(fixed)
     for a, b, expr in rig.links:
-        if a not in rig.boundaries and b not in rig.boundaries:
-            continue
+        if a in rig.boundaries or b in rig.boundaries:
+            at_boundary.append(expr)
+        else:
+            skip.update(expression_names(expr))  # also inside the rig: not re-made at a mounting
+    out = {}
+    for expr in at_boundary:
         sd = REMOUNT_LEAK_SD if rig.evaluate(expr, nominal) < LEAK_MAX_W_PER_K else REMOUNT_MAIN_SD
         for name in expression_names(expr):
-            if name in shared and name not in inside and name not in fixed:
+            if name in shared and name not in skip:
                 out[name] = max(out.get(name, 0.0), sd)
     return out
 

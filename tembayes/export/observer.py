@@ -337,7 +337,7 @@ def observer_inputs(
     covered = calibrated_range(run, batch, modules=ids)
     points = default_points(covered) if points is None else tuple(tuple(map(float, p)) for p in points)
     warned = check_points(points, covered=covered, allow_extrapolation=allow_extrapolation)
-    room = rig.boundaries[rig.layout.leak_boundary]
+    room = rig.layout.room
     if room_C is None:
         room_C = float(np.median(np.concatenate([batch.modules[m].identification.channel(room) for m in ids]))) - KELVIN
     ctx = _Operating(rig=rig, points=points, room_C=float(room_C), say=say)
