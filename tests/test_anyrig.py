@@ -159,6 +159,61 @@ def test_the_out_of_model_benchs_sensors_read_through_bodies_and_leads():
         assert read - node == pytest.approx(1e-4 / 0.0101 * (295.0 - node), rel=0.15), k
 
 
+def test_a_rig_files_lead_share_reads_as_a_sensor_body_with_leads_does():
+    """A sensor whose rig-file entry has ``lead = "lead_share"`` reads its node plus the share of the room's
+    difference, exactly; the out-of-model bench's sensor body behind a contact, with leads of
+    g_lead / (g_sensor + g_lead) = the same share, reads within 15 % of that shift (see above).  Two
+    constructions of one physics: the share the calibration samples is the bodies' conductance ratio."""
+    file = rig_file_of({"preset": "heatsink-al"})
+    model = file.build(leg_cells=2, split=3, layers=True)
+    assert set(model.leads) == set(model.sensors)
+    t = np.linspace(0.0, 30000.0, 301)
+    room = np.full((1, len(t)), 295.0)
+    share = 0.01
+    inputs = Inputs(t, np.ones_like(t), room)
+    bare = simulate(inputs, {**PAPER, "lead_share": 1e-12}, rig=model)
+    led = simulate(inputs, {**PAPER, "lead_share": share}, rig=model)
+    node = bare.sensors[0, :, -1]
+    assert np.all(np.abs(node - 295.0) > 2.0)
+    np.testing.assert_allclose(led.sensors[0, :, -1] - node, share * (295.0 - node), rtol=1e-6)
+    bench = outside_bench_rig(bench_rig(file))
+    assert "lead_share" not in bench.parameter_names and not bench.leads  # the bodies' own leads replace it
+    g_sensor = 0.01
+    values = {**PAPER, "g_sensor": g_sensor, "g_lead": share * g_sensor / (1.0 - share)}
+    body = simulate(inputs, values, rig=bench, steady_start=False)
+    body_bare = simulate(inputs, {**values, "g_lead": 1e-12}, rig=bench, steady_start=False)
+    shift = body.sensors[0, :, -1] - body_bare.sensors[0, :, -1]
+    np.testing.assert_allclose(shift, share * (295.0 - body_bare.sensors[0, :, -1]), rtol=0.15)
+
+
+def test_the_linear_model_reads_the_room_through_the_sensors_leads():
+    """With leads the sensors' outputs take the room's share directly (D), the nodes' the rest (C):
+    the linear model's output equals the simulator's at the operating point and after a step of the
+    room, where the instant jump is D alone."""
+    from scipy.linalg import expm
+
+    from tembayes.export.linearise import linearise
+
+    rig = shipped_rig("heatsink-al").build(leg_cells=2, split=3, layers=True)
+    share = 0.008
+    params = {**PAPER, "lead_share": share}
+    lm = linearise(params, rig, 30.0, 1.0, room_C=22.0)
+    room = 1 + rig.room_index
+    assert lm.D[:3, room].tolist() == pytest.approx([share] * 3)
+    t = np.arange(0.0, 601.0, 1.0)
+    dT = 0.5
+    u = np.ones_like(t)
+    sim = simulate(Inputs(t, lm.u0[0] * u, (lm.u0[1:, None] + dT) * u), params, rig=rig, y0=lm.x0, steady_start=False)
+    still = simulate(Inputs(t, lm.u0[0] * u, lm.u0[1:, None] * u), params, rig=rig, y0=lm.x0, steady_start=False)
+    np.testing.assert_allclose(still.sensors[0, :, 0], lm.y0[:3], atol=1e-9)
+    Ainv_B = np.linalg.solve(lm.A, lm.B[:, room] * dT)
+    for k in (0, 60, 600):
+        x = expm(lm.A * t[k]) @ Ainv_B - Ainv_B
+        y_lin = lm.C[:3] @ x + lm.D[:3, room] * dT
+        np.testing.assert_allclose(sim.sensors[0, :, k] - lm.y0[:3], y_lin, atol=2e-4 * dT + 1e-9)
+    assert sim.sensors[0, 0, 0] - lm.y0[0] == pytest.approx(share * dT, rel=1e-6)  # the jump is the leads'
+
+
 def test_out_of_model_bench_on_another_rig_draws_its_extras_and_remounts(tmp_path):
     """Also: holds shorter than the rig's slowest time constant (120 s against 193 s) load; the
     maximum-principle check once read a hold still relaxing towards the room as 'settled'."""

@@ -134,6 +134,36 @@ def test_unused_parameter_refused(tmp_path):
     assert err.value.column == "parameters.g_spare"
 
 
+HEATSINK_TOML = shipped_rig("heatsink-al").path.read_text()
+LEAD = 'T_hot_C = {node = "hot_plate", lead = "lead_share"}'
+
+
+@pytest.mark.parametrize(
+    "new, words",
+    [
+        ('T_hot_C = {node = "hot_plate", lead = "lead_shar"}', "unknown parameter 'lead_shar'"),
+        ('T_hot_C = {node = "hot_plate", lead = "g_paste"}', "a lead's share is a fraction"),
+        ('T_hot_C = {node = "hot_plate", lead = 0.01}', "must be a name in quotes"),
+    ],
+)
+def test_a_sensors_lead_must_name_a_share(tmp_path, new, words):
+    assert LEAD in HEATSINK_TOML
+    path = _write(tmp_path, HEATSINK_TOML.replace(LEAD, new))
+    with pytest.raises(DataError) as err:
+        read_rig_file(path)
+    assert err.value.column == "sensors.T_hot_C.lead"
+    assert words in str(err.value) and str(path) in str(err.value)
+
+
+def test_a_lead_share_no_sensor_names_is_unused(tmp_path):
+    text = HEATSINK_TOML
+    for col, node in (("T_hot_C", "hot_plate"), ("T_cold_C", "cold_plate"), ("T_load_C", "load")):
+        text = text.replace(f'{col} = {{node = "{node}", lead = "lead_share"}}', f'{col} = "{node}"')
+    with pytest.raises(DataError, match="never used") as err:
+        read_rig_file(_write(tmp_path, text))
+    assert err.value.column == "parameters.lead_share"
+
+
 def test_node_without_a_path_to_a_boundary_refused(tmp_path):
     # a node joined only to a second node that is joined to nothing else: no temperature is set for them
     text = REFERENCE_TOML.replace("[blocks.top]", 'island = "c_plate_hot"\nislet = "c_plate_cold"\n\n[blocks.top]')

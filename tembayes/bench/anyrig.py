@@ -80,10 +80,11 @@ def outside_bench_rig(rig: RigDescription) -> RigDescription:
 
     Block sensors lose their depth interpolation (and its depth parameters): a
     contact share with the next cell (``v_<column>``, held over
-    ``[0, DEPTH_SHARE_MAX]``) replaces it.
+    ``[0, DEPTH_SHARE_MAX]``) replaces it.  The rig file's lead shares (and
+    their parameters) give way to the bodies' own leads.
     """
     room = rig.layout.leak_boundary
-    depths = {d.parameter for d in rig.depths.values()}
+    dropped = {d.parameter for d in rig.depths.values()} | set(rig.leads.values())
     nodes, links, sensors, shares = list(rig.nodes), list(rig.links), {}, []
     for column, node in rig.sensors.items():
         body = f"sensor_{column}"
@@ -99,7 +100,7 @@ def outside_bench_rig(rig: RigDescription) -> RigDescription:
     links += [(face, room, "leak_module") for face in rig.faces or rig.module_faces]
     return RigDescription(
         name=rig.name + "-outside",
-        parameters=(*(p for p in rig.parameters if p.name not in depths), *OUTSIDE_ANY_PARAMETERS, *shares),
+        parameters=(*(p for p in rig.parameters if p.name not in dropped), *OUTSIDE_ANY_PARAMETERS, *shares),
         nodes=tuple(nodes),
         links=tuple(links),
         hot=rig.hot,

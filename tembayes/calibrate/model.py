@@ -149,6 +149,7 @@ class StepResponseModel:
             )
         sensors = out[:, :, :2] + f[:, None, :] * (out[:, :, 4:] - out[:, :, :2])
         sensors = np.ascontiguousarray(sensors.transpose(0, 2, 1))
+        self.rig.read_leads(sensors, self.data.face, m["params"], self._bounds)
         if effects.has_sensor_effect(m["params"]):
             effects.apply_sensors(G[0], sensors, m["params"])
         o = self.obs_pos

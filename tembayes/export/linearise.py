@@ -103,11 +103,16 @@ class _Rig:
         self.A, self.Bb, self.Cinv = m["A"][0], m["Bb"][0], m["Cinv"][0]
         self.p, self.tem = m["P"][0], m["tem"]
         self.nodes = tuple(m["network"].nodes)
-        a, b, f = rig.readout(rig.layout.sensors, {k: float(v) for k, v in params.items()})
-        # each sensor reads a blend of two nodes (its depth, RigDescription.readout)
+        values = {k: float(v) for k, v in params.items()}
+        a, b, f = rig.readout(rig.layout.sensors, values)
+        # each sensor reads a blend of two nodes (its depth, RigDescription.readout), and a
+        # share of the room through its leads (RigDescription.lead_shares)
+        self.lead = rig.lead_shares(rig.layout.sensors, values)[0]
+        self.room = rig.room_index if rig.leads else 0
         self.read = np.zeros((len(a), len(self.nodes)))
         self.read[np.arange(len(a)), a] += 1.0 - f[0]
         self.read[np.arange(len(a)), b] += f[0]
+        self.read *= (1.0 - self.lead)[:, None]
         self.hot, self.cold = self.nodes.index(rig.hot), self.nodes.index(rig.cold)
         layout = rig.layout
         self.controlled = np.array([c in layout.controlled for c in layout.boundaries])
@@ -122,9 +127,9 @@ class _Rig:
     def rhs(self, x, current, ub):
         return K.rhs_one(x, K.true_current(current, self.p), ub, self.A, self.Bb, self.Cinv, self.tem, self.p)
 
-    def outputs(self, x, current):
+    def outputs(self, x, current, ub):
         v = K.tem_voltage(x[self.tem], K.true_current(current, self.p), self.p)
-        return np.concatenate([self.read @ x, [v]])
+        return np.concatenate([self.read @ x + self.lead * ub[self.room], [v]])
 
     def boundaries(self, level, room):
         """The boundary temperatures with the controlled ones at ``level`` and the room at ``room`` [K]."""
@@ -165,9 +170,10 @@ class _Rig:
         for i in self.tem:
             e = np.zeros(n)
             e[i] = hx
-            C[-1, i] = (self.outputs(x0 + e, current)[-1] - self.outputs(x0 - e, current)[-1]) / (2 * hx)
+            C[-1, i] = (self.outputs(x0 + e, current, ub)[-1] - self.outputs(x0 - e, current, ub)[-1]) / (2 * hx)
         D = np.zeros((ny, 1 + nb))
-        D[-1, 0] = (self.outputs(x0, current + h)[-1] - self.outputs(x0, current - h)[-1]) / (2 * h)
+        D[-1, 0] = (self.outputs(x0, current + h, ub)[-1] - self.outputs(x0, current - h, ub)[-1]) / (2 * h)
+        D[: len(self.read), 1 + self.room] = self.lead
         return A, B, C, D
 
 
@@ -207,7 +213,7 @@ def linearise(params, rig, tavg_C, current_A, *, room_C=25.0, sensitivity=()):
         r = _Rig(p, rig)
         x0, ub = r.point(tavg, float(current_A), room)
         u0 = np.concatenate([[float(current_A)], ub])
-        return r, x0, u0, r.matrices(x0, u0), r.outputs(x0, float(current_A))
+        return r, x0, u0, r.matrices(x0, u0), r.outputs(x0, float(current_A), ub)
 
     r, x0, u0, (A, B, C, D), y0 = at(params)
     sens = {}

@@ -99,5 +99,6 @@ def simulate_reference(
         chain = Y[tem]
         volt[d] = [K.tem_voltage(np.ascontiguousarray(chain[:, n]), i_true[n], p) for n in range(len(t))]
         steps[d] = sol.t.size if sol.nfev is None else sol.nfev
+    rig.read_leads(sensors, channels, m["params"], inputs.boundaries)
     effects.apply_sensors(t, sensors, m["params"])
     return Simulation(t, channels, sensors, volt, t_hot, t_cold, steps)

@@ -158,6 +158,9 @@ class RigDescription:
     depths : mapping of str to SensorDepth
         Sensors whose depth is a parameter (read between two nodes, see
         :meth:`readout`); the others read their node.
+    leads : mapping of str to str
+        Sensors whose leads conduct to the room: column -> the share
+        parameter (see :meth:`lead_shares`); the others read their node alone.
     faces : tuple of str
         ``(hot face, cold face)``: the module's outer nodes, where it meets the
         rig, for plates resolved into layers (the alumina outside the
@@ -176,6 +179,7 @@ class RigDescription:
     legs: tuple = ()
     physics: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
     depths: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
+    leads: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
     faces: tuple = ()
     boundaries: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
 
@@ -214,7 +218,13 @@ class RigDescription:
                 raise ModelError(
                     f"rig '{self.name}': depth of {ch} needs a sensor, a node to read towards and a parameter; got {d}"
                 )
+        for ch, share in self.leads.items():
+            if ch not in self.sensors or share not in names:
+                raise ModelError(
+                    f"rig '{self.name}': the lead of {ch} needs a sensor and a share parameter; got {share}"
+                )
         object.__setattr__(self, "sensors", MappingProxyType(dict(self.sensors)))
+        object.__setattr__(self, "leads", MappingProxyType(dict(self.leads)))
         object.__setattr__(self, "physics", MappingProxyType(dict(self.physics)))
         object.__setattr__(self, "depths", MappingProxyType(dict(self.depths)))
         object.__setattr__(self, "boundaries", MappingProxyType(dict(self.boundaries)))
@@ -307,6 +317,55 @@ class RigDescription:
         ]
         f = np.column_stack(np.broadcast_arrays(*cols)) if cols else np.zeros((1, 0))
         return a, b, f
+
+    def lead_shares(
+        self, channels: Sequence[str], values: Mapping[str, float | np.ndarray] | None = None
+    ) -> np.ndarray:
+        """Share of each channel's reading that is the room's, ``(nd, nch)`` (0 without a lead).
+
+        A sensor whose leads conduct to the room reads ``T + s (T_room - T)``
+        (``T`` its :meth:`readout`): in steady state its body sits between what
+        it touches and the room in proportion to the two conductances, ``s =
+        g_lead / (g_contact + g_lead)``.  The room is :attr:`room_index`'s boundary.
+        """
+        values = values or {}
+        cols = [
+            np.atleast_1d(np.asarray(values.get(p, self.parameter(p).nominal), float))
+            if (p := self.leads.get(c))
+            else np.zeros(1)
+            for c in channels
+        ]
+        return np.column_stack(np.broadcast_arrays(*cols)) if cols else np.zeros((1, 0))
+
+    @property
+    def room_index(self) -> int:
+        """Index of the room's boundary (:attr:`Layout.leak_boundary`) in the rig's boundary order."""
+        return tuple(self.boundaries).index(self.layout.leak_boundary)
+
+    def read_leads(
+        self,
+        sensors: np.ndarray,
+        channels: Sequence[str],
+        values: Mapping[str, float | np.ndarray],
+        boundaries: np.ndarray,
+    ) -> None:
+        """Move the readings of sensors with leads towards the room (:meth:`lead_shares`), in place.
+
+        Parameters
+        ----------
+        sensors : ndarray, shape (nd, nch, nt)
+            The channels' :meth:`readout` of the nodes [K].
+        channels : sequence of str
+        values : mapping
+            Parameter values (the share parameters among them).
+        boundaries : ndarray, shape (nb, nt)
+            The boundary temperatures at the same points [K], in the rig's order.
+        """
+        if not any(c in self.leads for c in channels):
+            return
+        shares = self.lead_shares(channels, values)
+        room = np.asarray(boundaries, float)[self.room_index]
+        sensors += shares[:, :, None] * (room[None, None, :] - sensors)
 
     # -- network ------------------------------------------------------------
     @property

@@ -82,13 +82,14 @@ class Block:
 
 @dataclass(frozen=True)
 class SensorSpec:
-    """A sensor: the node it reads, and where a depth parameter places it between two cells."""
+    """A sensor: the node it reads, where a depth parameter places it between two cells, its leads' share."""
 
     node: str
     depth: str | None = None
     toward: str | None = None
     centre: float = 0.0
     spacing: float = 0.0
+    lead: str | None = None
 
 
 @dataclass(frozen=True)
@@ -165,6 +166,7 @@ class RigFile:
             legs=legs,
             faces=faces,
             depths=depths,
+            leads={col: s.lead for col, s in self.sensors.items() if s.lead is not None},
             boundaries=dict(self.boundaries),
         )
 

@@ -42,7 +42,7 @@ TOP_KEYS = ("name", "description", "module", "parameters", "boundaries", "nodes"
 PARAMETER_KEYS = ("nominal", "low", "high", "unit", "doc", "held")
 LINK_KEYS = ("a", "b", "g", "spread")
 BLOCK_KEYS = ("cells", "g_cell", "g_face")
-SENSOR_KEYS = ("node", "depth", "toward", "centre", "spacing")
+SENSOR_KEYS = ("node", "depth", "toward", "centre", "spacing", "lead")
 
 
 @functools.lru_cache(maxsize=None)
@@ -356,15 +356,16 @@ class _Reader:
             return SensorSpec(self.node(key, spec))
         self.known(spec, SENSOR_KEYS, key + ".")
         node = self.node(f"{key}.node", spec.get("node"))
+        lead = self.lead(key, spec["lead"]) if "lead" in spec else None
         if "depth" not in spec:
-            extra = sorted(set(spec) - {"node"})
+            extra = sorted(set(spec) - {"node", "lead"})
             if extra:
                 self.fail(
                     f"{key}.{extra[0]}",
                     f"{key}.{extra[0]} is given without a depth parameter",
                     'Add depth = "PARAMETER" or remove it',
                 )
-            return SensorSpec(node)
+            return SensorSpec(node, lead=lead)
         depth = self.text(f"{key}.depth", spec["depth"])
         if depth not in self.params:
             self.fail(
@@ -389,7 +390,22 @@ class _Reader:
                     f"{key}.{k}", f"{key}.{k} must be a positive length [m], found {v!r}", f"Give the {k} in metres"
                 )
             nums[k] = float(v)
-        return SensorSpec(node, depth, toward, nums["centre"], nums["spacing"])
+        return SensorSpec(node, depth, toward, nums["centre"], nums["spacing"], lead)
+
+    def lead(self, key: str, name) -> str:
+        """The share parameter of a sensor's leads (``sensors.COLUMN.lead``): unit "1", its range inside 0..1."""
+        name = self.text(f"{key}.lead", name)
+        p = self.params.get(name)
+        if p is None:
+            self.fail(f"{key}.lead", f"{key}.lead names unknown parameter '{name}'", "Define it under [parameters]")
+        if p.unit != "1" or not p.high < 1.0:
+            self.fail(
+                f"{key}.lead",
+                f"{key}.lead names '{name}' (unit {p.unit!r}, high {p.high:g}): a lead's share is a fraction",
+                'Give that parameter unit = "1" and a range inside 0 ... 1 (e.g. low = 0.0001, high = 0.01)',
+            )
+        self.used.add(name)
+        return name
 
     def clashes(self, sensors):
         seen = {}

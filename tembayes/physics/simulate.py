@@ -264,6 +264,7 @@ def simulate(
     nch = len(channels)
     sensors = out[:, :, :nch] + f[:, None, :] * (out[:, :, nch + 2 :] - out[:, :, :nch])
     sensors = np.ascontiguousarray(sensors.transpose(0, 2, 1))
+    rig.read_leads(sensors, channels, m["params"], inputs.boundaries)
     effects.apply_sensors(inputs.time, sensors, m["params"])
     return Simulation(
         time=inputs.time,

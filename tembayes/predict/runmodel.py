@@ -238,6 +238,7 @@ class RunModel:
         nch = len(a)
         sensors = out[:, :, :nch] + f[:, None, :] * (out[:, :, nch:] - out[:, :, :nch])
         sensors = np.ascontiguousarray(sensors.transpose(0, 2, 1))
+        self.rig.read_leads(sensors, self.sensor_channels, m["params"], bounds)
         if effects.has_sensor_effect(m["params"]):
             effects.apply_sensors(G[0], sensors, m["params"])
         sensors, volt = sensors[:, :, 1:], volt[:, 1:]
@@ -341,8 +342,12 @@ class RunModel:
         V = U[:, :, -modes:] / root[:, :, None]  # the slowest: eigenvalues nearest zero
         first = self.measured[:-1, 0]
         a, b, f = readout
-        M = V[:, a, :] + f[:, :, None] * (V[:, b, :] - V[:, a, :])
-        r = first[None] - (xs[:, a] + f * (xs[:, b] - xs[:, a]))
+        # a sensor with leads reads (1 - s) of its nodes and s of the room (RigDescription.lead_shares)
+        mix = np.stack([xs[:, a] + f * (xs[:, b] - xs[:, a])], axis=2)
+        self.rig.read_leads(mix, self.sensor_channels, m["params"], self._bounds[:, :1])
+        keep = 1.0 - self.rig.lead_shares(self.sensor_channels, m["params"])
+        M = keep[:, :, None] * (V[:, a, :] + f[:, :, None] * (V[:, b, :] - V[:, a, :]))
+        r = first[None] - mix[:, :, 0]
         MtM = np.einsum("dij,dik->djk", M, M) + 1e-9 * np.eye(modes)
         coef = np.linalg.solve(MtM, np.einsum("dij,di->dj", M, r)[..., None])[..., 0]
         x0 = xs + np.einsum("dnk,dk->dn", V, coef)
