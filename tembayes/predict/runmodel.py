@@ -41,7 +41,7 @@ from functools import cached_property
 import numpy as np
 from scipy.interpolate import CubicSpline
 
-from tembayes.calibrate.stepdata import _smooth, hold_levels, step_grid
+from tembayes.calibrate.stepdata import BOUNDARY_SMOOTH_S, hold_levels, smooth_boundary, step_grid
 from tembayes.data.quality import noise_estimate
 from tembayes.data.steps import detect_steps
 from tembayes.errors import DataError, ModelError
@@ -73,7 +73,7 @@ class RunModel:
     spacing : float, optional
         Grid spacing elsewhere [s].
     smooth : float, optional
-        Moving-average width of the boundary inputs [s].
+        Width of the smoothing of the boundary inputs [s] (:func:`~tembayes.calibrate.stepdata.smooth_boundary`).
     atol, hmax : float, optional
         Integrator tolerance [K] and largest step [s].
     start : {"steady", "data"}
@@ -101,7 +101,9 @@ class RunModel:
         (:meth:`fit_start`); None: the first hold's level.
     """
 
-    def __init__(self, exp, rig, *, dense=20.0, spacing=5.0, smooth=10.0, atol=ATOL, hmax=60.0, start="steady"):
+    def __init__(
+        self, exp, rig, *, dense=20.0, spacing=5.0, smooth=BOUNDARY_SMOOTH_S, atol=ATOL, hmax=60.0, start="steady"
+    ):
         if start not in ("steady", "data"):
             raise ValueError(f"start must be 'steady' or 'data', got {start!r}")
         self.exp = exp
@@ -165,7 +167,7 @@ class RunModel:
         hold[pos_step + 1] = np.arange(ns) + 1
         self._grid_hold = hold
         bounds = [exp.channel(c) for c in rig.boundaries.values()]
-        self._bounds = np.array([np.interp(grid, t, _smooth(t, np.asarray(b, float), smooth)) for b in bounds])
+        self._bounds = np.array([np.interp(grid, t, smooth_boundary(t, np.asarray(b, float), smooth)) for b in bounds])
         self.shift_bound = sg.shift_bound
         # segments (holds) for the interpolation: grid samples and all samples per hold
         self._segments = []
