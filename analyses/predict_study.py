@@ -22,15 +22,18 @@ visibly worse at T-bar far from 35 degC.
 Results: ``analyses/results/predict_study.json`` and ``predict_study.md``.
 
 Another rig (``--rig``): the law-coverage study's calibrations of that rig
-(``analyses/law_coverage.py --rig RIG --fidelity standard --physics full``,
+(``analyses/law_coverage.py --rig RIG --fidelity F --physics full``,
 model ``full``, discrepancy ``robust``): batches under
-``WORK/batches/RIG-standard-full``, runs under
-``WORK/runs/RIG-standard-full-full-robust``.  Every calibrated module gets a
+``WORK/batches/RIG-F-full``, runs under
+``WORK/runs/RIG-F-full-full-robust`` (``--fidelity``: ``standard``, the
+in-model bench, or ``high``, the out-of-model one).  Every calibrated module gets a
 fresh validation run (the same protocol, 1 Hz) on the batch's own bench: the
-rig file at the bench's resolution (:func:`tembayes.bench.bench.bench_rig_of`)
-with the bench's own physics (Thomson heat, K slope, sensor lag from
-``truth.json``'s ``bench_layout.physics``), as ``tembayes simulate`` made the
-identification runs.  The channels are the rig's sensors and ``voltage_V``.
+rig file at the bench's resolution (:func:`tembayes.bench.bench.bench_rig_of`;
+out-of-model, with the sensor bodies, leads and edge leaks at the module's
+drawn values, and the slow sensor noise) with the bench's own physics
+(Thomson heat, K slope, sensor lag from ``truth.json``'s
+``bench_layout.physics``), as ``tembayes simulate`` made the identification
+runs.  The channels are the rig's sensors and ``voltage_V``.
 The new-unit (``--module population``) part is left out there (its mount is
 drawn from the reference rig's parameters), and so, unless ``--constant``, is
 the constant-law comparison (it doubles the time); with ``--constant`` the
@@ -40,9 +43,11 @@ issue's): RMSE <= 0.1 K on each temperature channel, 90 % coverage in
 
     python analyses/predict_study.py --work /work/lawcov_anyrig --rig heatsink-al --jobs 1
     python analyses/predict_study.py --work /work/lawcov_anyrig --rig reference-faces --jobs 1
+    python analyses/predict_study.py --work /work/lawcov_leads --rig heatsink-al --fidelity high --jobs 1
 
-Results: ``analyses/results/predict_study_RIG.json`` and ``predict_study_RIG.md``; the
-validation runs are cached under ``WORK/validations/RIG-standard-full``.
+Results: ``analyses/results/predict_study_RIG.json`` and ``predict_study_RIG.md``
+(``predict_study_RIG-high.*`` out-of-model); the validation runs are cached under
+``WORK/validations/RIG-F-full``.
 """
 
 from __future__ import annotations
@@ -79,16 +84,29 @@ def _validation(truth_module, datasheet, seed, path, truth=None, layout=None):
     if not path.is_file():
         rng = np.random.default_rng(seed)
         proto = validation_cycle(rng, datasheet.imax)
+        slow = None
         if truth is None:
             rig, physics = hifi.hifi_rig(), {}
         else:
             gen = truth["generator"]
-            if gen["fidelity"] != "standard":
-                raise SystemExit(f"{path}: predict_study --rig reads the in-model (standard) benches only")
-            rig = B.bench_rig_of(B.BenchConfig(rig=gen["rig"], physics=gen["physics"], datasheet=datasheet))
-            physics = dict(truth["bench_layout"]["physics"])
+            high = gen["fidelity"] == "high"  # its physics is its own ("high-fidelity"), in bench_layout
+            config = B.BenchConfig(
+                rig=gen["rig"],
+                physics="full" if high else gen["physics"],
+                fidelity=gen["fidelity"],
+                datasheet=datasheet,
+            )
+            rig, physics = B.bench_rig_of(config), dict(truth["bench_layout"]["physics"])
+            slow = B.SLOW_NOISE if high else None
         exp = B.run_experiment(
-            proto, truth_module, physics, rng, rate=1.0, rig=rig, t0=float(np.round(rng.uniform(0, 1000), 3))
+            proto,
+            truth_module,
+            physics,
+            rng,
+            rate=1.0,
+            rig=rig,
+            t0=float(np.round(rng.uniform(0, 1000), 3)),
+            slow_noise=slow,
         )
         path.parent.mkdir(parents=True, exist_ok=True)
         write_experiment_csv(path, exp)
@@ -109,11 +127,11 @@ def _new_unit(truth, rng):
     return {**laws, "outlier": False, "rig_bench": rig}
 
 
-def _dirs(work, rig, name):
+def _dirs(work, rig, name, fidelity="standard"):
     """The batch, run and validation folders of batch ``name`` (``rig`` None: the reference study's)."""
     if rig is None:
         return work / "batches" / name, work / "runs" / name, work / "validations" / name
-    bench = f"{rig}-standard-full"
+    bench = f"{rig}-{fidelity}-full"
     return (
         work / "batches" / bench / name,
         work / "runs" / f"{bench}-full-robust" / name,
@@ -122,12 +140,12 @@ def _dirs(work, rig, name):
 
 
 def study_batch(args):
-    name, work, n_draws, rig, constant = args
+    name, work, n_draws, rig, constant, fidelity = args
     from tembayes.calibrate.run import load_run
     from tembayes.data import load_batch
     from tembayes.predict import predict
 
-    bdir, rdir, vdir = _dirs(work, rig, name)
+    bdir, rdir, vdir = _dirs(work, rig, name, fidelity)
     batch = load_batch(bdir)
     run = load_run(rdir)
     truth = json.loads((bdir / "truth.json").read_text())
@@ -235,9 +253,14 @@ def main(argv=None):
         "runs/RIG-standard-full-full-robust); module predictions only",
     )
     ap.add_argument("--constant", action="store_true", help="with --rig: the constant-law comparison too")
+    ap.add_argument(
+        "--fidelity", choices=("standard", "high"), default="standard", help="with --rig: the bench of the calibrations"
+    )
     args = ap.parse_args(argv)
     rig = None if args.rig in (None, "reference") else args.rig
-    runs = args.work / "runs" if rig is None else _dirs(args.work, rig, "")[1]
+    if rig is None and args.fidelity != "standard":
+        sys.exit("--fidelity high needs --rig (the reference study's calibrations are in-model)")
+    runs = args.work / "runs" if rig is None else _dirs(args.work, rig, "", args.fidelity)[1]
     names = sorted(p.name for p in runs.iterdir() if (p / "summary.json").is_file()) if runs.is_dir() else []
     if not names:
         hint = "analyses/calibration_study.py" if rig is None else f"analyses/law_coverage.py --rig {rig}"
@@ -250,16 +273,22 @@ def main(argv=None):
     import multiprocessing as mp
 
     with ProcessPoolExecutor(max_workers=args.jobs, mp_context=mp.get_context("spawn")) as ex:
-        rows = [r for rs in ex.map(study_batch, [(n, args.work, args.draws, rig, constant) for n in names]) for r in rs]
+        jobs = [(n, args.work, args.draws, rig, constant, args.fidelity) for n in names]
+        rows = [r for rs in ex.map(study_batch, jobs) for r in rs]
     if rig is None:
         channels, cold, tkey, stem = CHANNELS, "T3_C", "T3_rmse_by_Tavg", "predict_study"
     else:  # the rig's sensors and the voltage; the T-bar table of its cold-face sensor
         channels, cold = tuple(rows[0]["channels"]), rows[0]["face"][1]
-        tkey, stem = "cold_face_rmse_by_Tavg", f"predict_study_{rig}"
+        tkey = "cold_face_rmse_by_Tavg"
+        stem = f"predict_study_{rig}" + ("" if args.fidelity == "standard" else f"-{args.fidelity}")
     summ = summarise(rows, channels, cold, tkey)
     doc = {
         "command": "python analyses/predict_study.py " + " ".join(argv or sys.argv[1:]),
-        **({} if rig is None else {"rig": rig, "channels": list(channels), "cold_face_channel": cold}),
+        **(
+            {}
+            if rig is None
+            else {"rig": rig, "fidelity": args.fidelity, "channels": list(channels), "cold_face_channel": cold}
+        ),
         "n_draws": args.draws,
         "batches": names,
         "minutes": (time.time() - t0) / 60.0,
@@ -270,7 +299,7 @@ def main(argv=None):
     from tembayes.data import write_json
 
     write_json(RESULTS / f"{stem}.json", doc)
-    on = "" if rig is None else f" on the {rig} rig"
+    on = "" if rig is None else f" on the {rig} rig" + (", out-of-model" if args.fidelity == "high" else "")
     lines = [f"# Predictive study{on} ({len(rows)} validation runs, {args.draws} draws, {doc['minutes']:.0f} min)", ""]
     if rig is not None:
         lines += [
