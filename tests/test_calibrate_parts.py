@@ -252,6 +252,18 @@ def test_sampler_recovers_a_correlated_gaussian_and_converges():
     assert np.allclose(flat.std(0), sd, rtol=0.1)
 
 
+def test_a_run_that_converges_at_its_first_check_still_stores_the_draws_its_caller_keeps():
+    """A batch's modules share one draw dimension: a module converging at the first check (80 stored
+    iterations after burn-in) broke the batch's posterior.nc until the sampler ran on to ``min_stored``."""
+    p = 2
+    p0 = 0.1 * np.random.default_rng(1).normal(size=(16, p))
+    kw = dict(seed=2, monitor=range(p), thin_by=10, check_every=100, max_steps=20000)
+    quick = smp.sample(_gauss_target(np.zeros(p), np.eye(p)), p0, **kw)
+    assert quick.converged and quick.chain.shape[0] < 100  # converged at its first check: the case
+    kept = smp.sample(_gauss_target(np.zeros(p), np.eye(p)), p0, min_stored=100, **kw)
+    assert kept.converged and kept.chain.shape[0] >= 100
+
+
 def test_sampler_returns_the_variance_of_a_known_gaussian():
     # a posterior-like target: 21 dimensions, correlated, condition number 1e4,
     # walkers started *in* it.  emcee's DESnookerMove (20 % of the moves

@@ -734,6 +734,7 @@ def _run_stage(prob, state, levels, exact_like, *, checkpoint, resume, progress_
             label=prob.module_id + (" pilot" if pilot else ""),
             proposal=None if prop is None else (np.array(prop["mean"]), np.array(prop["cov"])),
             stop=None if pilot or last or opt.psis_probe <= 0 else probe,
+            min_stored=opt.keep,
         )
     return _Stage(run, lin, like, rng, early, budget)
 

@@ -351,6 +351,7 @@ def sample(
     stop=None,
     targets=TARGETS,
     warning=RuntimeWarning,
+    min_stored=0,
 ):
     """Run emcee until the convergence targets are met or the budget runs out.
 
@@ -393,6 +394,10 @@ def sample(
         Convergence targets (default :data:`TARGETS`).
     warning : type
         Category of the warning issued when the run ends unconverged.
+    min_stored : int
+        A converged run has at least this many stored iterations after
+        burn-in (the draws per walker its caller keeps: a batch's modules
+        share one draw dimension).
 
     Returns
     -------
@@ -440,7 +445,7 @@ def sample(
             mon = list(monitor)
             # the run length serves the monitored (law) parameters; a weakly
             # identified nuisance ridge may mix slower without biasing them
-            long_enough = thin_by * len(post) >= targets.tau_multiple * np.max(tau[mon])
+            long_enough = thin_by * len(post) >= targets.tau_multiple * np.max(tau[mon]) and len(post) >= min_stored
             # arviz's diagnostics cost as much as ~1000 steps: only on a chain that may end here
             if long_enough:
                 rhat, rhat_w, ess_b, ess_t = diagnostics(post, monitor)
