@@ -345,7 +345,7 @@ class RunModel:
         first = self.measured[:-1, 0]
         a, b, f = readout
         # a sensor with leads reads (1 - s) of its nodes and s of the room (RigDescription.lead_shares)
-        mix = np.stack([xs[:, a] + f * (xs[:, b] - xs[:, a])], axis=2)
+        mix = (xs[:, a] + f * (xs[:, b] - xs[:, a]))[:, :, None]
         self.rig.read_leads(mix, self.sensor_channels, m["params"], self._bounds[:, :1])
         keep = 1.0 - self.rig.lead_shares(self.sensor_channels, m["params"])
         M = keep[:, :, None] * (V[:, a, :] + f[:, :, None] * (V[:, b, :] - V[:, a, :]))
