@@ -99,6 +99,20 @@ def heatsink_batch(tmp_path_factory):
     return out, truth
 
 
+def test_the_calibration_samples_the_lead_share_flat_and_the_rig_as_before(heatsink_batch):
+    from tembayes.calibrate.model import StepResponseModel
+    from tembayes.calibrate.module import CalibrationOptions, calibration_rig, parameter_space
+    from tembayes.calibrate.stepdata import step_data
+
+    out, _ = heatsink_batch
+    batch = load_batch(out)
+    rig = calibration_rig(batch.rig_config, CalibrationOptions())
+    data = step_data(batch.modules["TEM1"].identification, face=rig.layout.face)
+    space, _ = parameter_space(rig, batch.datasheet, data, StepResponseModel(data, rig).shift_bound)
+    kinds = {p.name: p.kind for p in space.priors}
+    assert kinds["lead_share"] == "uniform" and kinds["g_sink"] == "reciprocal" and kinds["c_sink"] == "lognormal"
+
+
 def test_bench_writes_the_rigs_columns_and_rig_entry(heatsink_batch):
     out, truth = heatsink_batch
     assert (out / "TEM1" / "identification.csv").read_text().splitlines()[0] == (

@@ -175,6 +175,21 @@ def test_a_share_gets_a_logit_normal_prior_that_never_leaves_zero_to_one():
     assert rig_prior(next(q for q in REFERENCE.parameters if q.name == "c_plate_hot")).kind == "lognormal"
 
 
+def test_a_sensors_lead_share_is_sampled_as_itself_flat_over_its_range():
+    """The readings are linear in a lead share: its prior is flat over the documented range, its
+    coordinate the share itself."""
+    from tembayes.physics import shipped_rig
+
+    share = next(p for p in shipped_rig("heatsink-al").parameters if p.name == "lead_share")
+    pr = rig_prior(share, linear=True)
+    assert pr.kind == "uniform"
+    assert (pr.center - pr.scale, pr.center + pr.scale) == pytest.approx((share.low, share.high))
+    x = np.array([0.5 * share.low, share.low * 1.01, 0.005, share.high * 0.99, 1.01 * share.high])
+    assert np.all(np.isfinite(pr.logpdf(x[1:4]))) and np.all(pr.logpdf(x[[0, 4]]) == -np.inf)
+    assert pr.to_unconstrained(np.array([0.004]))[0] == pytest.approx(0.004)
+    assert rig_prior(share).kind == "logitnormal"  # a share the readings are not linear in
+
+
 def test_a_conductance_is_sampled_as_its_resistance_under_the_same_log_normal_prior():
     p = next(q for q in REFERENCE.parameters if q.name == "g_paste_hot")
     pr = rig_prior(p)

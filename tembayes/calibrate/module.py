@@ -296,7 +296,13 @@ def parameter_space(
         )
     nuis = [p for p in rig.parameters if p.high / p.low > form.min_range and not p.held]
     fixed = {p.name: p.nominal for p in rig.parameters if p not in nuis}
-    pri = list(law_priors(datasheet)) + [rig_prior(p) for p in nuis] + list(form.priors) + list(effect_priors(effects))
+    leads = set(rig.leads.values())
+    pri = (
+        list(law_priors(datasheet))
+        + [rig_prior(p, linear=p.name in leads) for p in nuis]
+        + list(form.priors)
+        + list(effect_priors(effects))
+    )
     pri.append(ParameterPrior(SHIFT, "uniform", 0.0, shift_bound))
     model_space = ParameterSpace(tuple(pri), fixed)
     return model_space, ParameterSpace(tuple(pri) + noise_priors(data), fixed)
