@@ -212,7 +212,7 @@ def test_the_linear_model_reads_the_room_through_the_sensors_leads():
     share = 0.008
     params = {**PAPER, "lead_share": share}
     lm = linearise(params, rig, 30.0, 1.0, room_C=22.0)
-    room = 1 + rig.room_index
+    room = 1 + rig.layout.room_index
     assert lm.D[:3, room].tolist() == pytest.approx([share] * 3)
     t = np.arange(0.0, 601.0, 1.0)
     dT = 0.5

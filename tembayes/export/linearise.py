@@ -108,7 +108,7 @@ class _Rig:
         # each sensor reads a blend of two nodes (its depth, RigDescription.readout), and a
         # share of the room through its leads (RigDescription.lead_shares)
         self.lead = rig.lead_shares(rig.layout.sensors, values)[0]
-        self.room = rig.room_index if rig.leads else 0
+        self.room = rig.layout.room_index
         self.read = np.zeros((len(a), len(self.nodes)))
         self.read[np.arange(len(a)), a] += 1.0 - f[0]
         self.read[np.arange(len(a)), b] += f[0]

@@ -80,9 +80,14 @@ class Layout:
     slowest_tau_s: float
 
     @property
+    def room_index(self) -> int:
+        """Index of the room's boundary (:attr:`leak_boundary`) in the rig's boundary order."""
+        return self.boundary_names.index(self.leak_boundary)
+
+    @property
     def room(self) -> str:
         """The room's boundary column (:attr:`leak_boundary`'s)."""
-        return self.boundaries[self.boundary_names.index(self.leak_boundary)]
+        return self.boundaries[self.room_index]
 
     @property
     def controlled(self) -> tuple[str, ...]:

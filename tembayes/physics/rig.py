@@ -326,7 +326,7 @@ class RigDescription:
         A sensor whose leads conduct to the room reads ``T + s (T_room - T)``
         (``T`` its :meth:`readout`): in steady state its body sits between what
         it touches and the room in proportion to the two conductances, ``s =
-        g_lead / (g_contact + g_lead)``.  The room is :attr:`room_index`'s boundary.
+        g_lead / (g_contact + g_lead)``.  The room is the layout's (:attr:`Layout.room_index`).
         """
         values = values or {}
         cols = [
@@ -336,11 +336,6 @@ class RigDescription:
             for c in channels
         ]
         return np.column_stack(np.broadcast_arrays(*cols)) if cols else np.zeros((1, 0))
-
-    @property
-    def room_index(self) -> int:
-        """Index of the room's boundary (:attr:`Layout.leak_boundary`) in the rig's boundary order."""
-        return tuple(self.boundaries).index(self.layout.leak_boundary)
 
     def read_leads(
         self,
@@ -364,7 +359,7 @@ class RigDescription:
         if not any(c in self.leads for c in channels):
             return
         shares = self.lead_shares(channels, values)
-        room = np.asarray(boundaries, float)[self.room_index]
+        room = np.asarray(boundaries, float)[self.layout.room_index]
         sensors += shares[:, :, None] * (room[None, None, :] - sensors)
 
     # -- network ------------------------------------------------------------
