@@ -112,6 +112,45 @@ def test_energy_balance_thomson_with_quadratic_seebeck():
 # ------------------------------------------------------ 2. I = 0: pure conduction
 
 
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 8])
+def test_leg_cells_resist_at_the_continuous_legs_mean_excess(n):
+    # Uniform heat q in a leg of conductance K between junctions at 300 K
+    # and 310 K: the continuum's excess over the straight line is
+    # q x (1 - x) / (2 K), mean q / (12 K).  The cells' own steady solution
+    # runs hotter (mean excess (1 + 2/n^2) q / (12 K)); the temperatures the
+    # cells resist at must carry the continuum's mean excess exactly.
+    q, k, th, tc = 3.0, 0.5, 310.0, 300.0
+    A = np.diag(np.full(n, 2.0 * n)) - n * (np.eye(n, k=1) + np.eye(n, k=-1))
+    A[0, 0] = A[-1, -1] = 3.0 * n if n > 1 else 4.0
+    rhs = np.full(n, q / n / k)
+    rhs[0] += 2.0 * n * th
+    rhs[-1] += 2.0 * n * tc
+    cells = np.linalg.solve(A, rhs)
+    T = np.concatenate([[th], cells, [tc]])
+    line = th + (tc - th) * (np.arange(1, n + 1) - 0.5) / n
+    assert np.mean(cells - line) == pytest.approx((1.0 + 2.0 / n**2) * q / (12.0 * k), rel=1e-12)
+    resist = np.array([K._resistance_t(T, i) for i in range(1, n + 1)])
+    assert np.mean(resist - line) == pytest.approx(q / (12.0 * k), rel=1e-12)
+
+
+@pytest.mark.parametrize("current", [1.6, 6.0])
+def test_four_leg_cells_give_the_converged_legs_voltage(current):
+    # Read at the cells' own temperatures, 4 cells put a TEC1-12706-class
+    # module's steady voltage 1.2 mV above the 32-cell leg's at 1.6 A and
+    # 70 mV at 6 A on the liquid plates (a noise sd is 1 mV); read at the
+    # continuum's excess, 0.04 mV and 0.7 mV.
+    laws = {"R0_ohm": 1.78, "R1_ohm_per_K": 0.0087, "S0_V_per_K": 0.050, "S1_V_per_K2": 7.7e-5, "K_W_per_K": 0.56}
+    volts = []
+    for legs in (4, 32):
+        rig = rig_from_config(
+            {"preset": "liquid-plates"}, leg_cells=legs, layers=True, physics={"thomson_fraction": 1.0}
+        )
+        params = {**laws, **{p.name: p.nominal for p in rig.parameters}}
+        inputs = Inputs(np.array([0.0, 1.0]), np.full(2, current), np.full((len(rig.boundaries), 2), 298.15))
+        volts.append(simulate(inputs, params, rig=rig).voltage[0, -1])
+    assert abs(volts[0] - volts[1]) < (2e-4 if current < 2 else 3e-3)
+
+
 @pytest.mark.parametrize("legs", [0, 3])
 def test_zero_current_is_linear_conduction(legs):
     rig = rig_from_config(None, leg_cells=legs)
