@@ -63,25 +63,34 @@ def _poly(p, i, x):
 
 
 @njit(cache=True)
-def _resistance_t(T, k):
+def _resistance_t(T, k, p):
     """Temperature [K] at which leg cell ``k`` of the chain ``T`` resists (and releases its Joule heat).
 
-    The cells' departure from the junctions' straight line, shrunk to the
-    continuum's: under a uniform heat source (Joule, and Thomson heat at a
-    near-linear profile) the cells of :func:`tem_heat`, with half a cell's
-    conductance to each junction, run hotter than the continuous leg at
-    their centres, and their mean departure is ``1 + 2/n^2`` times the
-    continuum's mean (exact for the uniform source).  Read as it is, R
-    came out too high by that excess times R1: with 4 cells a TEC1-12706-class
-    module's voltage at 1.6 A was 1.2 mV (a noise sd) above the converged
-    leg's, 70 mV at 6 A, enough to move R1, S0 and K by posterior sds;
-    scaled, it is 0.04 mV and 0.7 mV.  The heat and the voltage read the same temperatures, so the
-    first law stays exact.
+    The cells of :func:`tem_heat` are joined to the junctions by half a
+    cell's conductance, so under a uniform heat source (Joule, and Thomson
+    heat at a near-linear profile) each runs a constant ``q / (8 n^2 K)``
+    above the continuous leg at its centre: their mean departure from the
+    junctions' straight line is ``1 + 2/n^2`` times the continuum's.  The
+    departure is scaled back to the continuum's.  It is taken in the
+    Kirchhoff variable ``u = x + K1 x^2 / 2`` (``x = T - T_ref``), in which
+    the segments' conduction is exactly linear, so a curve that K(T) alone
+    makes (exact at the cells already) is left as it is; ``u`` is turned
+    back into T by the root that is ``u`` at ``K1 = 0``.  Heat and voltage
+    read the same temperatures: the first law stays exact.
     """
     n = T.shape[0] - 2
-    x = (k - 0.5) / n
-    line = T[0] + (T[n + 1] - T[0]) * x
-    return line + (T[k] - line) / (1.0 + 2.0 / (n * n))
+    tref = p[P_TREF]
+    k1 = p[P_K1]
+    w = (k - 0.5) / n
+    u0 = _kirchhoff(T[0] - tref, k1)
+    line = u0 + (_kirchhoff(T[n + 1] - tref, k1) - u0) * w
+    u = line + (_kirchhoff(T[k] - tref, k1) - line) / (1.0 + 2.0 / (n * n))
+    return tref + 2.0 * u / (1.0 + np.sqrt(1.0 + 2.0 * k1 * u))
+
+
+@njit(cache=True)
+def _kirchhoff(x, k1):
+    return x + 0.5 * k1 * x * x
 
 
 @njit(cache=True)
@@ -133,7 +142,7 @@ def tem_heat(T: np.ndarray, I: float | complex, p: np.ndarray, Q: np.ndarray) ->
             Q[m - 1] -= 2.0 * delta * Rm * I2
             frac = 1.0 + 2.0 * delta
         for k in range(1, m - 1):
-            Q[k] += frac * _poly(p, P_R0, _resistance_t(T, k) - tref) / n_leg * I2
+            Q[k] += frac * _poly(p, P_R0, _resistance_t(T, k, p) - tref) / n_leg * I2
     # Fourier conduction and Thomson heat, segment by segment.
     for j in range(m - 1):
         if n_leg == 0:
@@ -186,7 +195,7 @@ def tem_voltage(T: np.ndarray, I: float | complex, p: np.ndarray) -> float | com
         delta = abs(p[P_JOULE])
         s = 0.0
         for k in range(1, m - 1):
-            s += _poly(p, P_R0, _resistance_t(T, k) - tref)
+            s += _poly(p, P_R0, _resistance_t(T, k, p) - tref)
         Rt = (1.0 - 2.0 * delta) * s / n_leg + 2.0 * delta * Rm
     vs = 0.0
     for j in range(m - 1):
