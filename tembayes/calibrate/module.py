@@ -920,8 +920,11 @@ def _posterior(prob, st, levels) -> _Posterior:
         spread = held_nuisance_spread(
             prob.model, prob.model_space, flat[:, :p].mean(axis=0), st.lin.J, prob.data.noise, held
         )
-        # a resistance is shifted relatively, so it stays positive
-        flat = spread.apply(flat, st.rng, relative=[j for j, pr in enumerate(space.priors) if pr.kind == "reciprocal"])
+        # a resistance and a sensor's lead share are shifted relatively, so they stay positive
+        # (a share near its floor crossed zero, which predict cannot read)
+        leads = set(rig.leads.values())
+        relative = [j for j, pr in enumerate(space.priors) if pr.kind == "reciprocal" or pr.name in leads]
+        flat = spread.apply(flat, st.rng, relative=relative)
         discrepancy["held_sd_over_posterior_sd"] = spread.to_json(space.names, laws, law_sd)
         if spread.not_carried:
             discrepancy["held_not_carried"] = list(spread.not_carried)
