@@ -257,6 +257,16 @@ def module_seed(seed: int, module_id: str) -> tuple[int, np.random.Generator]:
     return int(a), np.random.default_rng(int(b))
 
 
+def positive_coordinates(space: ParameterSpace, rig: RigDescription) -> list[int]:
+    """Coordinates the robust carry-over moves relatively, so they stay positive: resistances and lead shares.
+
+    A share sampled as itself sits near its floor; moved additively it crossed zero in a few
+    draws, which ``predict`` (reading a share through its logit) cannot read.
+    """
+    leads = set(rig.leads.values())
+    return [j for j, pr in enumerate(space.priors) if pr.kind == "reciprocal" or pr.name in leads]
+
+
 def calibration_rig(rig_config: Mapping | None, options: CalibrationOptions) -> RigDescription:
     """The calibration model's rig for a batch's ``[rig]`` table and the options' resolution and form."""
     form = get_form(options.model)
@@ -920,11 +930,7 @@ def _posterior(prob, st, levels) -> _Posterior:
         spread = held_nuisance_spread(
             prob.model, prob.model_space, flat[:, :p].mean(axis=0), st.lin.J, prob.data.noise, held
         )
-        # a resistance and a sensor's lead share are shifted relatively, so they stay positive
-        # (a share near its floor crossed zero, which predict cannot read)
-        leads = set(rig.leads.values())
-        relative = [j for j, pr in enumerate(space.priors) if pr.kind == "reciprocal" or pr.name in leads]
-        flat = spread.apply(flat, st.rng, relative=relative)
+        flat = spread.apply(flat, st.rng, relative=positive_coordinates(space, rig))
         discrepancy["held_sd_over_posterior_sd"] = spread.to_json(space.names, laws, law_sd)
         if spread.not_carried:
             discrepancy["held_not_carried"] = list(spread.not_carried)
