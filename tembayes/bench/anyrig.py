@@ -84,7 +84,7 @@ def outside_bench_rig(rig: RigDescription) -> RigDescription:
     their parameters) give way to the bodies' own leads.
     """
     room = rig.layout.leak_boundary
-    dropped = {d.parameter for d in rig.depths.values()} | set(rig.leads.values())
+    dropped = {d.parameter for d in rig.depths.values()} | rig.lead_parameters
     nodes, links, sensors, shares = list(rig.nodes), list(rig.links), {}, []
     for column, node in rig.sensors.items():
         body = f"sensor_{column}"

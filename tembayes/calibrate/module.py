@@ -263,8 +263,7 @@ def positive_coordinates(space: ParameterSpace, rig: RigDescription) -> list[int
     A share sampled as itself sits near its floor; moved additively it crossed zero in a few
     draws, which ``predict`` (reading a share through its logit) cannot read.
     """
-    leads = set(rig.leads.values())
-    return [j for j, pr in enumerate(space.priors) if pr.kind == "reciprocal" or pr.name in leads]
+    return [j for j, pr in enumerate(space.priors) if pr.kind == "reciprocal" or pr.name in rig.lead_parameters]
 
 
 def calibration_rig(rig_config: Mapping | None, options: CalibrationOptions) -> RigDescription:
@@ -306,10 +305,9 @@ def parameter_space(
         )
     nuis = [p for p in rig.parameters if p.high / p.low > form.min_range and not p.held]
     fixed = {p.name: p.nominal for p in rig.parameters if p not in nuis}
-    leads = set(rig.leads.values())
     pri = (
         list(law_priors(datasheet))
-        + [rig_prior(p, linear=p.name in leads) for p in nuis]
+        + [rig_prior(p, linear=p.name in rig.lead_parameters) for p in nuis]
         + list(form.priors)
         + list(effect_priors(effects))
     )

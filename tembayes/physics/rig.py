@@ -337,6 +337,11 @@ class RigDescription:
         ]
         return np.column_stack(np.broadcast_arrays(*cols)) if cols else np.zeros((1, 0))
 
+    @property
+    def lead_parameters(self) -> frozenset:
+        """Names of the share parameters the sensors' leads read (:attr:`leads`' values)."""
+        return frozenset(self.leads.values())
+
     def read_leads(
         self,
         sensors: np.ndarray,
