@@ -459,3 +459,36 @@ def test_anchoring_coordinates_keep_a_share_inside_zero_to_one():
     # a Gaussian update far out in the coordinate is still a share (and a positive conductance)
     far = from_coords(Z + 8.0, names, frozenset({"tab_share"}))
     assert np.all((far["tab_share"] > 0) & (far["tab_share"] < 1)) and np.all(far["g_cooler"] > 0)
+
+
+@pytest.mark.parametrize("depth_T4", [2.70e-3, 2.30e-3])
+def test_anchoring_finds_a_block_sensor_off_its_nominal_depth(run3, tmp_path, depth_T4):
+    """The calibration holds the depths at 2.5 mm; the block sensors' transients tell them (a known answer).
+
+    The step posterior is the truth (a narrow cloud about it), so only the
+    depths are anchored; the run is the bench's with T4 0.2 mm off nominal.
+    """
+    from tembayes.predict.anchor import held_depth_draws
+    from tembayes.predict.predictive import posterior_draws
+
+    _, _, truth = run3
+    t = {**truth["modules"]["TEM1"]}
+    t["rig_bench"] = {**t["rig_bench"], "depth_T4": depth_T4}
+    t["rig"] = {**t["rig"], "depth_T4": depth_T4}
+    exp = _record_validation(t, tmp_path / "id.csv", 7, hours=1.0)
+    rng = np.random.default_rng(0)
+    raw = {k: v * (1.0 + 1e-4 * rng.standard_normal(64)) for k, v in _truth_params({"modules": {"m": t}}, "m").items()}
+    raw = {k: v for k, v in raw.items() if not k.startswith("depth_")}
+    # the run's step phase, as a calibration samples it for its identification run
+    raw["step_shift_s"] = np.full(64, RunModel(exp, RIG).fit_phase({k: v[0] for k, v in raw.items()}))
+    prior = held_depth_draws(RIG, raw, "TEM1")
+    assert set(prior) == {"depth_T1", "depth_T2", "depth_T3", "depth_T4"}
+    d = posterior_draws(raw, {}, "TEM1", exp, RIG)
+    assert set(d.anchor["TEM1"]["updated"]) == set(prior)
+    m, sd = np.mean(d.params["depth_T4"]), np.std(d.params["depth_T4"])
+    # 85 % of its 0.2 mm offset found (the prior, 1.4 of its sds away, pulls a little), far sharper than the prior
+    assert abs(m - depth_T4) < 0.15 * abs(depth_T4 - 2.5e-3)
+    assert sd < np.std(prior["depth_T4"]) / 3
+    # the other sensors, at their bench depths (nominal), are not moved by T4's offset
+    for k in ("depth_T1", "depth_T2", "depth_T3"):
+        assert abs(np.mean(d.params[k]) - t["rig"].get(k, 2.5e-3)) < 0.02e-3

@@ -40,6 +40,7 @@ from scipy.optimize import least_squares
 
 from tembayes.calibrate.priors import ParameterPrior, expit, logit
 from tembayes.common.ou import fit_ou, innovations
+from tembayes.common.seeds import stream
 from tembayes.constants import MODULE_PARAMETERS
 from tembayes.data.quality import noise_estimate
 from tembayes.errors import ModelError
@@ -147,6 +148,46 @@ def unpinned(draws, priors, rig, fraction=UNPINNED_FRACTION):
         if np.std(ParameterPrior(k, **priors[k]).z(draws[k])) > fraction:
             out.append(k)
     return tuple(out)
+
+
+def held_depth_draws(rig, draws, label):
+    """Prior draws of the sensor depths the calibration held, for the anchoring to update.
+
+    A sensor's depth below its block's face is held at its nominal value in
+    the step likelihood, whose laws carry its uncertainty over
+    (``--discrepancy robust``).  The block sensors themselves tell it: one a
+    quarter of a millimetre off its nominal depth reads ~20 mK off while its
+    block heats at 0.15 K/s, and nothing at steady state, so at its nominal
+    value every step's transient shows as a gap.  It joins the anchoring with
+    the carry-over's own prior: log-normal about the nominal depth, the sd of
+    a uniform draw over its documented range.  The draws are independent of
+    the laws' (the carry-over's draws are not stored): the cut update
+    conditions them on the laws, not the reverse.  Other held parameters (the
+    module's ceramic) act between the junctions and the faces, where the
+    block sensors cannot separate them from the pastes: they stay held.
+
+    Parameters
+    ----------
+    rig : RigDescription
+    draws : dict
+        ``name -> (M,)`` the step-posterior draws (a depth already in them
+        was sampled and is left out).
+    label : str
+        The module's id: seeds the draws (:func:`tembayes.common.seeds.stream`).
+
+    Returns
+    -------
+    dict
+        ``name -> (M,)`` for every sensor depth of the rig the draws lack.
+    """
+    n = len(next(iter(draws.values())))
+    wanted = {d.parameter for d in rig.depths.values()}
+    out = {}
+    for q in rig.parameters:
+        if q.name in wanted and q.name not in draws and q.high > q.low:
+            sd = np.log(q.high / q.low) / np.sqrt(12.0)
+            out[q.name] = q.nominal * np.exp(sd * stream(0, "held", label, q.name).standard_normal(n))
+    return out
 
 
 @dataclass(frozen=True)

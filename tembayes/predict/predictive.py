@@ -38,7 +38,7 @@ from tembayes.constants import KELVIN, MODULE_PARAMETERS, T_REF
 from tembayes.errors import DataError, ModelError, TembayesError
 from tembayes.physics import effects as E
 from tembayes.physics.effects import EFFECT_PARAMETERS
-from tembayes.predict.anchor import UNPINNED_FRACTION, anchor_rig, unpinned
+from tembayes.predict.anchor import UNPINNED_FRACTION, anchor_rig, held_depth_draws, unpinned
 from tembayes.predict.runmodel import RunModel
 
 #: Central band levels [%] (docs/outputs.md, 'metrics.json (predict)').
@@ -153,7 +153,9 @@ def posterior_draws(raw, priors, label, identification, rig, *, laws="linear"):
     -------
     PredictiveDraws
     """
-    names = unpinned(raw, priors, rig) + unpinned_effects(raw, priors)
+    held = held_depth_draws(rig, raw, label)
+    raw = {**raw, **held}
+    names = unpinned(raw, priors, rig) + tuple(held) + unpinned_effects(raw, priors)
     fixed = None
     if laws == "constant":
         raw = constant_laws(raw)
