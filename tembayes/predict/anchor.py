@@ -154,21 +154,25 @@ def held_depth_draws(rig, draws, label):
     """Prior draws of the sensor depths the calibration held, for the anchoring to update.
 
     A sensor's depth below its block's face is held at its nominal value in
-    the step likelihood, whose laws carry its uncertainty over
-    (``--discrepancy robust``).  The block sensors themselves tell it: one a
-    quarter of a millimetre off its nominal depth reads ~20 mK off while its
-    block heats at 0.15 K/s, and nothing at steady state, so at its nominal
-    value every step's transient shows as a gap.  It joins the anchoring with
-    the carry-over's own prior: log-normal about the nominal depth, the sd of
-    a uniform draw over its documented range.  The draws are independent of
-    the laws' (the carry-over's draws are not stored): the cut update
-    conditions them on the laws, not the reverse.  Other held parameters (the
-    module's ceramic) act between the junctions and the faces, where the
-    block sensors cannot separate them from the pastes: they stay held.
+    the step likelihood (with ``--discrepancy robust`` its uncertainty is
+    carried over to the laws).  The block sensors themselves tell it: in the
+    bottom block, which holds no steady heat flow, one a quarter of a
+    millimetre off its nominal depth reads ~20 mK off while the block heats at
+    0.15 K/s and nothing at steady state, so at its nominal value every step's
+    transient shows as a gap; in the top block, which carries the module's heat
+    to the cooler, it also reads a steady offset (~0.15 K at 15 W), where the
+    depth shares the data with ``g_cooler``.  It joins the anchoring with the
+    carry-over's own prior: log-normal about the nominal depth, the sd of a
+    uniform draw over its documented range.  The draws are independent of the
+    laws' (the carry-over's draws are not stored): the cut update conditions
+    them on the laws, not the reverse.  Other held parameters (the module's
+    ceramic) act between the junctions and the faces, where the block sensors
+    cannot separate them from the pastes: they stay held.
 
     Parameters
     ----------
     rig : RigDescription
+        The calibration rig (its ``depths`` name the parameters).
     draws : dict
         ``name -> (M,)`` the step-posterior draws (a depth already in them
         was sampled and is left out).
@@ -178,7 +182,7 @@ def held_depth_draws(rig, draws, label):
     Returns
     -------
     dict
-        ``name -> (M,)`` for every sensor depth of the rig the draws lack.
+        ``name -> (M,)`` depth [m] of every sensor of the rig the draws lack.
     """
     n = len(next(iter(draws.values())))
     wanted = {d.parameter for d in rig.depths.values()}

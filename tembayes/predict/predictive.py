@@ -153,7 +153,8 @@ def posterior_draws(raw, priors, label, identification, rig, *, laws="linear"):
     -------
     PredictiveDraws
     """
-    held = held_depth_draws(rig, raw, label)
+    # the constant laws' misfit is the paper model's to show, not the depths' to absorb
+    held = held_depth_draws(rig, raw, label) if laws == "linear" else {}
     raw = {**raw, **held}
     names = unpinned(raw, priors, rig) + tuple(held) + unpinned_effects(raw, priors)
     fixed = None
