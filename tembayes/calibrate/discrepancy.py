@@ -236,7 +236,6 @@ def held_nuisance_spread(
     prec = np.array([p.coordinate_precision(xj) for p, xj in zip(space.priors, x)])
     JtWD = np.einsum("icn,qcn,c->iq", J, D, w)
     shift = -np.linalg.solve(JtWJ + np.diag(prec), JtWD)
-    # a documented range read as uniform: sd = width / sqrt(12)
-    log_sd = np.array([np.log(held[q].high / held[q].low) / np.sqrt(12.0) for q in names])
+    log_sd = np.array([held[q].log_sd for q in names])
     failed = tuple(q for q, good in zip(names, ok) if not good)
     return HeldSpread(names=names, log_sd=log_sd, shift=shift, not_carried=failed)

@@ -61,6 +61,15 @@ class RigParameter:
     held: bool = False
 
     @property
+    def log_sd(self) -> float:
+        """The sd of the log of a uniform draw over the documented range, ``log(high/low)/sqrt(12)``.
+
+        The uncertainty a held parameter is given wherever it is carried
+        (the laws' carry-over, the predictive's anchoring).
+        """
+        return float(np.log(self.high / self.low) / np.sqrt(12.0))
+
+    @property
     def is_share(self) -> bool:
         """A share: dimensionless, its documented range inside (0, 1)."""
         return self.unit == "1" and 0.0 < self.low and self.high < 1.0

@@ -189,8 +189,7 @@ def held_depth_draws(rig, draws, label):
     out = {}
     for q in rig.parameters:
         if q.name in wanted and q.name not in draws and q.high > q.low:
-            sd = np.log(q.high / q.low) / np.sqrt(12.0)
-            out[q.name] = q.nominal * np.exp(sd * stream(0, "held", label, q.name).standard_normal(n))
+            out[q.name] = q.nominal * np.exp(q.log_sd * stream(0, "held", label, q.name).standard_normal(n))
     return out
 
 
