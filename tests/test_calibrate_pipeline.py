@@ -120,8 +120,18 @@ def test_contract_outputs(run3):
         for k in MODULE_PARAMETERS:
             assert set(m[k]) == {"mean", "sd", "q05", "q95"}
         assert 0.0 <= m["outlier_prob"] <= 1.0
+        # "is there one" is at least "is this one" (the same hyper draws)
+        assert m["outlier_prob"] <= disk["p_any_outlier"] <= 1.0
+        assert set(m["deviation"]) == set(MODULE_PARAMETERS)
+        for d in m["deviation"].values():
+            assert set(d) == {"rel", "spreads", "p_loo"} and 0.0 <= d["p_loo"] <= 1.0
         assert {"rhat_max", "ess_bulk_min", "converged"} <= set(m["diagnostics"])
         assert {"R_ohm", "S_V_per_K"} <= set(m["hysteresis"])
+    assert sum(m["odd_one_prob"] for m in disk["modules"].values()) == pytest.approx(1.0, abs=1e-9)
+    assert summ.p_any_outlier == disk["p_any_outlier"]
+    assert {mid: m.odd_one_prob for mid, m in summ.modules.items()} == {
+        mid: m["odd_one_prob"] for mid, m in disk["modules"].items()
+    }
     for k in MODULE_PARAMETERS:
         assert set(disk["population"][k]) == {"mean", "sd", "q05", "q95"}
     # the population describes a new unit: wider than any calibrated module

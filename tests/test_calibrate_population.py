@@ -31,6 +31,7 @@ from tembayes.calibrate.population import (
     joint_fit,
 )
 from tembayes.calibrate.population.hyper import HyperPosterior
+from tembayes.calibrate.population.membership import odd_one
 from tembayes.calibrate.population.model import TAU_NAMES, Population
 from tembayes.calibrate.population.terms import GaussianTerms, ImportanceTerms, module_summaries
 from tembayes.calibrate.priors import LEVEL_LOG_SD, SLOPE_REL_SD, law_log_prior
@@ -224,6 +225,70 @@ def test_eight_modules_flag_the_outlier(seed, sign):
     draws, _, _ = make_batch(seed, 8, outlier=5, shift=0.10 * sign, at_centre=True, clip=2.5)
     p = probs(fit(draws))
     assert np.argmax(p) == 5 and p[5] > 0.9 and np.delete(p, 5).max() < 0.3, p
+
+
+def test_odd_one_and_any_outlier_by_hand():
+    """Known answers of the membership algebra: one hyper draw, then two averaged."""
+    pm = np.array([[0.5, 0.9, 0.9]])
+    odd, p_any = odd_one(np.log(pm))
+    # exactly one off: 0.5*0.81, 0.1*0.5*0.9, 0.1*0.5*0.9 -> normalised
+    np.testing.assert_allclose(odd, np.array([0.405, 0.045, 0.045]) / 0.495)
+    assert p_any == pytest.approx(1.0 - 0.405)
+    # over draws the probabilities of "exactly this one" are averaged, not their ratios
+    pm2 = np.array([[0.5, 0.9, 0.9], [0.99, 0.99, 0.2]])
+    odd2, p_any2 = odd_one(np.log(pm2))
+    q = np.array([[0.405, 0.045, 0.045], [0.01 * 0.99 * 0.2, 0.01 * 0.99 * 0.2, 0.8 * 0.99 * 0.99]]).mean(axis=0)
+    np.testing.assert_allclose(odd2, q / q.sum())
+    assert p_any2 == pytest.approx(1.0 - np.mean([0.405, 0.99 * 0.99 * 0.2]))
+
+
+@pytest.mark.parametrize("seed,sign", [(3, 1), (4, -1)])
+def test_eight_modules_name_the_odd_one_and_how_far(seed, sign):
+    """8 modules, one S0 10 spreads (10 %) off the type, the members within 2.5 spreads.
+
+    The odd one takes > 0.9 of ``odd_one_prob``; the batch surely holds one;
+    its deviation from the other seven: 10 % within 1.5 % (their centre is
+    known to ~0.4 %, the bench's members sit within 2.5 %), 10 spreads within
+    a factor 1.6 (seven units learn the spread to ~30 %), a tail probability
+    below 1e-3.  Every other level (R0, S0, K: measured to a fifth of a
+    spread or better) lies within 2.5 x 8/7 x 1.6 < 5 spreads (a member's own
+    weight leaves the others' centre, and the spread they learn may be 1.6
+    times too small); the slopes are measured to about their spread, which
+    ``spreads`` leaves out and ``p_loo`` counts, so theirs stay above 1e-3.
+    """
+    draws, _, _ = make_batch(seed, 8, outlier=5, shift=0.10 * sign, at_centre=True, clip=2.5)
+    r = fit(draws)
+    odd = np.array([r.odd_one_prob[m] for m in r.module_ids])
+    assert odd.sum() == pytest.approx(1.0) and np.argmax(odd) == 5 and odd[5] > 0.9, odd
+    assert r.p_any_outlier > 0.9
+    d = r.deviation["U6"]["S0_V_per_K"]
+    assert d["rel"] == pytest.approx(0.10 * sign, abs=0.015), d
+    assert 10 / 1.6 < sign * d["spreads"] < 10 * 1.6, d
+    assert d["p_loo"] < 1e-3, d
+    for mid in r.module_ids:
+        for p in MODULE_PARAMETERS:
+            d = r.deviation[mid][p]
+            if (mid, p) == ("U6", "S0_V_per_K"):
+                continue
+            assert abs(d["spreads"]) < 5.0 if p in ("R0_ohm", "S0_V_per_K", "K_W_per_K") else d["p_loo"] > 1e-3, (
+                mid,
+                p,
+                d,
+            )
+
+
+def test_three_modules_name_the_one_that_breaks_the_symmetry():
+    """3 modules, one S0 10 spreads off: it is the odd one though "is there one" stays open.
+
+    Three units cannot learn the spread, so ``outlier_prob`` stays low; but
+    under "exactly one" only the unit that leaves the other two compact fits.
+    """
+    draws, _, _ = make_batch(7, 3, outlier=0, shift=0.10, at_centre=True, clip=1.0)
+    r = fit(draws)
+    odd = np.array([r.odd_one_prob[m] for m in r.module_ids])
+    assert np.argmax(odd) == 0 and odd[0] > 0.6 and odd[0] > 3 * odd[1:].max(), odd
+    assert r.p_any_outlier >= max(r.outlier_prob.values())
+    assert r.deviation["U1"]["S0_V_per_K"]["spreads"] > 3.0
 
 
 @pytest.mark.parametrize("n", [3, 8])

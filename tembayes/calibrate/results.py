@@ -289,6 +289,9 @@ def population_dataset(pop: PopulationResult) -> xr.Dataset:
     hyper = {f"hyper_{k}": (("hyper_chain", "hyper_draw"), np.asarray(v)) for k, v in pop.hyper.items()}
     ds = _set_units(xr.Dataset({**data, **hyper}))
     ds.attrs["outlier_prob"] = json.dumps(to_jsonable(pop.outlier_prob))
+    ds.attrs["odd_one_prob"] = json.dumps(to_jsonable(pop.odd_one_prob))
+    ds.attrs["p_any_outlier"] = json.dumps(to_jsonable(pop.p_any_outlier))
+    ds.attrs["deviation"] = json.dumps(to_jsonable(pop.deviation))
     ds.attrs["diagnostics"] = json.dumps(to_jsonable(pop.diagnostics))
     return ds
 
@@ -379,8 +382,9 @@ def stats(x: ArrayLike) -> dict[str, float]:
 def module_entry(r: ModuleCalibration, outlier_prob: float | None = None) -> dict:
     """One module's ``summary.json`` entry (docs/outputs.md, 'summary.json (calibrate)').
 
-    The five parameters, ``outlier_prob`` (null without a population fit or
-    for a module left out of it), ``diagnostics`` (``rhat_max``,
+    The five parameters, ``outlier_prob``, ``odd_one_prob`` and ``deviation``
+    (null without a population fit or for a module left out of it; filled in
+    by :func:`summary`), ``diagnostics`` (``rhat_max``,
     ``ess_bulk_min``, ``converged`` plus ``tau_max_steps``, ``steps``,
     ``psis_k``); extras: ``hysteresis``, ``nuisance`` (rig parameters, step
     shift, noise).
@@ -388,6 +392,8 @@ def module_entry(r: ModuleCalibration, outlier_prob: float | None = None) -> dic
     d = r.diagnostics
     entry = {k: stats(r.draws[k]) for k in MODULE_PARAMETERS}
     entry["outlier_prob"] = None if outlier_prob is None else float(outlier_prob)
+    entry["odd_one_prob"] = None
+    entry["deviation"] = None
     entry["diagnostics"] = {
         "rhat_max": d.rhat_max,
         "ess_bulk_min": d.ess_bulk_min,
@@ -434,7 +440,10 @@ def summary(
         for mid, p in population.outlier_prob.items():
             if mid in mods:
                 mods[mid]["outlier_prob"] = float(p)
+                mods[mid]["odd_one_prob"] = population.odd_one_prob.get(mid)
+                mods[mid]["deviation"] = population.deviation.get(mid)
     out = {"tref_C": T_REF - KELVIN, "modules": mods}
+    out["p_any_outlier"] = None if population is None else population.p_any_outlier
     if population is not None:
         out["population"] = population.summary()
         out["population_diagnostics"] = population.diagnostics

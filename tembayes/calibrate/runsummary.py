@@ -50,6 +50,12 @@ class ModuleSummary:
         The five module parameters (``R0_ohm`` ... ``K_W_per_K``).
     outlier_prob : float or None
         None without a population fit, or for a module left out of it.
+    odd_one_prob : float or None
+        The probability that this module is the batch's outlier given that
+        there is exactly one (None as ``outlier_prob``).
+    deviation : mapping or None
+        Parameter -> ``{"rel", "spreads", "p_loo"}`` against the other
+        modules' population (None as ``outlier_prob``).
     converged : bool
     diagnostics : mapping
         The stored diagnostics record (``rhat_max``, ``ess_bulk_min``,
@@ -66,6 +72,8 @@ class ModuleSummary:
     diagnostics: Mapping
     hysteresis: Mapping
     nuisance: Mapping[str, LawSummary]
+    odd_one_prob: float | None = None
+    deviation: Mapping | None = None
 
     @property
     def adequacy_failed(self) -> bool:
@@ -81,7 +89,7 @@ class ModuleSummary:
     def from_json(cls, d: Mapping) -> ModuleSummary:
         """From a ``summary.json`` module entry."""
         diag = MappingProxyType(dict(d.get("diagnostics") or {}))
-        op = d.get("outlier_prob")
+        op, odd, dev = d.get("outlier_prob"), d.get("odd_one_prob"), d.get("deviation")
         return cls(
             laws=MappingProxyType({p: LawSummary.from_json(d[p]) for p in MODULE_PARAMETERS}),
             outlier_prob=None if op is None else float(op),
@@ -89,6 +97,8 @@ class ModuleSummary:
             diagnostics=diag,
             hysteresis=MappingProxyType(dict(d.get("hysteresis") or {})),
             nuisance=MappingProxyType({k: LawSummary.from_json(v) for k, v in (d.get("nuisance") or {}).items()}),
+            odd_one_prob=None if odd is None else float(odd),
+            deviation=None if dev is None else MappingProxyType(dict(dev)),
         )
 
 
@@ -106,6 +116,8 @@ class RunSummary:
         Reference temperature of the laws [degC].
     population : mapping or None
         The population's hyperparameter summaries; None without a fit.
+    p_any_outlier : float or None
+        The probability that the batch holds at least one outlier (None without a fit).
     population_diagnostics : mapping
         The population sampler's convergence record (empty without a fit).
     population_spreads : mapping or None
@@ -121,6 +133,7 @@ class RunSummary:
     converged: bool
     tref_C: float
     population: Mapping | None
+    p_any_outlier: float | None
     population_diagnostics: Mapping
     population_spreads: Mapping | None
     population_excluded: Mapping[str, str]
@@ -138,6 +151,7 @@ class RunSummary:
             converged=bool(doc.get("converged", False)),
             tref_C=float(doc.get("tref_C", T_REF - KELVIN)),
             population=doc.get("population"),
+            p_any_outlier=None if doc.get("p_any_outlier") is None else float(doc["p_any_outlier"]),
             population_diagnostics=MappingProxyType(dict(doc.get("population_diagnostics") or {})),
             population_spreads=doc.get("population_spreads"),
             population_excluded=MappingProxyType(dict(doc.get("population_excluded") or {})),

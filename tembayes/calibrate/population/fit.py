@@ -9,9 +9,10 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from tembayes.calibrate.population.check import compare_terms
+from tembayes.calibrate.population.deviation import loo_deviation
 from tembayes.calibrate.population.hyper import HyperPosterior, start_walkers
 from tembayes.calibrate.population.inputs import sampler_seed, validate_draws
-from tembayes.calibrate.population.membership import outlier_probabilities
+from tembayes.calibrate.population.membership import batch_membership
 from tembayes.calibrate.population.model import N_HYPER, OUTLIER_FRACTION_PRIOR, OUTLIER_SCALE, Population
 from tembayes.calibrate.population.result import assemble
 from tembayes.calibrate.population.sampling import POPULATION_TARGETS, Budget, run_emcee
@@ -147,7 +148,8 @@ def fit_population(
     n_predictive : int
         Draws of :attr:`PopulationResult.predictive`.
     n_rao_blackwell : int
-        Hyper draws averaged for ``outlier_prob``.
+        Hyper draws averaged for ``outlier_prob``, ``odd_one_prob``,
+        ``p_any_outlier`` and the modules' leave-one-out ``deviation``.
     convergence : tembayes.calibrate.sampler.Targets
         Convergence targets; default :data:`~tembayes.calibrate.population.sampling.POPULATION_TARGETS`
         (the modules' rule on a chain of 150 autocorrelation times), looser for quick looks.
@@ -183,10 +185,11 @@ def fit_population(
         return post.natural(kept), diag
 
     sampled = _sample(pop, summ, method, max_draws_per_module, run)
-    p_out, mcse = outlier_probabilities(pop, sampled.terms, sampled.kept, n_rao_blackwell)
+    members = batch_membership(pop, sampled.terms, sampled.kept, n_rao_blackwell)
+    deviation = loo_deviation(pop, summ.mean, summ.cov, members.hyper, members.log_like)
     diag = {
         **sampled.diag,
         **_result_diagnostics(pop, ids, summ, sampled, max_draws_per_module),
         "elapsed_s": float(time.perf_counter() - t0),
     }
-    return assemble(pop, ids, sampled.kept, p_out, mcse, rng, n_predictive, diag)
+    return assemble(pop, ids, sampled.kept, members, rng, n_predictive, diag, deviation)

@@ -9,7 +9,7 @@ from scipy import optimize
 
 from tembayes.calibrate.population.hyper import HyperPosterior, start_walkers
 from tembayes.calibrate.population.inputs import check_modules, sampler_seed
-from tembayes.calibrate.population.membership import rao_blackwell, thinned_iterations
+from tembayes.calibrate.population.membership import Membership, odd_one, rao_blackwell, thinned_iterations
 from tembayes.calibrate.population.model import (
     LEVEL,
     N_HYPER,
@@ -175,13 +175,14 @@ def _joint_start(post, u0, C, rng, nwalkers):
 
 
 def _joint_membership(post, kept, n_draws):
-    """Outlier probabilities and se: ``P(member | x_i, alpha)`` averaged over about ``n_draws`` joint draws."""
+    """The :class:`Membership` of ``P(member | x_i, alpha)`` at about ``n_draws`` joint draws."""
     n_keep, W, ndim = kept.shape
     idx = thinned_iterations(n_keep, W, n_draws)
     hs, xs = post.split(kept[idx].reshape(-1, ndim))
     mu, tau, _, logeps, log1m = post.pop.unpack(hs)
     _, lmem = post.pop.log_density(xs, mu, tau, logeps, log1m)
-    return rao_blackwell(np.exp(lmem).reshape(len(idx), W, -1))
+    p_out, mcse = rao_blackwell(np.exp(lmem).reshape(len(idx), W, -1))
+    return Membership(p_out, mcse, *odd_one(lmem))
 
 
 def joint_fit(
@@ -253,7 +254,7 @@ def joint_fit(
         raise ModelError(f"nwalkers must be even and >= {2 * ndim}, got {W}")
     p0 = _joint_start(post, u0, C, rng, W)
     kept, diag = run_emcee(post, p0, seed, budget, label="joint population fit")
-    p_out, mcse = _joint_membership(post, kept, n_rao_blackwell)
+    members = _joint_membership(post, kept, n_rao_blackwell)
     diag.update(
         {
             "method": "joint",
@@ -262,4 +263,4 @@ def joint_fit(
             "elapsed_s": float(time.perf_counter() - t0),
         }
     )
-    return assemble(pop, ids, post.hyper.natural(kept[:, :, :N_HYPER]), p_out, mcse, rng, n_predictive, diag)
+    return assemble(pop, ids, post.hyper.natural(kept[:, :, :N_HYPER]), members, rng, n_predictive, diag)

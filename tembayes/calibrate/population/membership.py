@@ -1,14 +1,26 @@
-"""Outlier probabilities, Rao-Blackwellised over the hyperparameter draws.
+"""Who is off: outlier probabilities, the odd one, and whether there is one, Rao-Blackwellised.
 
-``outlier_prob[i] = 1 - mean`` over hyper draws of ``P(module i a member in
-all five parameters | its data, alpha)``, which the likelihood terms give in
-closed form; its Monte Carlo se comes from the arviz ESS of those per-draw
-values.
+Given the hyperparameters ``alpha`` the modules are independent, and the
+likelihood terms give each one's ``P(member in all five parameters | data_i,
+alpha) = pm_i`` in closed form.  Averaged over the hyper draws:
+
+* ``outlier_prob[i] = 1 - mean pm_i``, with its Monte Carlo se from the
+  arviz ESS of the per-draw values;
+* ``p_any_outlier = 1 - mean prod_j pm_j``: the batch holds at least one;
+* ``odd_one_prob[i] = mean q_i / sum_k mean q_k`` with
+  ``q_i = (1 - pm_i) prod_(j != i) pm_j``: the probability that module ``i``
+  is the outlier given that the batch holds exactly one.  Where "is there
+  one" depends on the spread a small batch cannot learn, "which one" is set
+  by which unit breaks the symmetry: at the spreads where any unit is off,
+  it is the same one.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
+from scipy.special import logsumexp
 
 from tembayes.common.arvizlib import az
 from tembayes.common.draws import even_indices
@@ -17,6 +29,33 @@ from tembayes.common.draws import even_indices
 BATCH_DRAWS = 256
 #: At least this many stored iterations are averaged over.
 MIN_ITERATIONS = 100
+
+
+@dataclass(frozen=True)
+class Membership:
+    """The batch's membership answers (module docstring), modules in input order.
+
+    Attributes
+    ----------
+    outlier_prob, mcse : ndarray, shape (N,)
+        Each module's outlier probability and its Monte Carlo se.
+    odd_one_prob : ndarray, shape (N,)
+        Each module's probability of being the outlier, given exactly one (sums to 1).
+    p_any_outlier : float
+        Probability that the batch holds at least one outlier.
+    hyper : ndarray, shape (S, 11) or None
+        The natural hyper draws averaged over (None from the joint fit).
+    log_like : ndarray, shape (S, N) or None
+        ``log L_i(alpha)`` at those draws: what leaving module ``i`` out
+        reweights them by (:mod:`.deviation`).
+    """
+
+    outlier_prob: np.ndarray
+    mcse: np.ndarray
+    odd_one_prob: np.ndarray
+    p_any_outlier: float
+    hyper: np.ndarray | None = None
+    log_like: np.ndarray | None = None
 
 
 def rao_blackwell(pm):
@@ -33,29 +72,41 @@ def rao_blackwell(pm):
     return p_out, np.where(sd > 0, sd / np.sqrt(ess), 0.0)
 
 
+def odd_one(lmem):
+    """``odd_one_prob`` (N,) and ``p_any_outlier`` from ``log P(member)`` ``lmem`` (S, N) at S hyper draws."""
+    lmem = np.minimum(np.asarray(lmem, float), 0.0)
+    all_members = lmem.sum(axis=1)  # (S,)
+    with np.errstate(divide="ignore"):
+        log_off = np.log(-np.expm1(lmem))  # log(1 - pm)
+    log_q = all_members[:, None] - lmem + log_off  # (S, N): module i the only one off
+    log_mean_q = logsumexp(log_q, axis=0)
+    total = logsumexp(log_mean_q)
+    odd = np.exp(log_mean_q - total) if np.isfinite(total) else np.full(lmem.shape[1], 1.0 / lmem.shape[1])
+    return odd, float(1.0 - np.mean(np.exp(all_members)))
+
+
 def thinned_iterations(n_keep, nwalkers, n_draws):
     """Stored iterations (evenly thinned) that give about ``n_draws`` draws over all walkers."""
     return even_indices(n_keep, max(MIN_ITERATIONS, n_draws // nwalkers))
 
 
-def _member_prob(pop, terms, hflat):
-    """P(member) of each module at each natural hyper draw ``hflat`` (n, 11): (n, N)."""
-    out = []
+def _terms_at(pop, terms, hflat):
+    """``log L`` and ``log P(member)`` of each module at each natural hyper draw ``hflat`` (n, 11): (n, N) each."""
+    ll, lm = [], []
     for sl in np.array_split(np.arange(len(hflat)), max(1, len(hflat) // BATCH_DRAWS)):
         mu, tau, _, logeps, log1m = pop.unpack(hflat[sl])
-        _, lmem = terms(pop, mu, tau, logeps, log1m)
-        out.append(np.exp(lmem))
-    return np.concatenate(out)
+        a, b = terms(pop, mu, tau, logeps, log1m)
+        ll.append(a)
+        lm.append(b)
+    return np.concatenate(ll), np.concatenate(lm)
 
 
-def outlier_probabilities(pop, terms, kept, n_draws):
-    """Outlier probabilities and their se from about ``n_draws`` of the natural hyper draws ``kept`` (n, W, 11).
-
-    Returns
-    -------
-    p_out, mcse : ndarray (N,)
-    """
+def batch_membership(pop, terms, kept, n_draws):
+    """The :class:`Membership` of about ``n_draws`` of the natural hyper draws ``kept`` (n, W, 11)."""
     n_keep, W, _ = kept.shape
     sub = kept[thinned_iterations(n_keep, W, n_draws)]  # (n, W, D)
-    pm = _member_prob(pop, terms, sub.reshape(-1, sub.shape[2])).reshape(len(sub), W, -1)
-    return rao_blackwell(pm)
+    hflat = sub.reshape(-1, sub.shape[2])
+    ll, lmem = _terms_at(pop, terms, hflat)
+    p_out, mcse = rao_blackwell(np.exp(lmem).reshape(len(sub), W, -1))
+    odd, p_any = odd_one(lmem)
+    return Membership(p_out, mcse, odd, p_any, hyper=hflat, log_like=ll)

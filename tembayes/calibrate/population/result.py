@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -47,6 +47,15 @@ class PopulationResult:
     predictive_with_outliers : ndarray, shape (n, 5)
         The same as :attr:`predictive` including the outlier component (a new
         unit may be off).
+    odd_one_prob : dict
+        Module id -> probability that the module is the outlier, given that
+        the batch holds exactly one (sums to 1; :mod:`.membership`).
+    p_any_outlier : float or None
+        Probability that the batch holds at least one outlier.
+    deviation : dict
+        Module id -> parameter -> ``{"rel", "spreads", "p_loo"}``: how far the
+        module sits from the population of the other modules
+        (:mod:`.deviation`; empty from the joint fit).
     """
 
     module_ids: tuple
@@ -55,6 +64,9 @@ class PopulationResult:
     hyper: dict
     diagnostics: dict
     predictive_with_outliers: np.ndarray = None
+    odd_one_prob: dict = field(default_factory=dict)
+    p_any_outlier: float | None = None
+    deviation: dict = field(default_factory=dict)
 
     def summary(self) -> dict:
         """Mean, sd, 5 % and 95 % quantiles of :attr:`predictive` (SI).
@@ -115,7 +127,7 @@ def predictive(pop, kept, rng, n):
     return member, pop.coords.to_theta(x)
 
 
-def assemble(pop, ids, kept, p_out, mcse, rng, n_predictive, diag):
+def assemble(pop, ids, kept, membership, rng, n_predictive, diag, deviation=None):
     """The :class:`PopulationResult` of natural hyper draws ``kept`` (n, W, 11).
 
     Parameters
@@ -123,25 +135,31 @@ def assemble(pop, ids, kept, p_out, mcse, rng, n_predictive, diag):
     pop : .model.Population
     ids : tuple of str
     kept : ndarray (n, W, 11)
-    p_out, mcse : ndarray (N,)
-        Outlier probabilities and their Monte Carlo se.
+    membership : .membership.Membership
     rng : numpy.random.Generator
         Draws the predictive.
     n_predictive : int
     diag : dict
-        Diagnostics so far; the outlier probabilities' se and the number of modules are added.
+        Diagnostics so far; the outlier probabilities' se, the leave-one-out
+        Pareto k (``deviation_k_hat``) and the number of modules are added.
+    deviation : .deviation.Deviation, optional
     """
     member, mixed = predictive(pop, kept, rng, n_predictive)
     hyper_si = pop.to_si(kept)  # each (n_keep, W)
     hyper = {k: np.ascontiguousarray(v.T) for k, v in hyper_si.items()}
     diag = dict(diag)
-    diag["outlier_prob_mcse"] = {mid: float(s) for mid, s in zip(ids, mcse)}
+    diag["outlier_prob_mcse"] = {mid: float(s) for mid, s in zip(ids, membership.mcse)}
+    if deviation is not None:
+        diag["deviation_k_hat"] = {mid: float(k) for mid, k in zip(ids, deviation.k_hat)}
     diag["n_modules"] = len(ids)
     return PopulationResult(
         module_ids=ids,
-        outlier_prob={mid: float(p) for mid, p in zip(ids, p_out)},
+        outlier_prob={mid: float(p) for mid, p in zip(ids, membership.outlier_prob)},
         predictive=member,
         hyper=hyper,
         diagnostics=diag,
         predictive_with_outliers=mixed,
+        odd_one_prob={mid: float(p) for mid, p in zip(ids, membership.odd_one_prob)},
+        p_any_outlier=float(membership.p_any_outlier),
+        deviation={} if deviation is None else {mid: deviation.entry(i) for i, mid in enumerate(ids)},
     )

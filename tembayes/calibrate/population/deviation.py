@@ -1,0 +1,89 @@
+"""How far each module sits from the population of the *other* modules (leave-one-out).
+
+Leaving module ``i`` out reweights the hyper draws by ``1 / L_i(alpha)``
+(its likelihood term, :mod:`.terms`), Pareto-smoothed (PSIS, Vehtari et al.
+2017; its ``k_hat`` says whether the reweighting can be trusted: above 0.7
+the module is so far from the others that the batch's posterior rarely
+visits the hyperparameters of the rest alone).  Under those weights, per
+parameter, with the module's posterior mean ``m`` and variance ``v`` in the
+population coordinates (levels in log, slopes linear):
+
+* ``rel``: the offset from the others' population centre, relative
+  (levels ``exp(m - mu) - 1``, slopes ``(m - mu) / |mu|``);
+* ``spreads``: the offset in unit-to-unit spreads, ``(m - mu) / tau``;
+* ``p_loo``: the two-sided tail probability of the module's value under the
+  others' population, measured as precisely as this module,
+  ``2 Phi(-|m - mu| / sqrt(tau^2 + v))``: how often a member of that
+  population lies at least this far out.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.special import log_ndtr
+
+from tembayes.calibrate.population.model import LEVEL
+from tembayes.common.arvizlib import az
+from tembayes.constants import MODULE_PARAMETERS
+
+#: Above this Pareto k the leave-one-out reweighting is unreliable (Vehtari et al. 2017).
+K_HAT_MAX = 0.7
+
+
+@dataclass(frozen=True)
+class Deviation:
+    """Each module's leave-one-out deviation (module docstring), modules and parameters in input order.
+
+    Attributes
+    ----------
+    rel, spreads, p_loo : ndarray, shape (N, 5)
+    k_hat : ndarray, shape (N,)
+        Pareto k of each module's leave-one-out weights.
+    """
+
+    rel: np.ndarray
+    spreads: np.ndarray
+    p_loo: np.ndarray
+    k_hat: np.ndarray
+
+    def entry(self, i: int) -> dict[str, dict[str, float]]:
+        """Module ``i``'s ``deviation`` entry of ``summary.json``: parameter -> ``{"rel", "spreads", "p_loo"}``."""
+        return {
+            p: {"rel": float(self.rel[i, j]), "spreads": float(self.spreads[i, j]), "p_loo": float(self.p_loo[i, j])}
+            for j, p in enumerate(MODULE_PARAMETERS)
+        }
+
+
+def loo_deviation(pop, mean, cov, hyper, log_like) -> Deviation:
+    """The :class:`Deviation` of every module.
+
+    Parameters
+    ----------
+    pop : .model.Population
+    mean : ndarray, shape (N, 5)
+        The modules' posterior means in population coordinates.
+    cov : ndarray, shape (N, 5, 5)
+        Their covariances.
+    hyper : ndarray, shape (S, 11)
+        Natural hyper draws of the batch's posterior.
+    log_like : ndarray, shape (S, N)
+        Each module's ``log L_i`` at those draws.
+    """
+    mu, tau, *_ = pop.unpack(hyper)
+    N = len(mean)
+    rel, spreads, p_loo = (np.empty((N, mean.shape[1])) for _ in range(3))
+    k_hat = np.empty(N)
+    for i in range(N):
+        lw, k = az.psislw(-log_like[:, i] + log_like[:, i].max(), reff=1.0)
+        w = np.exp(np.asarray(lw, float) - np.max(lw))
+        w /= w.sum()
+        d = mean[i][None] - mu  # (S, 5)
+        rel_draws = np.where(LEVEL[None], np.expm1(d), d / np.abs(mu))
+        sd = np.sqrt(tau**2 + np.diag(cov[i])[None])
+        rel[i] = w @ rel_draws
+        spreads[i] = w @ (d / tau)
+        p_loo[i] = w @ np.exp(np.log(2.0) + log_ndtr(-np.abs(d) / sd))
+        k_hat[i] = float(k)
+    return Deviation(rel=rel, spreads=spreads, p_loo=p_loo, k_hat=k_hat)
