@@ -74,12 +74,14 @@ def to_theta(x):
 # --------------------------------------------------------------------------- synthetic batches
 
 
-def draw_batch(rng, n, kind, *, n_draws=1000, corr=True):
+def draw_batch(rng, n, kind, *, n_draws=1000, corr=True, spreads=None):
     """Truth and per-module posteriors of one synthetic batch.
 
     Parameters
     ----------
-    kind : {"none", "S0", "any"}
+    kind : {"none", "S0", "any", "spreads"}
+        "spreads": one random parameter of a random module shifted by
+        ``spreads`` unit spreads, random sign.
 
     Returns
     -------
@@ -97,9 +99,10 @@ def draw_batch(rng, n, kind, *, n_draws=1000, corr=True):
     typ = np.array([truth["population"][p] for p in MODULE_PARAMETERS])
     theta = np.array([[truth["modules"][i][p] for p in MODULE_PARAMETERS] for i in ids])
     param = 2 if kind == "S0" else None
-    if kind == "any":
+    if kind in ("any", "spreads"):
         param = int(rng.integers(5))
-        theta[k_out, param] += rng.choice([-1.0, 1.0]) * rng.uniform(3.0, 5.0) * SPREAD[param] * typ[param]
+        size = rng.uniform(3.0, 5.0) if kind == "any" else float(spreads)
+        theta[k_out, param] += rng.choice([-1.0, 1.0]) * size * SPREAD[param] * typ[param]
     draws, lik = {}, {}
     for i, mid in enumerate(ids):
         rel = np.exp(rng.uniform(np.log(POST_SD_LO), np.log(POST_SD_HI)))

@@ -53,10 +53,12 @@ examples:
   tembayes calibrate factory/lot42 --out runs/lot42 --workers 8 --quiet   # a local Dask cluster of 8 processes
   tembayes calibrate factory/lot42 --out runs/lot42 --scheduler tcp://10.0.0.5:8786   # a running Dask cluster
   tembayes calibrate factory/lot42 --out runs/lot42 --scheduler tcp://10.0.0.5:8786 --resume   # only missing modules
+  tembayes calibrate factory/lot43 --out runs/lot43 --population-prior runs/lot42   # the spreads lot 42 learned
 
 writes RUN/summary.json (per module R0, R1, S0, S1 and K with mean, sd and
-90 % interval, outlier_prob, convergence diagnostics; the population's
-predictive distribution for a new module), RUN/posterior.nc
+90 % interval, outlier_prob, odd_one_prob, deviation, convergence
+diagnostics; p_any_outlier; the population's predictive distribution for a
+new module), RUN/posterior.nc
 (arviz InferenceData: posterior, log_likelihood per step window,
 sample_stats, observed_data, constant_data, prior, population),
 RUN/modules/<id>.nc as each module finishes, and corner plots in
@@ -64,7 +66,11 @@ RUN/figures.  Interrupted runs continue with --resume (finished modules are
 reused, a running one continues from its sampler checkpoint).  Known
 unit-to-unit spreads of the type go in batch.toml's optional [population]
 table (docs/data-format.md, '[population]'); summary.json's
-population_spreads gives them for the next batch.  Every output key:
+population_spreads gives them for the next batch (--population-prior RUN
+reads them from there).  The console and the report end with the outlier
+answer in words: the likeliest odd one, how far it sits from the others,
+and, for a small batch, what the type's spread would have to be to call it
+an outlier.  Every output key:
 docs/outputs.md, 'summary.json (calibrate)' and 'posterior.nc (calibrate)'.
 """
 
@@ -336,6 +342,11 @@ def _cmd_calibrate(args):
     batch = load_batch(args.batch, lazy=True)  # refused input: nothing is written
     raise_first_error(batch.findings, command="calibrate")
     _say_findings(batch.findings)
+    earlier = None
+    if args.population_prior is not None:
+        from tembayes.calibrate.batch import population_prior_of_run
+
+        earlier = population_prior_of_run(args.population_prior, batch.datasheet.name)
     summ = calibrate_batch(
         batch,
         args.out,
@@ -349,6 +360,7 @@ def _cmd_calibrate(args):
         workers=workers,
         scheduler=args.scheduler,
         keep_unconverged=args.keep_unconverged,
+        population_prior=earlier,
     )
     if not args.no_figures:
         from tembayes.plots.calibrate import save_calibration_figures
@@ -380,6 +392,11 @@ def _cmd_calibrate(args):
         print(f"... the {len(shown)} likeliest outliers of {len(mods)} calibrated modules shown; {n_conv} converged")
     for mid, why in summ.population_excluded.items():
         print(f"{mid}: left out of the population: {why}")
+    from tembayes.report.outliers import OutlierAnswer
+
+    answer = OutlierAnswer.of(summ)
+    if answer is not None:
+        print("\n".join(answer.lines()))
     print(f"wrote {args.out / 'summary.json'} and {args.out / 'posterior.nc'}")
     return 0 if summ.converged else 1
 
@@ -896,6 +913,14 @@ def _add_calibrate(sub):
         action="store_true",
         help="let modules that did not converge into the population (default: left out, with the "
         "reason in summary.json)",
+    )
+    p.add_argument(
+        "--population-prior",
+        type=Path,
+        metavar="EARLIER_RUN",
+        help="start from the unit-to-unit spreads an earlier run of the same module type learned "
+        "(its summary.json's population_spreads), combined with batch.toml's [population]; chained "
+        "over batches, the spreads sharpen",
     )
     p.set_defaults(func=_cmd_calibrate)
 

@@ -69,17 +69,31 @@ def test_recovers_the_bench_truth_and_converges(run3):
         assert m.laws["R0_ohm"].sd / m.laws["R0_ohm"].mean < 0.01
 
 
-@pytest.mark.xfail(
-    strict=False,
-    reason="not reachable from three modules without knowing the type's spreads: a "
-    "4 % S0 outlier gets ~0.1 (0.2-0.4 with the spreads known; docs/benchmarks.md)",
-)
-def test_flags_the_outlier_of_three(run3):
+def test_the_outlier_of_three_how_far_and_what_the_batch_can_tell(run3):
+    """The bench's outlier (its S0 shifted by 4 %) among three modules.
+
+    Three units cannot say *whether* it is an outlier (analyses/population_checks.py:
+    even the Bayes-optimal rule rarely can), so this checks what they can say:
+    its deviation in the shifted parameter is the offset from the other two
+    that the truth has, to within the others' centre's uncertainty (their
+    spread over sqrt(2), at most ~3 % here); the answer names a module, states
+    what spread would decide it, and the smallest deviation three modules flag
+    is several spreads.
+    """
     out, summ, truth = run3
-    probs = {mid: m.outlier_prob for mid, m in summ.modules.items()}
-    assert max(probs, key=probs.get) == truth["outlier"]
-    assert probs[truth["outlier"]] > 0.5
-    assert all(p < 0.3 for mid, p in probs.items() if mid != truth["outlier"])
+    odd = truth["outlier"]
+    shifted = "S0_V_per_K"  # the bench shifts the outlier's S0
+    others = [m for m in summ.modules if m != odd]
+    true_rel = truth["modules"][odd][shifted] / np.mean([truth["modules"][m][shifted] for m in others]) - 1.0
+    assert summ.modules[odd].deviation[shifted]["rel"] == pytest.approx(true_rel, abs=0.03)
+    assert sum(m.odd_one_prob for m in summ.modules.values()) == pytest.approx(1.0)
+    reach = summ.smallest_flagged_deviation
+    assert reach["n_modules"] == 3 and reach["spreads"] > 3.0
+    from tembayes.report.outliers import OutlierAnswer
+
+    lines = OutlierAnswer.of(summ).lines()
+    assert lines[0].startswith("Likeliest odd one: ")
+    assert any("if it is at most" in line for line in lines) and "3 modules" in lines[-1]
 
 
 def test_population_table_reaches_the_population_stage(run3, batch3, tmp_path):

@@ -166,8 +166,10 @@ def test_report_is_one_self_contained_file_with_every_section(report):
     from PIL import Image
 
     imgs = _images(html)
-    # per module laws + corner, the batch laws, population corner, hysteresis, TEM1 validation
-    assert len(imgs) == 3 + 3 + 1 + 1 + 1 + 1
+    # per module laws + corner, the batch laws, outliers, population corner, hysteresis, TEM1 validation
+    assert len(imgs) == 3 + 3 + 1 + 1 + 1 + 1 + 1
+    population = html.split("<section id='population'>")[1].split("</section>")[0]
+    assert "Likeliest odd one: " in population and 'id="fig-outliers"' in population
     for alt, b64 in imgs:
         im = Image.open(io.BytesIO(base64.b64decode(b64)))
         im.verify()  # a whole, decodable PNG

@@ -44,7 +44,7 @@ from tembayes.common.provenance import versions
 from tembayes.common.seeds import spawned
 from tembayes.data.digest import batch_inputs
 from tembayes.data.write import write_json
-from tembayes.errors import ModelError
+from tembayes.errors import DataError, ModelError
 from tembayes.physics.effects import EFFECT_PARAMETERS
 
 if TYPE_CHECKING:
@@ -67,6 +67,50 @@ def spread_prior(population_table: Mapping[str, float]) -> dict[str, float] | No
     ``spread_S0_rel`` becomes ``tau_S0_rel``; None if none are stated.
     """
     return {"tau" + k[len("spread") :]: v for k, v in population_table.items()} or None
+
+
+def population_prior_of_run(run: Path | str, module_type: str) -> dict[str, tuple[float, float]]:
+    """The unit-to-unit spreads an earlier run learned, as ``[population]`` entries ``spread_... -> (median, log_sd)``.
+
+    Raises
+    ------
+    DataError
+        No ``summary.json``, no population fit in it, or another module type.
+    """
+    f = Path(run) / "summary.json"
+    if not f.is_file():
+        raise DataError(f, "is not there", "Give the --out folder of an earlier `tembayes calibrate` run.")
+    doc = json.loads(f.read_text())
+    spreads = doc.get("population_spreads")
+    if not spreads:
+        raise DataError(
+            f,
+            "has no population_spreads: that run fitted no population (fewer than 2 modules converged)",
+            "Give a run of at least 2 converged modules of the type.",
+            column="population_spreads",
+        )
+    earlier = (doc.get("batch") or {}).get("module_type")
+    if earlier is not None and earlier != module_type:
+        raise DataError(
+            f,
+            f"learned the spreads of module type {earlier!r}, not {module_type!r}",
+            "Give a run of the same module type ([module_type] name in batch.toml).",
+            column="batch.module_type",
+        )
+    return {k: (float(v["median"]), float(v["log_sd"])) for k, v in spreads.items()}
+
+
+def _merged_spreads(batch, earlier):
+    """``[population]`` spreads from an earlier run and batch.toml (a spread given by both is refused)."""
+    both = sorted(set(earlier or {}) & set(batch.population))
+    if both:
+        raise DataError(
+            Path(batch.path) / "batch.toml",
+            f"[population] states {', '.join(both)}, which --population-prior also gives",
+            "Remove them from [population], or leave out --population-prior.",
+            column="population",
+        )
+    return {**(earlier or {}), **batch.population}
 
 
 def _module_line(mid, d):
@@ -93,6 +137,7 @@ def calibrate_batch(
     scheduler: str | None = None,
     client: Client | None = None,
     keep_unconverged: bool = False,
+    population_prior: Mapping[str, tuple[float, float]] | None = None,
 ) -> RunSummary:
     """Calibrate every module of a batch and the batch population.
 
@@ -135,6 +180,9 @@ def calibrate_batch(
         An open Dask client to use.
     keep_unconverged : bool
         Let modules that did not converge into the population stage.
+    population_prior : mapping, optional
+        ``spread_... -> (median, log_sd)``: spreads learned by an earlier run of
+        the type (:func:`population_prior_of_run`), combined with ``[population]``.
 
     Returns
     -------
@@ -143,6 +191,7 @@ def calibrate_batch(
     """
     say = progress or (lambda msg: None)
     workers = int(workers)
+    _merged_spreads(batch, population_prior)  # a conflict is refused before anything is written
     folder = RunFolder(out, batch=batch, seed=seed, resume=resume, overwrite=overwrite, workers=workers, progress=say)
     with folder as work:
         summ = _calibrate_in(
@@ -160,6 +209,7 @@ def calibrate_batch(
             scheduler=scheduler,
             client=client,
             keep_unconverged=keep_unconverged,
+            population_prior=population_prior,
         )
         folder.commit()
     return summ
@@ -181,6 +231,7 @@ def _calibrate_in(
     scheduler,
     client,
     keep_unconverged,
+    population_prior,
 ):
     """:func:`calibrate_batch` inside the run folder being built (``out``)."""
     from tembayes.calibrate.scaleout import calibrate_modules
@@ -265,6 +316,7 @@ def _calibrate_in(
         progress=say,
         argv=argv,
         keep_unconverged=keep_unconverged,
+        population_prior=population_prior,
         seconds=time.perf_counter() - t0,
         executor={"where": where, "workers": workers, "scheduler": scheduler},
         batch_record=record,
@@ -290,6 +342,7 @@ def finish_run(
     seconds: float | None = None,
     executor: dict | None = None,
     batch_record: dict | None = None,
+    population_prior: Mapping[str, tuple[float, float]] | None = None,
 ) -> RunSummary:
     """The batch stage of a run whose modules are in ``RUN/modules``.
 
@@ -337,6 +390,7 @@ def finish_run(
         )
     for mid, why in failed.items():
         excluded[mid] = f"calibration failed: {why}"
+    spreads = _merged_spreads(batch, population_prior)
     pop = None
     if population and len(law) >= 2:
         from tembayes.calibrate.population import fit_population
@@ -353,7 +407,7 @@ def finish_run(
             + ")"
         )
         _, rng = module_seed(seed, "__population__")
-        pop = fit_population(law, batch.datasheet, rng=rng, spread_prior=spread_prior(batch.population))
+        pop = fit_population(law, batch.datasheet, rng=rng, spread_prior=spread_prior(spreads))
     elif population:
         say(f"population: skipped ({len(law)} module(s) to fit it on; it needs 2)")
     del law
@@ -365,9 +419,9 @@ def finish_run(
             "n_modules": len(batch.modules),
             "n_calibrated": len(files),
         },
-        # the spreads stated in batch.toml, and those learned here, in the
-        # [population] table's format for the next batch of the type
-        "population_prior": {k: {"median": m, "log_sd": sd} for k, (m, sd) in batch.population.items()},
+        # the spreads stated (batch.toml, an earlier run), and those learned
+        # here, in the [population] table's format for the next batch of the type
+        "population_prior": {k: {"median": m, "log_sd": sd} for k, (m, sd) in spreads.items()},
         "population_spreads": None
         if pop is None
         else {"spread" + k[3:]: {"median": m, "log_sd": sd} for k, (m, sd) in pop.spread_prior().items()},

@@ -292,6 +292,8 @@ def population_dataset(pop: PopulationResult) -> xr.Dataset:
     ds.attrs["odd_one_prob"] = json.dumps(to_jsonable(pop.odd_one_prob))
     ds.attrs["p_any_outlier"] = json.dumps(to_jsonable(pop.p_any_outlier))
     ds.attrs["deviation"] = json.dumps(to_jsonable(pop.deviation))
+    ds.attrs["outlier_vs_spread"] = json.dumps(to_jsonable(pop.outlier_vs_spread))
+    ds.attrs["smallest_flagged_deviation"] = json.dumps(to_jsonable(pop.smallest_flagged))
     ds.attrs["diagnostics"] = json.dumps(to_jsonable(pop.diagnostics))
     return ds
 
@@ -444,6 +446,8 @@ def summary(
                 mods[mid]["deviation"] = population.deviation.get(mid)
     out = {"tref_C": T_REF - KELVIN, "modules": mods}
     out["p_any_outlier"] = None if population is None else population.p_any_outlier
+    out["outlier_vs_spread"] = None if population is None else population.outlier_vs_spread
+    out["smallest_flagged_deviation"] = None if population is None else population.smallest_flagged
     if population is not None:
         out["population"] = population.summary()
         out["population_diagnostics"] = population.diagnostics

@@ -118,6 +118,11 @@ class RunSummary:
         The population's hyperparameter summaries; None without a fit.
     p_any_outlier : float or None
         The probability that the batch holds at least one outlier (None without a fit).
+    outlier_vs_spread : mapping or None
+        The odd one's outlier probability against an assumed largest spread
+        (docs/outputs.md; None without a fit).
+    smallest_flagged_deviation : mapping or None
+        Batches under 8 modules: the deviation a unit needs to be flagged (docs/outputs.md).
     population_diagnostics : mapping
         The population sampler's convergence record (empty without a fit).
     population_spreads : mapping or None
@@ -134,6 +139,8 @@ class RunSummary:
     tref_C: float
     population: Mapping | None
     p_any_outlier: float | None
+    outlier_vs_spread: Mapping | None
+    smallest_flagged_deviation: Mapping | None
     population_diagnostics: Mapping
     population_spreads: Mapping | None
     population_excluded: Mapping[str, str]
@@ -152,6 +159,8 @@ class RunSummary:
             tref_C=float(doc.get("tref_C", T_REF - KELVIN)),
             population=doc.get("population"),
             p_any_outlier=None if doc.get("p_any_outlier") is None else float(doc["p_any_outlier"]),
+            outlier_vs_spread=doc.get("outlier_vs_spread"),
+            smallest_flagged_deviation=doc.get("smallest_flagged_deviation"),
             population_diagnostics=MappingProxyType(dict(doc.get("population_diagnostics") or {})),
             population_spreads=doc.get("population_spreads"),
             population_excluded=MappingProxyType(dict(doc.get("population_excluded") or {})),

@@ -13,6 +13,8 @@ quantiles, medians and densities of the stored draws.
 - :func:`plot_hysteresis` -- up-step minus down-step differences of R and S;
 - :func:`plot_step_loglike` -- where (in temperature and direction) the model
   fits a module worse;
+- :func:`plot_outliers` -- which module is the odd one, and its outlier
+  probability against the spread a small batch cannot learn;
 - :func:`save_calibration_figures` -- all of them into ``RUN/figures``.
 
 Inside tembayes everything is SI; the figures show ohm, mohm/K, mV/K,
@@ -54,6 +56,7 @@ __all__ = [
     "plot_laws",
     "plot_hysteresis",
     "plot_step_loglike",
+    "plot_outliers",
     "save_calibration_figures",
     "DISPLAY_UNITS",
 ]
@@ -902,6 +905,53 @@ def plot_step_loglike(
 # --------------------------------------------------------------------------- saving
 
 
+def plot_outliers(run: CalibrationRun | Path | str, *, fig: Figure | None = None) -> Figure:
+    """Which module is the odd one, and what it would take to call it an outlier.
+
+    Left: each module's ``odd_one_prob`` (bars) and ``outlier_prob`` (dots).
+    Right: the odd one's outlier probability and odd-one probability given an
+    assumed largest spread of its most deviating parameter, and how probable
+    that bound is under the batch's own posterior (``outlier_vs_spread``).
+    """
+    run = _as_run(run)
+    summ = run.summary
+    if summ.p_any_outlier is None:
+        raise ValueError(f"{run.path}: the run has no population fit (or predates odd_one_prob); nothing to draw")
+    fig = fig or Figure(figsize=(10.0, 4.0), layout="constrained")
+    ax, bx = fig.subplots(1, 2)
+    ids = [m for m, e in summ.modules.items() if e.odd_one_prob is not None]
+    x = np.arange(len(ids))
+    ax.bar(x, [summ.modules[m].odd_one_prob for m in ids], color="C0", alpha=0.7, label="odd_one_prob")
+    ax.plot(x, [summ.modules[m].outlier_prob for m in ids], "o", color="C3", label="outlier_prob")
+    ax.set_xticks(x, ids, rotation=45 if len(ids) > 6 else 0)
+    ax.set_ylim(0, 1)
+    ax.set_ylabel("probability")
+    ax.set_title(f"which one (P(any outlier) = {summ.p_any_outlier:.2f})")
+    ax.legend(loc="upper right")
+    curve = summ.outlier_vs_spread
+    if curve:
+        rows = curve["rows"]
+        sp = np.array([r["spread_max"] for r in rows])
+        level = curve["parameter"] in ("R0_ohm", "S0_V_per_K", "K_W_per_K")
+        sx = 100 * sp if level else sp
+
+        def col(k):
+            return np.array([np.nan if r[k] is None else r[k] for r in rows], dtype=float)
+
+        bx.plot(sx, col("outlier_prob"), "o-", color="C3", label=f"{curve['module']} an outlier")
+        bx.plot(sx, col("odd_one_prob"), "s-", color="C0", label=f"{curve['module']} the odd one, if one")
+        bx.plot(sx, col("posterior_mass"), "k--", label="P(spread ≤ s | batch)")
+        bx.set_xscale("log")
+        bx.xaxis.set_minor_locator(NullLocator())
+        bx.set_xticks(sx, [f"{v:.2g}" for v in sx])
+        name = curve["parameter"].split("_")[0]
+        bx.set_xlabel(f"assumed largest unit-to-unit spread of {name}, s" + (" [%]" if level else " [SI]"))
+        bx.set_ylim(0, 1.02)
+        bx.set_title("what it would take")
+        bx.legend(loc="best", fontsize="small")
+    return fig
+
+
 def _save(fig, path, fmt, dpi):
     buf = io.BytesIO()
     fig.savefig(buf, format=fmt, dpi=dpi)
@@ -917,7 +967,8 @@ def save_calibration_figures(
     per module (:func:`plot_corner_module`; in a batch of more than
     ``max_corner_modules``, for that many: the highest outlier probabilities
     first, as in the overlays), ``corner_population``,
-    ``laws``, ``hysteresis`` and ``step_loglike``, with the extension
+    ``laws``, ``hysteresis``, ``step_loglike`` and (with a population fit)
+    ``outliers``, with the extension
     ``fmt``.  Module ids are made file-name safe (characters other than
     letters, digits, ``.``, ``_``, ``-`` become ``_``).
 
@@ -946,4 +997,6 @@ def save_calibration_figures(
     written.append(_save(plot_laws(run), out / f"laws.{fmt}", fmt, dpi))
     written.append(_save(plot_hysteresis(run), out / f"hysteresis.{fmt}", fmt, dpi))
     written.append(_save(plot_step_loglike(run), out / f"step_loglike.{fmt}", fmt, dpi))
+    if run.summary.p_any_outlier is not None:
+        written.append(_save(plot_outliers(run), out / f"outliers.{fmt}", fmt, dpi))
     return written

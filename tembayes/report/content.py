@@ -23,6 +23,7 @@ from tembayes.common.provenance import versions
 from tembayes.constants import KELVIN, MODULE_PARAMETERS
 from tembayes.data.quality import summarize_experiment
 from tembayes.errors import DataError
+from tembayes.report.outliers import OutlierAnswer
 from tembayes.report.tolerances import DEFAULT_CONFIDENCE, DEFAULT_TOLERANCES, check_module, parse_tolerance
 
 if TYPE_CHECKING:
@@ -49,9 +50,12 @@ class BatchReport:
         Per module and experiment: :func:`summarize_experiment` numbers.
     modules : list of dict
         Per module: ``id``, ``params`` (summary stats, SI), ``outlier_prob``,
+        ``odd_one_prob``, ``deviation``,
         ``diagnostics``, ``hysteresis``, ``acceptance`` (the tolerance checks).
     population : dict or None
-        ``params`` and ``diagnostics`` of the population fit.
+        ``params`` and ``diagnostics`` of the population fit; ``p_any_outlier``,
+        ``outlier_vs_spread``, ``answer`` (the outlier question in words,
+        :class:`~tembayes.report.outliers.OutlierAnswer`) and ``odd_one``.
     tolerances : list of str
     confidence : float
     validation : list of dict
@@ -216,7 +220,15 @@ def build_report(
     summ = run.summary
     population = None
     if summ.population:
-        population = {"params": summ.population, "diagnostics": dict(summ.population_diagnostics)}
+        answer = OutlierAnswer.of(summ)
+        population = {
+            "params": summ.population,
+            "diagnostics": dict(summ.population_diagnostics),
+            "p_any_outlier": summ.p_any_outlier,
+            "outlier_vs_spread": summ.outlier_vs_spread,
+            "answer": None if answer is None else answer.lines(),
+            "odd_one": None if answer is None else {"module": answer.odd_one, "parameter": answer.parameter},
+        }
     # modules with their own figures: the likeliest outliers first, then in batch order
     order = sorted(ids, key=lambda m: -(run.outlier_prob(m) or 0.0))
     shown = [m for m in ids if m in order[:max_figure_modules]]
@@ -303,6 +315,8 @@ def _module_row(run, mid):
         "id": mid,
         "params": {p: asdict(ms.laws[p]) for p in MODULE_PARAMETERS},
         "outlier_prob": ms.outlier_prob,
+        "odd_one_prob": ms.odd_one_prob,
+        "deviation": None if ms.deviation is None else dict(ms.deviation),
         "diagnostics": dict(ms.diagnostics),
         "hysteresis": dict(ms.hysteresis),
     }
@@ -310,7 +324,13 @@ def _module_row(run, mid):
 
 def _calibration_figures(run, batch, shown, notes, say):
     """``key -> (caption, PNG bytes)``: the laws, population corner, hysteresis and per-module corners."""
-    from tembayes.plots.calibrate import plot_corner_module, plot_corner_population, plot_hysteresis, plot_laws
+    from tembayes.plots.calibrate import (
+        plot_corner_module,
+        plot_corner_population,
+        plot_hysteresis,
+        plot_laws,
+        plot_outliers,
+    )
     from tembayes.plots.report import plot_module_laws, png_bytes
 
     figs = {}
@@ -334,6 +354,13 @@ def _calibration_figures(run, batch, shown, notes, say):
         figs["corner_population"] = (
             "Modules' posteriors over the population predictive (a new module)",
             png_bytes(plot_corner_population(run)),
+        )
+    if run.summary.p_any_outlier is not None:
+        figs["outliers"] = (
+            "Left: which module is the odd one (odd_one_prob, bars) and whether it is an outlier (dots). Right: "
+            "the odd one's outlier probability if its most deviating parameter's unit-to-unit spread were known "
+            "to be at most s, and how probable that is under this batch's own posterior",
+            png_bytes(plot_outliers(run)),
         )
     figs["hysteresis"] = ("Up-step minus down-step R and S (±2 sd)", png_bytes(plot_hysteresis(run)))
     for mid in shown:

@@ -218,6 +218,13 @@ def _laws(rep):
     )
 
 
+def _deviation_cell(m, parameter):
+    d = (m.get("deviation") or {}).get(parameter)
+    if not d:
+        return "–"
+    return f"{100 * d['rel']:+.1f} % ({d['spreads']:+.1f} spreads, p {d['p_loo']:.2g})"
+
+
 def _population(rep):
     rows = []
     for m in rep.modules:
@@ -229,15 +236,37 @@ def _population(rep):
         return "<p>This run has no population fit.</p>" + body
     d = rep.population["diagnostics"]
     mcse = d.get("outlier_prob_mcse", {})
+    odd = rep.population.get("odd_one") or {}
+    par = odd.get("parameter")
+    by_id = {m["id"]: m for m in rep.modules}
+    header = ["module", "outlier probability", "Monte Carlo se", "odd one, if one"]
+    if par:
+        header.append(f"{par.split('_')[0]} from the other modules")
     body = _table(
-        ["module", "outlier probability", "Monte Carlo se"], [r + [_num(mcse.get(r[0]), "{:.3f}")] for r in rows]
+        header,
+        [
+            r
+            + [_num(mcse.get(r[0]), "{:.3f}"), _num(by_id[r[0]].get("odd_one_prob"), "{:.3f}")]
+            + ([_e(_deviation_cell(by_id[r[0]], par))] if par else [])
+            for r in rows
+        ],
     )
+    answer = "".join(f"<p><b>{_e(line)}</b></p>" for line in rep.population.get("answer") or [])
     return (
+        answer + "<p>Which module is odd and whether it is an outlier are different questions. The odd-one "
+        "probability assumes the batch holds exactly one outlier and asks which: it is settled by which "
+        "unit breaks the symmetry, even among three modules. The outlier probability asks whether a module "
+        "lies outside the batch's common population at all, which needs the unit-to-unit spread: a small "
+        "batch learns little of it from its own units, so the figure shows what the answer would be if the "
+        "type's spread were known. A unit's deviation is measured from the population of the other modules "
+        "(leave-one-out), in percent, in their spreads, and as the probability that one of their units lies "
+        "that far out.</p>"
         "<p>The probability that a module does not belong to the batch's common population (a robust "
         "mixture fitted to the modules' posteriors). Above 0.5 red, above 0.3 amber. Population fit: "
         f"{_e(d.get('method', ''))}, {'converged' if d.get('converged') else 'NOT converged'} "
         f"(R̂ {_num(d.get('rhat_max'), '{:.3f}')}, bulk ESS {_num(d.get('ess_bulk_min'), '{:.0f}')}).</p>"
         + body
+        + _figure(rep, "outliers")
         + _figure(rep, "corner_population")
     )
 

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import time
 import warnings
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
 from tembayes.calibrate.population.check import compare_terms
+from tembayes.calibrate.population.detectable import smallest_flagged
 from tembayes.calibrate.population.deviation import loo_deviation
 from tembayes.calibrate.population.hyper import HyperPosterior, start_walkers
 from tembayes.calibrate.population.inputs import sampler_seed, validate_draws
@@ -16,13 +17,17 @@ from tembayes.calibrate.population.membership import batch_membership
 from tembayes.calibrate.population.model import N_HYPER, OUTLIER_FRACTION_PRIOR, OUTLIER_SCALE, Population
 from tembayes.calibrate.population.result import assemble
 from tembayes.calibrate.population.sampling import POPULATION_TARGETS, Budget, run_emcee
+from tembayes.calibrate.population.sensitivity import driver, spread_sensitivity
 from tembayes.calibrate.population.terms import GaussianTerms, module_summaries
 from tembayes.calibrate.priors import law_log_prior
 from tembayes.common.provenance import versions
+from tembayes.constants import MODULE_PARAMETERS
 from tembayes.errors import ModelError
 
 #: How a module's likelihood enters (:mod:`.terms`; "auto": Gaussian, checked by :mod:`.check`).
 METHODS = ("auto", "gaussian", "importance")
+#: Below this many modules the result states the smallest deviation the batch can flag (:mod:`.detectable`).
+SMALL_BATCH = 8
 #: Importance sums in the sampler use at most this many draws over all modules ...
 IMPORTANCE_BUDGET = 20000
 #: ... and at least this many per module.
@@ -107,6 +112,7 @@ def fit_population(
     n_predictive=4000,
     n_rao_blackwell=2048,
     convergence=POPULATION_TARGETS,
+    design_reach=True,
 ):
     """Population (batch-level) posterior from per-module posterior draws.
 
@@ -150,6 +156,9 @@ def fit_population(
     n_rao_blackwell : int
         Hyper draws averaged for ``outlier_prob``, ``odd_one_prob``,
         ``p_any_outlier`` and the modules' leave-one-out ``deviation``.
+    design_reach : bool
+        For batches under :data:`SMALL_BATCH` modules, find the smallest
+        deviation this design flags (:mod:`.detectable`; a few seconds).
     convergence : tembayes.calibrate.sampler.Targets
         Convergence targets; default :data:`~tembayes.calibrate.population.sampling.POPULATION_TARGETS`
         (the modules' rule on a chain of 150 autocorrelation times), looser for quick looks.
@@ -187,9 +196,16 @@ def fit_population(
     sampled = _sample(pop, summ, method, max_draws_per_module, run)
     members = batch_membership(pop, sampled.terms, sampled.kept, n_rao_blackwell)
     deviation = loo_deviation(pop, summ.mean, summ.cov, members.hyper, members.log_like)
+    i, j = driver(members.odd_one_prob, deviation.p_loo)
+    sensitivity = spread_sensitivity(pop, members, i, j, ids[i])
+    reach = None
+    if design_reach and len(ids) < SMALL_BATCH:  # a child stream: the result's own draws stay those of the seed
+        reach = smallest_flagged(pop, len(ids), j, summ.cov.mean(axis=0), rng.spawn(1)[0])
+        reach = {"parameter": MODULE_PARAMETERS[j], "n_modules": len(ids), **(reach or {"spreads": None})}
     diag = {
         **sampled.diag,
         **_result_diagnostics(pop, ids, summ, sampled, max_draws_per_module),
         "elapsed_s": float(time.perf_counter() - t0),
     }
-    return assemble(pop, ids, sampled.kept, members, rng, n_predictive, diag, deviation)
+    result = assemble(pop, ids, sampled.kept, members, rng, n_predictive, diag, deviation, sensitivity)
+    return replace(result, smallest_flagged=reach)

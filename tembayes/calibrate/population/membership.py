@@ -48,6 +48,8 @@ class Membership:
     log_like : ndarray, shape (S, N) or None
         ``log L_i(alpha)`` at those draws: what leaving module ``i`` out
         reweights them by (:mod:`.deviation`).
+    log_member : ndarray, shape (S, N) or None
+        ``log pm_i`` at those draws (:mod:`.sensitivity`).
     """
 
     outlier_prob: np.ndarray
@@ -56,6 +58,7 @@ class Membership:
     p_any_outlier: float
     hyper: np.ndarray | None = None
     log_like: np.ndarray | None = None
+    log_member: np.ndarray | None = None
 
 
 def rao_blackwell(pm):
@@ -109,4 +112,4 @@ def batch_membership(pop, terms, kept, n_draws):
     ll, lmem = _terms_at(pop, terms, hflat)
     p_out, mcse = rao_blackwell(np.exp(lmem).reshape(len(sub), W, -1))
     odd, p_any = odd_one(lmem)
-    return Membership(p_out, mcse, odd, p_any, hyper=hflat, log_like=ll)
+    return Membership(p_out, mcse, odd, p_any, hyper=hflat, log_like=ll, log_member=lmem)

@@ -56,6 +56,14 @@ class PopulationResult:
         Module id -> parameter -> ``{"rel", "spreads", "p_loo"}``: how far the
         module sits from the population of the other modules
         (:mod:`.deviation`; empty from the joint fit).
+    outlier_vs_spread : dict or None
+        The odd one's outlier probability against an assumed largest spread
+        of its most deviating parameter (:mod:`.sensitivity`; None from the joint fit).
+    smallest_flagged : dict or None
+        Batches under 8 modules: ``{"parameter", "n_modules", "spreads", "rel"
+        (levels) or "si" (slopes)}``, the deviation of that parameter at which
+        a unit of a batch of this design is flagged (:mod:`.detectable`;
+        ``spreads`` None when none within 64 spreads is).
     """
 
     module_ids: tuple
@@ -67,6 +75,8 @@ class PopulationResult:
     odd_one_prob: dict = field(default_factory=dict)
     p_any_outlier: float | None = None
     deviation: dict = field(default_factory=dict)
+    outlier_vs_spread: dict | None = None
+    smallest_flagged: dict | None = None
 
     def summary(self) -> dict:
         """Mean, sd, 5 % and 95 % quantiles of :attr:`predictive` (SI).
@@ -127,7 +137,7 @@ def predictive(pop, kept, rng, n):
     return member, pop.coords.to_theta(x)
 
 
-def assemble(pop, ids, kept, membership, rng, n_predictive, diag, deviation=None):
+def assemble(pop, ids, kept, membership, rng, n_predictive, diag, deviation=None, sensitivity=None):
     """The :class:`PopulationResult` of natural hyper draws ``kept`` (n, W, 11).
 
     Parameters
@@ -143,6 +153,7 @@ def assemble(pop, ids, kept, membership, rng, n_predictive, diag, deviation=None
         Diagnostics so far; the outlier probabilities' se, the leave-one-out
         Pareto k (``deviation_k_hat``) and the number of modules are added.
     deviation : .deviation.Deviation, optional
+    sensitivity : .sensitivity.SpreadSensitivity, optional
     """
     member, mixed = predictive(pop, kept, rng, n_predictive)
     hyper_si = pop.to_si(kept)  # each (n_keep, W)
@@ -162,4 +173,5 @@ def assemble(pop, ids, kept, membership, rng, n_predictive, diag, deviation=None
         odd_one_prob={mid: float(p) for mid, p in zip(ids, membership.odd_one_prob)},
         p_any_outlier=float(membership.p_any_outlier),
         deviation={} if deviation is None else {mid: deviation.entry(i) for i, mid in enumerate(ids)},
+        outlier_vs_spread=None if sensitivity is None else sensitivity.to_json(),
     )

@@ -1,0 +1,302 @@
+"""The outlier question on synthetic batches: is each answer calibrated, and how close to the best possible?
+
+Design (stated before the runs):
+
+* batches of 3 and 8 modules; in each, one random module's random parameter
+  shifted by 0 (no outlier), 2, 4, 6 or 10 unit spreads, random sign;
+  ``--batches`` per (size, shift), the same batches fitted twice:
+  ``default`` (the spread hyperprior) and ``informed`` (the spreads learned
+  from one earlier 8-module batch of the type without an outlier, as
+  ``--population-prior`` passes them: median and log-sd as learned);
+* truths from the virtual bench's ``draw_truth`` (type values around the
+  TEC1-12706 datasheet, the bench's unit spreads), each module's posterior
+  Gaussian in the population coordinates about a noisy estimate of its truth
+  with realistic, random posterior sds and correlations
+  (:func:`population_checks.draw_batch`): the module stage is not in it, the
+  population stage is, with data not made by its model (fixed-size shifts,
+  not its 6-spread outlier component; the bench's spreads, not its hyperprior);
+* ``oracle``: the Bayes-optimal answers of this design -- it knows the type's
+  centre and spreads, that a batch holds at most one shifted unit, the shift
+  sizes and their equal shares; its ``odd_one`` knows the batch's shift size.
+
+Targets (issue "The outlier question answered honestly"):
+
+* calibrated: in every bin of ``outlier_prob`` (and of ``odd_one_prob``, on
+  batches with an outlier) holding >= 20 cases the observed frequency lies in
+  its binomial 95 % band;
+* which one: the outlier has the highest ``odd_one_prob`` at >= 0.95 x the
+  oracle's rate, per size and shift;
+* against the ceiling: detection at ``outlier_prob`` > 0.5 >= 0.9 x the oracle's;
+* false alarms: without an outlier, a module above 0.3 in <= 10 % of batches.
+
+Run:  python analyses/outlier_study.py [--batches 20] [--workers 2]
+      python analyses/outlier_study.py --summarise      (from the cached rows)
+Writes analyses/results/outlier_study.{json,md} and outlier_reliability.png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+from scipy.stats import binom
+
+sys.path.insert(0, str(Path(__file__).parent))
+from population_checks import DS, LEVEL, REF, SPREAD, draw_batch, to_x  # noqa: E402
+
+from tembayes.calibrate.population import PopulationConvergenceWarning, fit_population  # noqa: E402
+from tembayes.data import write_json  # noqa: E402
+
+RESULTS = Path(__file__).parent / "results"
+SIZES = (3, 8)
+SHIFTS = (0, 2, 4, 6, 10)
+BINS = (0.0, 0.05, 0.1, 0.3, 0.5, 0.7, 0.9, 1.0)
+MIN_BIN = 20
+
+
+def _fit(draws, seed, spread_prior=None):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PopulationConvergenceWarning)
+        return fit_population(draws, DS, rng=np.random.default_rng(seed), spread_prior=spread_prior, design_reach=False)
+
+
+def earlier_prior(seed):
+    """The spreads one earlier 8-module batch of the type (no outlier) learns."""
+    batch = draw_batch(np.random.default_rng(seed), 8, "none")
+    return _fit(batch["draws"], seed).spread_prior()
+
+
+def oracle(batch, shift):
+    """``outlier_prob`` and ``odd_one_prob`` of the Bayes-optimal rule of this design (module docstring)."""
+    typ = batch["type"]
+    mu = to_x(typ)
+    tau = np.where(LEVEL, SPREAD, SPREAD * np.abs(typ) / REF)
+    n = len(batch["ids"])
+    lr = np.zeros((n, len(SHIFTS)))  # likelihood ratio of "this module shifted by d" to "a member"
+    for i, mid in enumerate(batch["ids"]):
+        mL, CL = batch["lik"][mid]
+        Vi = np.linalg.inv(CL + np.diag(tau**2))
+
+        def logn(mean, mL=mL, Vi=Vi):
+            d = mL - mean
+            return -0.5 * d @ Vi @ d
+
+        base = logn(mu)
+        for k, d in enumerate(SHIFTS):
+            if d == 0:
+                continue
+            vals = [np.exp(logn(mu + s * d * tau[j] * np.eye(5)[j]) - base) for j in range(5) for s in (-1, 1)]
+            lr[i, k] = np.mean(vals)
+    prior_shift = 1.0 / len(SHIFTS)
+    po = prior_shift / n * lr[:, 1:].sum(axis=1)  # (n,): P(module i shifted, any size) up to the evidence
+    p_out = po / (prior_shift + po.sum())
+    k = SHIFTS.index(shift) if shift else None
+    odd = lr[:, k] / lr[:, k].sum() if k else po / po.sum()
+    return p_out, odd
+
+
+def _one(task):
+    seed, n, shift, prior = task
+    rng = np.random.default_rng(seed)
+    batch = draw_batch(rng, n, "spreads" if shift else "none", spreads=shift)
+    p_or, odd_or = oracle(batch, shift)
+    row = {"seed": seed, "n": n, "shift": shift, "outlier": batch["outlier"], "param": batch["param"]}
+    row["oracle"] = {"outlier_prob": p_or.tolist(), "odd_one_prob": odd_or.tolist()}
+    for name, sp in (("default", None), ("informed", prior)):
+        t = time.perf_counter()
+        r = _fit(batch["draws"], seed + 1, sp)
+        ids = batch["ids"]
+        row[name] = {
+            "outlier_prob": [r.outlier_prob[m] for m in ids],
+            "odd_one_prob": [r.odd_one_prob[m] for m in ids],
+            "p_any_outlier": r.p_any_outlier,
+            "converged": bool(r.diagnostics["converged"]),
+            "seconds": time.perf_counter() - t,
+        }
+    return row
+
+
+def _band(k, p):
+    """Binomial 95 % band of the observed frequency for ``k`` cases of mean probability ``p``."""
+    return binom.ppf(0.025, k, p) / k, binom.ppf(0.975, k, p) / k
+
+
+def reliability(rows, key, what):
+    """Bins of ``what`` (outlier_prob or odd_one_prob) against the outcome (this module is the outlier)."""
+    sel = rows if what == "outlier_prob" else [r for r in rows if r["outlier"] is not None]
+    p = np.concatenate([r[key][what] for r in sel])
+    y = np.concatenate([[i == r["outlier"] for i in range(r["n"])] for r in sel]).astype(float)
+    out = []
+    for lo, hi in zip(BINS[:-1], BINS[1:]):
+        s = (p >= lo) & ((p < hi) if hi < 1 else (p <= hi))
+        k = int(s.sum())
+        row = {"bin": [lo, hi], "cases": k}
+        if k:
+            m, f = float(p[s].mean()), float(y[s].mean())
+            blo, bhi = _band(k, m)
+            row.update(mean_prob=m, observed=f, band=[float(blo), float(bhi)], inside=bool(blo <= f <= bhi))
+        out.append(row)
+    return out
+
+
+def rates(rows, key):
+    """Per size and shift: which one, detection, false alarms, median outlier_prob of the outlier."""
+    out = {}
+    for n in SIZES:
+        for d in SHIFTS:
+            sel = [r for r in rows if r["n"] == n and r["shift"] == d]
+            if not sel:
+                continue
+            cell = {"batches": len(sel)}
+            if d == 0:
+                cell["false_alarm_0.3"] = float(np.mean([max(r[key]["outlier_prob"]) > 0.3 for r in sel]))
+            else:
+                o = [r["outlier"] for r in sel]
+                cell["which_one"] = float(np.mean([np.argmax(r[key]["odd_one_prob"]) == i for r, i in zip(sel, o)]))
+                cell["detected_0.5"] = float(np.mean([r[key]["outlier_prob"][i] > 0.5 for r, i in zip(sel, o)]))
+                cell["median_outlier_prob"] = float(np.median([r[key]["outlier_prob"][i] for r, i in zip(sel, o)]))
+            out[f"{n}x{d}"] = cell
+    return out
+
+
+def verdicts(res):
+    """The targets, per prior."""
+    out = {}
+    for key in ("default", "informed"):
+        r, o = res["rates"][key], res["rates"]["oracle"]
+        cells = [c for c in r if not c.endswith("x0")]
+        which = {c: (r[c]["which_one"], o[c]["which_one"]) for c in cells}
+        det = {c: (r[c]["detected_0.5"], o[c]["detected_0.5"]) for c in cells}
+        rel = [b for w in ("outlier_prob", "odd_one_prob") for b in res["reliability"][key][w] if b["cases"] >= MIN_BIN]
+        out[key] = {
+            "calibrated_bins": f"{sum(b['inside'] for b in rel)} of {len(rel)}",
+            "which_one_ratio_min": min((a / b if b else 1.0) for a, b in which.values()),
+            "which_one_met": all(a >= 0.95 * b for a, b in which.values()),
+            "detection_ratio_min": min((a / b if b else 1.0) for a, b in det.values()),
+            "detection_met": all(a >= 0.9 * b for a, b in det.values()),
+            "false_alarm_max": max(r[f"{n}x0"]["false_alarm_0.3"] for n in SIZES),
+        }
+    return out
+
+
+def figure(res, path):
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(11, 4.2), layout="constrained")
+    axes = fig.subplots(1, 3)
+    for ax, (key, what) in zip(
+        axes, (("default", "outlier_prob"), ("informed", "outlier_prob"), ("default", "odd_one_prob"))
+    ):
+        bins = [b for b in res["reliability"][key][what] if b["cases"]]
+        m = [b["mean_prob"] for b in bins]
+        f = [b["observed"] for b in bins]
+        lo = [b["band"][0] for b in bins]
+        hi = [b["band"][1] for b in bins]
+        ax.plot([0, 1], [0, 1], color="0.6", lw=1)
+        ax.vlines(m, lo, hi, color="C0", lw=3, alpha=0.4, label="binomial 95 % band")
+        ax.plot(m, f, "o", color="C3", label="observed")
+        for b in bins:
+            ax.annotate(
+                str(b["cases"]), (b["mean_prob"], b["observed"]), fontsize=7, xytext=(3, 3), textcoords="offset points"
+            )
+        ax.set_xlim(0, 1)
+        ax.set_ylim(0, 1)
+        ax.set_xlabel(f"{what} (bin mean)")
+        ax.set_ylabel("observed frequency")
+        ax.set_title(f"{key}: {what}")
+        ax.legend(loc="upper left", fontsize="small")
+    fig.savefig(path, dpi=110)
+
+
+def markdown(res):
+    lines = [f"# Outlier study\n\n{res['n_batches']} batches, each fitted with both priors.\n"]
+    for key in ("default", "informed", "oracle"):
+        lines.append(
+            f"\n## {key}\n\n| size x shift | batches | which one | detected (> 0.5) | median outlier_prob | false alarm (> 0.3) |"
+        )
+        lines.append("|---|---|---|---|---|---|")
+        for c, v in res["rates"][key].items():
+            lines.append(
+                f"| {c} | {v['batches']} | {v.get('which_one', '–')} | {v.get('detected_0.5', '–')} | "
+                f"{v.get('median_outlier_prob', '–')} | {v.get('false_alarm_0.3', '–')} |"
+            )
+        if key != "oracle":
+            for w in ("outlier_prob", "odd_one_prob"):
+                lines.append(
+                    f"\nReliability of {w}:\n\n| bin | cases | mean | observed | band | inside |\n|---|---|---|---|---|---|"
+                )
+                for b in res["reliability"][key][w]:
+                    if b["cases"]:
+                        lines.append(
+                            f"| {b['bin'][0]}–{b['bin'][1]} | {b['cases']} | {b['mean_prob']:.3f} | {b['observed']:.3f} | "
+                            f"{b['band'][0]:.3f}–{b['band'][1]:.3f} | {b['inside']} |"
+                        )
+    lines.append("\n## Targets\n")
+    for key, v in res["verdicts"].items():
+        lines.append(f"- {key}: " + ", ".join(f"{k} {val}" for k, val in v.items()))
+    return "\n".join(lines) + "\n"
+
+
+def summarise(rows_path):
+    rows = [json.loads(line) for line in rows_path.read_text().splitlines() if line.strip()]
+    res = {"n_batches": len(rows)}
+    res["rates"] = {k: rates(rows, k) for k in ("default", "informed", "oracle")}
+    res["reliability"] = {
+        k: {w: reliability(rows, k, w) for w in ("outlier_prob", "odd_one_prob")} for k in ("default", "informed")
+    }
+    res["verdicts"] = verdicts(res)
+    res["converged"] = float(np.mean([r[k]["converged"] for r in rows for k in ("default", "informed")]))
+    res["median_fit_seconds"] = float(np.median([r[k]["seconds"] for r in rows for k in ("default", "informed")]))
+    write_json(RESULTS / "outlier_study.json", res)
+    (RESULTS / "outlier_study.md").write_text(markdown(res))
+    figure(res, RESULTS / "outlier_reliability.png")
+    print(markdown(res))
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--batches", type=int, default=40, help="batches per size and shift (default 40: 400 in all)")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--seed", type=int, default=2611)
+    ap.add_argument("--rows", type=Path, default=RESULTS / "outlier_study_rows.jsonl", help="cached rows (resumable)")
+    ap.add_argument("--summarise", action="store_true")
+    args = ap.parse_args(argv)
+    if not args.summarise:
+        done = set()
+        if args.rows.exists():
+            done = {(r["seed"], r["n"], r["shift"]) for r in map(json.loads, args.rows.read_text().splitlines()) if r}
+        print(f"earlier batches: {args.batches} spread priors ...", flush=True)
+        seeds = np.random.SeedSequence(args.seed).generate_state(args.batches * len(SIZES) * len(SHIFTS) + args.batches)
+        tasks, b = [], 0
+        priors = {}
+        for rep in range(args.batches):
+            for n in SIZES:
+                for d in SHIFTS:
+                    s = int(seeds[b])
+                    b += 1
+                    if (s, n, d) not in done:
+                        tasks.append((s, n, d, rep))
+        need = sorted({t[3] for t in tasks})
+        with multiprocessing.get_context("fork").Pool(args.workers) as pool:
+            for rep, sp in zip(need, pool.map(earlier_prior, [int(seeds[-1 - r]) for r in need])):
+                priors[rep] = sp
+            tasks = [(s, n, d, priors[rep]) for s, n, d, rep in tasks]
+            print(f"study: {len(tasks)} batches x 2 priors on {args.workers} workers", flush=True)
+            t0 = time.perf_counter()
+            with open(args.rows, "a") as f:
+                for k, row in enumerate(pool.imap_unordered(_one, tasks), 1):
+                    f.write(json.dumps(row) + "\n")
+                    f.flush()
+                    if k % 20 == 0:
+                        print(f"  {k}/{len(tasks)} ({time.perf_counter() - t0:.0f} s)", flush=True)
+    summarise(args.rows)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,96 @@
+"""The smallest deviation a batch of this size can flag.
+
+A batch of a few modules learns little of the unit-to-unit spread, so a unit
+must sit far from the others before the population calls it an outlier.
+How far is a property of the design -- the number of modules, the spread
+hyperprior (or an earlier batch's spreads), how precisely each module is
+measured -- not of the data.  It is found on a synthetic batch of that
+design: the other modules at the normal quantiles of the hyperprior's
+median spread about its centre (a typical scatter of members, without the
+luck of a draw), one unit ``d`` prior-median spreads off in one parameter,
+every module measured with the batch's median covariance; ``d`` is bisected (on a log scale) to where its
+``outlier_prob`` crosses :data:`FLAG`.  Each probe is a short population fit
+(:data:`PROBE_TARGETS`), so the answer is good to about a tenth of itself.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+from scipy.special import ndtri
+
+from tembayes.calibrate.population.hyper import HyperPosterior, start_walkers
+from tembayes.calibrate.population.membership import batch_membership
+from tembayes.calibrate.population.model import LEVEL
+from tembayes.calibrate.population.sampling import Budget, PopulationConvergenceWarning, run_emcee
+from tembayes.calibrate.population.terms import GaussianTerms
+from tembayes.calibrate.sampler import Targets
+
+#: The outlier probability a unit must exceed to be flagged.
+FLAG = 0.5
+#: Deviations searched [prior-median spreads].
+SEARCH = (1.0, 64.0)
+#: Bisection steps on the log scale (a factor 64 in 5 halvings of its log: to +-14 %).
+STEPS = 5
+#: Convergence targets of a probe (a probability near 0.5 needs no more).
+PROBE_TARGETS = Targets(tau_multiple=20.0, rhat_max=1.05, ess_min=200.0)
+#: Step budget of a probe.
+PROBE_STEPS = 4000
+
+
+def _outlier_prob(pop, mean, cov, rng, nwalkers):
+    terms = GaussianTerms(mean, cov)
+    post = HyperPosterior(pop, terms, mean, cov)
+    p0 = start_walkers(post, mean, cov, rng, nwalkers)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PopulationConvergenceWarning)
+        kept, _ = run_emcee(
+            post, p0, int(rng.integers(2**32)), Budget(PROBE_STEPS, targets=PROBE_TARGETS), label="probe"
+        )
+    return float(batch_membership(pop, terms, post.natural(kept), 1024).outlier_prob[0])
+
+
+def smallest_flagged(pop, n_modules: int, parameter: int, cov, rng, nwalkers: int = 32) -> dict | None:
+    """The deviation at which one unit of ``n_modules`` is flagged, in ``parameter`` (index).
+
+    Parameters
+    ----------
+    pop : .model.Population
+        The batch's hyperprior.
+    n_modules : int
+    parameter : int
+        Index into the module parameters.
+    cov : ndarray, shape (5, 5)
+        A module's likelihood covariance in population coordinates.
+    rng : numpy.random.Generator
+
+    Returns
+    -------
+    dict or None
+        ``{"spreads", "rel"}``: the deviation in prior-median spreads, and as
+        a relative offset (levels) or in SI (slopes: ``"si"`` instead of
+        ``"rel"``); None when even :data:`SEARCH`'s upper end is not flagged.
+    """
+    j = int(parameter)
+    tau0 = np.exp(pop.logtau_mean)
+    centre = np.where(LEVEL, pop.mu_mean, 0.0)
+    q = ndtri((np.arange(1, n_modules) - 0.5) / (n_modules - 1))  # the members' typical positions
+    mean = np.vstack([centre, centre + q[:, None] * tau0[None]])
+    C = np.repeat(np.asarray(cov, float)[None], n_modules, axis=0)
+
+    def flagged(d):
+        m = mean.copy()
+        m[0, j] += d * tau0[j]
+        return _outlier_prob(pop, m, C, rng, nwalkers) > FLAG
+
+    lo, hi = SEARCH
+    if not flagged(hi):
+        return None
+    for _ in range(STEPS):
+        mid = float(np.sqrt(lo * hi))
+        lo, hi = (lo, mid) if flagged(mid) else (mid, hi)
+    d = float(np.sqrt(lo * hi))
+    if LEVEL[j]:
+        return {"spreads": d, "rel": float(np.expm1(d * tau0[j]))}
+    return {"spreads": d, "si": float(d * tau0[j] * pop.coords.ref[j])}
