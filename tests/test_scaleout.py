@@ -229,6 +229,10 @@ def test_a_failing_or_unconverged_module_does_not_sink_the_batch(batch4, serial4
     assert summ.population is not None
     ops = {m: e.outlier_prob for m, e in summ.modules.items()}
     assert ops["TEM1"] is None and ops["TEM2"] is not None and ops["TEM4"] is not None
+    # the outlier answer covers the population's modules only
+    odd = {m: e.odd_one_prob for m, e in summ.modules.items()}
+    assert odd["TEM1"] is None and odd["TEM2"] + odd["TEM4"] == pytest.approx(1.0)
+    assert summ.modules["TEM1"].deviation is None and set(summ.modules["TEM2"].deviation) == set(MODULE_PARAMETERS)
     pop = load_run(out).idata.population.attrs["outlier_prob"]
     assert set(json.loads(pop)) == {"TEM2", "TEM4"}
 
