@@ -23,6 +23,7 @@ from tembayes.physics.rigread import rig_from_config
 
 
 def cases(folder):
+    """``(truth.json, gap.json)`` of every bench batch under ``folder`` (either study's layout)."""
     folder = Path(folder)
     for t in sorted(folder.glob("b*/truth.json")):
         yield t, t.parent.with_name(t.parent.name + ".gap") / "gap.json"
@@ -31,6 +32,7 @@ def cases(folder):
 
 
 def main(folders):
+    """Print the table (markdown) for the work folders ``folders``."""
     rig = rig_from_config({"preset": "reference"}, leg_cells=0)
     high = {p.name: p.high for p in rig.parameters if p.name.startswith("leak")}
     print("| batch | top + edge [W/K] | bottom + edge [W/K] | over the range | gap verdict | leaks beyond range |")
@@ -46,7 +48,9 @@ def main(folders):
             if gap_file.exists():
                 g = json.loads(gap_file.read_text())
                 verdict = g["verdict"]
-                beyond = [f"{c['parameter']} {c['outside_sd']:.2f} sd" for c in g["conflicts"].get(mid, []) if c["conflict"]]
+                beyond = [
+                    f"{c['parameter']} {c['outside_sd']:.2f} sd" for c in g["conflicts"].get(mid, []) if c["conflict"]
+                ]
             name = f"{truth_file.parent.parent.name}/{truth_file.parent.name}".replace("/batch", "")
             print(
                 f"| {name} {mid} | {top:.4f} (≤ {high['leak_top']}) | {bottom:.4f} (≤ {high['leak_bottom']}) | "

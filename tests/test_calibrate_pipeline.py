@@ -75,20 +75,21 @@ def test_the_outlier_of_three_how_far_and_what_the_batch_can_tell(run3):
     Three units cannot say *whether* it is an outlier (analyses/population_checks.py:
     even the Bayes-optimal rule rarely can), so this checks what they can say:
     its deviation in the shifted parameter is the offset from the other two
-    that the truth has, to within the others' centre's uncertainty (their
-    spread over sqrt(2), at most ~3 % here); the answer names a module, states
-    what spread would decide it, and the smallest deviation three modules flag
-    is several spreads.
+    that the truth has, within 1 % (the others' centre is their mean, each
+    measured to ~0.2 %; the hyperprior's pull on it is a few 0.1 %); the
+    answer names a module, states what spread would decide it, and the
+    smallest deviation three modules flag is several spreads.
     """
     out, summ, truth = run3
     odd = truth["outlier"]
     shifted = "S0_V_per_K"  # the bench shifts the outlier's S0
     others = [m for m in summ.modules if m != odd]
     true_rel = truth["modules"][odd][shifted] / np.mean([truth["modules"][m][shifted] for m in others]) - 1.0
-    assert summ.modules[odd].deviation[shifted]["rel"] == pytest.approx(true_rel, abs=0.03)
+    rel = summ.modules[odd].deviation[shifted]["rel"]
+    assert abs(true_rel) > 0.02 and rel == pytest.approx(true_rel, abs=0.01), (rel, true_rel)
     assert sum(m.odd_one_prob for m in summ.modules.values()) == pytest.approx(1.0)
     reach = summ.smallest_flagged_deviation
-    assert reach["n_modules"] == 3 and reach["spreads"] > 3.0
+    assert reach["n_modules"] == 3 and (reach["spreads"] or 0.0) > 3.0
     from tembayes.report.outliers import OutlierAnswer
 
     lines = OutlierAnswer.of(summ).lines()
@@ -116,6 +117,15 @@ def test_population_table_reaches_the_population_stage(run3, batch3, tmp_path):
     # hyperprior is centred on 2 % with log-sd 1), and the next batch can
     # state what this one learned
     assert again.population_spreads["spread_S0_rel"]["median"] < summ.population_spreads["spread_S0_rel"]["median"]
+    # the paste-ready table reads back through batch.toml's own parser as what was learned
+    pasted = tmp_path / "pasted"
+    shutil.copytree(batch3, pasted)
+    with open(pasted / "batch.toml", "a") as f:
+        f.write("\n" + again.to_json()["population_table"])
+    table = load_batch(pasted).population
+    for k, v in again.population_spreads.items():
+        assert table[k][0] == pytest.approx(v["median"], rel=1e-3)
+        assert table[k][1] >= v["log_sd"]
     assert set(again.population_spreads) == {
         "spread_R0_rel",
         "spread_R1_ohm_per_K",

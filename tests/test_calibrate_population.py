@@ -240,6 +240,12 @@ def test_odd_one_and_any_outlier_by_hand():
     q = np.array([[0.405, 0.045, 0.045], [0.01 * 0.99 * 0.2, 0.01 * 0.99 * 0.2, 0.8 * 0.99 * 0.99]]).mean(axis=0)
     np.testing.assert_allclose(odd2, q / q.sum())
     assert p_any2 == pytest.approx(1.0 - np.mean([0.405, 0.99 * 0.99 * 0.2]))
+    # a module surely off at one draw (P(member) = 0) is the only one off there
+    with np.errstate(divide="ignore"):
+        odd3, p_any3 = odd_one(np.log(np.array([[0.0, 0.9, 0.9], [0.5, 0.9, 0.9]])))
+    q = np.array([[0.81, 0.0, 0.0], [0.405, 0.045, 0.045]]).mean(axis=0)
+    np.testing.assert_allclose(odd3, q / q.sum())
+    assert p_any3 == pytest.approx(1.0 - np.mean([0.0, 0.405]))
 
 
 @pytest.mark.parametrize("seed,sign", [(3, 1), (4, -1)])
@@ -320,6 +326,9 @@ def test_same_seed_same_numbers():
     draws, _, _ = make_batch(8, 3)
     a, b = fit(draws, seed=42), fit(draws, seed=42)
     assert a.outlier_prob == b.outlier_prob
+    assert a.odd_one_prob == b.odd_one_prob and a.p_any_outlier == b.p_any_outlier
+    assert a.deviation == b.deviation and a.outlier_vs_spread == b.outlier_vs_spread
+    assert a.smallest_flagged == b.smallest_flagged and a.smallest_flagged["spreads"] > 1.0
     np.testing.assert_array_equal(a.predictive, b.predictive)
     for k in HYPER_NAMES:
         np.testing.assert_array_equal(a.hyper[k], b.hyper[k])

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import glob
 import json
+import math
 import os
 import shlex
 import time
@@ -42,6 +43,7 @@ from tembayes.calibrate.runfolder import RunFolder, module_usable
 from tembayes.calibrate.runsummary import RunSummary
 from tembayes.common.provenance import versions
 from tembayes.common.seeds import spawned
+from tembayes.data.batch import POPULATION_SPREAD_KEYS
 from tembayes.data.digest import batch_inputs
 from tembayes.data.write import write_json
 from tembayes.errors import DataError, ModelError
@@ -97,7 +99,40 @@ def population_prior_of_run(run: Path | str, module_type: str) -> dict[str, tupl
             "Give a run of the same module type ([module_type] name in batch.toml).",
             column="batch.module_type",
         )
-    return {k: (float(v["median"]), float(v["log_sd"])) for k, v in spreads.items()}
+    if not (doc.get("population_diagnostics") or {}).get("converged", False):
+        raise DataError(
+            f,
+            "its population fit did not converge, so the spreads it learned are not reliable",
+            "Give a run whose population converged (summary.json: population_diagnostics.converged).",
+            column="population_diagnostics.converged",
+        )
+    out = {}
+    for k, v in spreads.items():
+        try:
+            median, log_sd = float(v["median"]), float(v["log_sd"])
+        except (KeyError, TypeError, ValueError):
+            median = log_sd = float("nan")
+        if k not in POPULATION_SPREAD_KEYS or not (median > 0 and log_sd > 0 and math.isfinite(median * log_sd)):
+            raise DataError(
+                f,
+                f"population_spreads.{k} is {v!r}: not one of {', '.join(POPULATION_SPREAD_KEYS)} with a "
+                "positive median and log_sd",
+                "Give the summary.json a calibration run wrote, unedited.",
+                column=f"population_spreads.{k}",
+            )
+        out[k] = (median, log_sd)
+    return out
+
+
+def population_table(spreads: Mapping[str, tuple[float, float]]) -> str:
+    """The learned spreads as a ``[population]`` table to paste into the next batch.toml of the type.
+
+    The table states one log-sd for all its spreads: the largest learned, so
+    that none is stated more precisely than it was learned.
+    """
+    lines = ["[population]"] + [f"spread{k[3:]} = {m:.4g}" for k, (m, _) in spreads.items()]
+    lines.append(f"spread_log_sd = {max(sd for _, sd in spreads.values()):.3g}")
+    return "\n".join(lines) + "\n"
 
 
 def _merged_spreads(batch, earlier):
@@ -425,6 +460,7 @@ def finish_run(
         "population_spreads": None
         if pop is None
         else {"spread" + k[3:]: {"median": m, "log_sd": sd} for k, (m, sd) in pop.spread_prior().items()},
+        "population_table": None if pop is None else population_table(pop.spread_prior()),
         "population_excluded": excluded,
         "failed_modules": failed,
         "calibration": {

@@ -127,6 +127,8 @@ class RunSummary:
         The population sampler's convergence record (empty without a fit).
     population_spreads : mapping or None
         The learned spreads, in batch.toml's ``[population]`` format.
+    population_prior : mapping
+        The spreads the population started from (``[population]``, ``--population-prior``).
     population_excluded, failed_modules : mapping of str to str
         Module id -> why it was left out of the population / why it failed.
     calibration, batch : mapping
@@ -143,6 +145,7 @@ class RunSummary:
     smallest_flagged_deviation: Mapping | None
     population_diagnostics: Mapping
     population_spreads: Mapping | None
+    population_prior: Mapping
     population_excluded: Mapping[str, str]
     failed_modules: Mapping[str, str]
     calibration: Mapping
@@ -163,6 +166,7 @@ class RunSummary:
             smallest_flagged_deviation=doc.get("smallest_flagged_deviation"),
             population_diagnostics=MappingProxyType(dict(doc.get("population_diagnostics") or {})),
             population_spreads=doc.get("population_spreads"),
+            population_prior=MappingProxyType(dict(doc.get("population_prior") or {})),
             population_excluded=MappingProxyType(dict(doc.get("population_excluded") or {})),
             failed_modules=MappingProxyType(dict(doc.get("failed_modules") or {})),
             calibration=MappingProxyType(dict(doc.get("calibration") or {})),

@@ -54,7 +54,20 @@ def write_recalibrated_run(diag, run, batch, folder, *, seed=0, progress=None):
         write_digest(nc, cal)
     record = {"path": os.path.abspath(batch.path), "inputs": batch_inputs(batch)}
     opt = diag.recalibration_options
-    summ = finish_run(batch, folder, seed=seed, options=opt, progress=progress, batch_record=record, argv=None)
+    # the spreads the run started from that batch.toml does not state came from --population-prior
+    earlier = {
+        k: (v["median"], v["log_sd"]) for k, v in run.summary.population_prior.items() if k not in batch.population
+    }
+    summ = finish_run(
+        batch,
+        folder,
+        seed=seed,
+        options=opt,
+        progress=progress,
+        batch_record=record,
+        argv=None,
+        population_prior=earlier or None,
+    )
     atomic_write_text(folder / MARKER, marker("calibrate", complete=True, seed=int(seed), batch=record))
     before = {m: {p: asdict(e.laws[p]) for p in MODULE_PARAMETERS} for m, e in run.summary.modules.items()}
     after = {m: {p: asdict(e.laws[p]) for p in MODULE_PARAMETERS} for m, e in summ.modules.items()}

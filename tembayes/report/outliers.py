@@ -9,15 +9,16 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+from tembayes.calibrate.population.detectable import FLAG as FLAG_PROB
+from tembayes.calibrate.population.detectable import SEARCH
+from tembayes.calibrate.population.deviation import K_HAT_MAX
+from tembayes.calibrate.population.fit import SMALL_BATCH
+from tembayes.calibrate.population.model import spread_key
 from tembayes.constants import MODULE_PARAMETERS
 
 if TYPE_CHECKING:
     from tembayes.calibrate.runsummary import RunSummary
 
-#: A module is called off the population above this ``outlier_prob``.
-FLAG_PROB = 0.5
-#: Below this many modules the batch cannot learn the spreads; the answer says what it would take.
-SMALL_BATCH = 8
 _UNITS = {"R1_ohm_per_K": "ohm/K", "S1_V_per_K2": "V/K^2"}
 
 
@@ -54,6 +55,12 @@ class OutlierAnswer:
         ``outlier_vs_spread`` rows with a value (empty when none).
     reach : dict or None
         ``smallest_flagged_deviation`` (batches under 8 modules).
+    k_hat : float or None
+        Pareto k of the odd one's leave-one-out weights (its deviation is an
+        approximation above :data:`~tembayes.calibrate.population.deviation.K_HAT_MAX`).
+    spread_stated : bool
+        The run started from a stated spread of the odd one's parameter
+        (``[population]`` or ``--population-prior``).
     """
 
     n_modules: int
@@ -65,6 +72,8 @@ class OutlierAnswer:
     flagged: tuple
     what_it_takes: list
     reach: dict | None = None
+    k_hat: float | None = None
+    spread_stated: bool = False
 
     @classmethod
     def of(cls, summary: RunSummary) -> OutlierAnswer | None:
@@ -91,6 +100,8 @@ class OutlierAnswer:
             flagged=tuple(m for m, e in mods.items() if (e.outlier_prob or 0.0) > FLAG_PROB),
             what_it_takes=rows,
             reach=summary.smallest_flagged_deviation,
+            k_hat=(summary.population_diagnostics.get("deviation_k_hat") or {}).get(top),
+            spread_stated=spread_key(par) in (summary.population_prior or {}),
         )
 
     def lines(self) -> list[str]:
@@ -104,10 +115,15 @@ class OutlierAnswer:
             f"Likeliest odd one: {self.odd_one} (odd_one_prob {self.odd_one_prob[self.odd_one]:.2f}; "
             f"{', '.join(nxt)}). Its {p} sits {100 * d['rel']:+.1f} % from the other modules "
             f"({d['spreads']:+.1f} of their spreads); a unit of their population lies that far out "
-            f"with probability {d['p_loo']:.2g}."
+            f"with probability {d['p_loo']:.2g}"
+            + (
+                " (approximate: it sits where the batch's posterior rarely visits the others' population alone)."
+                if self.k_hat is not None and self.k_hat > K_HAT_MAX
+                else "."
+            )
         )
         out.append(f"Probability that the batch holds an outlier at all: {self.p_any_outlier:.2f}.")
-        if self.n_modules < SMALL_BATCH:
+        if self.n_modules < SMALL_BATCH and self.odd_one not in self.flagged and not self.spread_stated:
             out.append(self._small_batch())
         if self.reach:
             out.append(self._reach())
@@ -116,7 +132,9 @@ class OutlierAnswer:
     def _reach(self) -> str:
         r, p = self.reach, short(self.reach["parameter"])
         if r.get("spreads") is None:
-            return f"With {r['n_modules']} modules no deviation of {p} within 64 typical spreads is flagged."
+            return (
+                f"With {r['n_modules']} modules no deviation of {p} within {SEARCH[1]:.0f} typical spreads is flagged."
+            )
         size = f"{100 * r['rel']:.0f} %" if "rel" in r else f"{r['si']:.2g} {_UNITS[r['parameter']]}"
         return (
             f"With {r['n_modules']} modules and these spread priors, a unit is called an outlier (P > {FLAG_PROB}) "

@@ -8,9 +8,10 @@ measured -- not of the data.  It is found on a synthetic batch of that
 design: the other modules at the normal quantiles of the hyperprior's
 median spread about its centre (a typical scatter of members, without the
 luck of a draw), one unit ``d`` prior-median spreads off in one parameter,
-every module measured with the batch's median covariance; ``d`` is bisected (on a log scale) to where its
-``outlier_prob`` crosses :data:`FLAG`.  Each probe is a short population fit
-(:data:`PROBE_TARGETS`), so the answer is good to about a tenth of itself.
+every module measured with the batch's mean covariance; ``d`` is bisected (on
+a log scale) to where its ``outlier_prob`` crosses :data:`FLAG`.  Each probe
+is a short population fit (:data:`PROBE_TARGETS`): the bracket ends a factor
+1.14 wide, and the probes' Monte Carlo error near 0.5 adds a few percent.
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ from tembayes.calibrate.sampler import Targets
 FLAG = 0.5
 #: Deviations searched [prior-median spreads].
 SEARCH = (1.0, 64.0)
-#: Bisection steps on the log scale (a factor 64 in 5 halvings of its log: to +-14 %).
+#: Bisection steps on the log scale (a factor 64 in 5 halvings of its log: a bracket 1.14 wide, +-7 %).
 STEPS = 5
 #: Convergence targets of a probe (a probability near 0.5 needs no more).
 PROBE_TARGETS = Targets(tau_multiple=20.0, rhat_max=1.05, ess_min=200.0)
@@ -40,6 +41,7 @@ PROBE_STEPS = 4000
 
 
 def _outlier_prob(pop, mean, cov, rng, nwalkers):
+    """The first module's ``outlier_prob`` in a short population fit of Gaussian module likelihoods ``mean, cov``."""
     terms = GaussianTerms(mean, cov)
     post = HyperPosterior(pop, terms, mean, cov)
     p0 = start_walkers(post, mean, cov, rng, nwalkers)
@@ -59,22 +61,25 @@ def smallest_flagged(pop, n_modules: int, parameter: int, cov, rng, nwalkers: in
     pop : .model.Population
         The batch's hyperprior.
     n_modules : int
+        Modules in the batch (>= 2).
     parameter : int
         Index into the module parameters.
     cov : ndarray, shape (5, 5)
-        A module's likelihood covariance in population coordinates.
+        A module's likelihood covariance in population coordinates [x units^2].
     rng : numpy.random.Generator
 
     Returns
     -------
-    dict or None
-        ``{"spreads", "rel"}``: the deviation in prior-median spreads, and as
-        a relative offset (levels) or in SI (slopes: ``"si"`` instead of
-        ``"rel"``); None when even :data:`SEARCH`'s upper end is not flagged.
+    dict
+        ``{"spreads", "rel"}``: the deviation in prior-median spreads (about
+        :data:`SEARCH`'s lower end when even that is flagged), and as a
+        relative offset (levels) or in SI (slopes: ``"si"`` instead of
+        ``"rel"``); ``{"spreads": None}`` when even :data:`SEARCH`'s upper end
+        is not flagged.
     """
     j = int(parameter)
     tau0 = np.exp(pop.logtau_mean)
-    centre = np.where(LEVEL, pop.mu_mean, 0.0)
+    centre = pop.mu_mean
     q = ndtri((np.arange(1, n_modules) - 0.5) / (n_modules - 1))  # the members' typical positions
     mean = np.vstack([centre, centre + q[:, None] * tau0[None]])
     C = np.repeat(np.asarray(cov, float)[None], n_modules, axis=0)
@@ -86,7 +91,7 @@ def smallest_flagged(pop, n_modules: int, parameter: int, cov, rng, nwalkers: in
 
     lo, hi = SEARCH
     if not flagged(hi):
-        return None
+        return {"spreads": None}
     for _ in range(STEPS):
         mid = float(np.sqrt(lo * hi))
         lo, hi = (lo, mid) if flagged(mid) else (mid, hi)

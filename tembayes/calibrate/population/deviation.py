@@ -4,8 +4,9 @@ Leaving module ``i`` out reweights the hyper draws by ``1 / L_i(alpha)``
 (its likelihood term, :mod:`.terms`), Pareto-smoothed (PSIS, Vehtari et al.
 2017; its ``k_hat`` says whether the reweighting can be trusted: above 0.7
 the module is so far from the others that the batch's posterior rarely
-visits the hyperparameters of the rest alone).  Under those weights, per
-parameter, with the module's posterior mean ``m`` and variance ``v`` in the
+visits the hyperparameters of the rest alone; the answer in words says so).
+Under those weights, per parameter, with the module's likelihood mean ``m``
+(its posterior with the datasheet prior divided out) and variance ``v`` in the
 population coordinates (levels in log, slopes linear):
 
 * ``rel``: the offset from the others' population centre, relative
@@ -23,7 +24,7 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import log_ndtr
+from scipy.special import ndtr
 
 from tembayes.calibrate.population.model import LEVEL
 from tembayes.common.arvizlib import az
@@ -64,13 +65,18 @@ def loo_deviation(pop, mean, cov, hyper, log_like) -> Deviation:
     ----------
     pop : .model.Population
     mean : ndarray, shape (N, 5)
-        The modules' posterior means in population coordinates.
+        The modules' likelihood means in population coordinates (their
+        posteriors with the datasheet prior divided out, :mod:`.terms`).
     cov : ndarray, shape (N, 5, 5)
-        Their covariances.
+        Their covariances [x units^2].
     hyper : ndarray, shape (S, 11)
         Natural hyper draws of the batch's posterior.
     log_like : ndarray, shape (S, N)
         Each module's ``log L_i`` at those draws.
+
+    Returns
+    -------
+    Deviation
     """
     mu, tau, *_ = pop.unpack(hyper)
     N = len(mean)
@@ -83,10 +89,11 @@ def loo_deviation(pop, mean, cov, hyper, log_like) -> Deviation:
         w = np.exp(np.asarray(lw, float) - np.max(lw))
         w /= w.sum()
         d = mean[i][None] - mu  # (S, 5)
-        rel_draws = np.where(LEVEL[None], np.expm1(d), d / np.abs(mu))
+        slope_rel = np.divide(d, np.abs(mu), out=np.full_like(d, np.nan), where=mu != 0)  # a centre at 0: none
+        rel_draws = np.where(LEVEL[None], np.expm1(d), slope_rel)
         sd = np.sqrt(tau**2 + np.diag(cov[i])[None])
         rel[i] = w @ rel_draws
         spreads[i] = w @ (d / tau)
-        p_loo[i] = w @ np.exp(np.log(2.0) + log_ndtr(-np.abs(d) / sd))
+        p_loo[i] = w @ (2.0 * ndtr(-np.abs(d) / sd))
         k_hat[i] = float(k)
     return Deviation(rel=rel, spreads=spreads, p_loo=p_loo, k_hat=k_hat)

@@ -110,7 +110,7 @@ def fit_population(
     nwalkers=32,
     max_draws_per_module=256,
     n_predictive=4000,
-    n_rao_blackwell=2048,
+    n_rao_blackwell=8192,
     convergence=POPULATION_TARGETS,
     design_reach=True,
 ):
@@ -198,14 +198,15 @@ def fit_population(
     deviation = loo_deviation(pop, summ.mean, summ.cov, members.hyper, members.log_like)
     i, j = driver(members.odd_one_prob, deviation.p_loo)
     sensitivity = spread_sensitivity(pop, members, i, j, ids[i])
-    reach = None
-    if design_reach and len(ids) < SMALL_BATCH:  # a child stream: the result's own draws stay those of the seed
-        reach = smallest_flagged(pop, len(ids), j, summ.cov.mean(axis=0), rng.spawn(1)[0])
-        reach = {"parameter": MODULE_PARAMETERS[j], "n_modules": len(ids), **(reach or {"spreads": None})}
+
     diag = {
         **sampled.diag,
         **_result_diagnostics(pop, ids, summ, sampled, max_draws_per_module),
         "elapsed_s": float(time.perf_counter() - t0),
     }
     result = assemble(pop, ids, sampled.kept, members, rng, n_predictive, diag, deviation, sensitivity)
-    return replace(result, smallest_flagged=reach)
+    if not (design_reach and len(ids) < SMALL_BATCH):
+        return result
+    # after the result's own draws, from the same stream: they stay those of a run without it
+    reach = smallest_flagged(pop, len(ids), j, summ.cov.mean(axis=0), np.random.default_rng(rng.integers(2**63)))
+    return replace(result, smallest_flagged={"parameter": MODULE_PARAMETERS[j], "n_modules": len(ids), **reach})

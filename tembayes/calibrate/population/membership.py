@@ -76,15 +76,32 @@ def rao_blackwell(pm):
 
 
 def odd_one(lmem):
-    """``odd_one_prob`` (N,) and ``p_any_outlier`` from ``log P(member)`` ``lmem`` (S, N) at S hyper draws."""
+    """``odd_one_prob`` and ``p_any_outlier`` from membership log probabilities.
+
+    Parameters
+    ----------
+    lmem : ndarray, shape (S, N)
+        ``log P(member | data_i, alpha)`` of N modules at S hyper draws.
+
+    Returns
+    -------
+    odd : ndarray, shape (N,)
+        Each module's probability of being the outlier given exactly one (uniform
+        when no draw allows exactly one).
+    p_any : float
+    """
     lmem = np.minimum(np.asarray(lmem, float), 0.0)
-    all_members = lmem.sum(axis=1)  # (S,)
+    sure_off = np.isneginf(lmem)  # a module surely off at that draw (P(member) = 0)
+    finite_sum = np.where(sure_off, 0.0, lmem).sum(axis=1, keepdims=True)
+    n_off = sure_off.sum(axis=1, keepdims=True)
+    # log prod_(k != i) pm_k: -inf if another module is surely off at that draw
+    others = np.where(n_off - sure_off > 0, -np.inf, finite_sum - np.where(sure_off, 0.0, lmem))
     with np.errstate(divide="ignore"):
         log_off = np.log(-np.expm1(lmem))  # log(1 - pm)
-    log_q = all_members[:, None] - lmem + log_off  # (S, N): module i the only one off
-    log_mean_q = logsumexp(log_q, axis=0)
+    log_mean_q = logsumexp(others + log_off, axis=0)  # module i the only one off, summed over the draws
     total = logsumexp(log_mean_q)
     odd = np.exp(log_mean_q - total) if np.isfinite(total) else np.full(lmem.shape[1], 1.0 / lmem.shape[1])
+    all_members = np.where(n_off[:, 0] > 0, -np.inf, finite_sum[:, 0])
     return odd, float(1.0 - np.mean(np.exp(all_members)))
 
 

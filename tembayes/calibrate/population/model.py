@@ -70,6 +70,11 @@ HYPER_NAMES = (
 TAU_NAMES = HYPER_NAMES[N_PARAMS : 2 * N_PARAMS]
 
 
+def spread_key(parameter):
+    """A module parameter's ``[population]`` spread key: ``S0_V_per_K`` -> ``spread_S0_rel``."""
+    return "spread" + TAU_NAMES[MODULE_PARAMETERS.index(parameter)][3:]
+
+
 class Coordinates:
     """SI parameters <-> population coordinates ``x`` (module docstring).
 

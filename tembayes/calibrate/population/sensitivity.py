@@ -16,13 +16,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from tembayes.calibrate.population.membership import odd_one
-from tembayes.calibrate.population.model import LEVEL, N_PARAMS, TAU_NAMES
+from tembayes.calibrate.population.model import LEVEL, spread_key
 from tembayes.constants import MODULE_PARAMETERS
 
 #: Assumed spreads, as multiples of the spread hyperprior's median.
 SPREAD_FACTORS = (0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0)
-#: A row needs at least this many hyper draws below its spread.
-MIN_DRAWS = 50
+#: A row needs at least this many hyper draws below its spread (thinned
+#: draws, nearly independent: a probability's Monte Carlo se then <= 0.05).
+MIN_DRAWS = 100
 
 
 @dataclass(frozen=True)
@@ -52,7 +53,7 @@ class SpreadSensitivity:
     @property
     def spread_name(self) -> str:
         """The spread's ``[population]`` key (``spread_S0_rel`` ...)."""
-        return "spread" + TAU_NAMES[MODULE_PARAMETERS.index(self.parameter)][3:]
+        return spread_key(self.parameter)
 
     def to_json(self) -> dict:
         """``summary.json``'s ``outlier_vs_spread``."""
@@ -72,7 +73,21 @@ class SpreadSensitivity:
 
 
 def spread_sensitivity(pop, membership, module: int, parameter: int, module_id: str) -> SpreadSensitivity:
-    """The :class:`SpreadSensitivity` of module ``module`` against the spread of ``parameter`` (indices)."""
+    """The :class:`SpreadSensitivity` of one module against the spread of one parameter.
+
+    Parameters
+    ----------
+    pop : .model.Population
+    membership : .membership.Membership
+        With its hyper draws and ``log_member``.
+    module, parameter : int
+        Indices of the module (input order) and the parameter.
+    module_id : str
+
+    Returns
+    -------
+    SpreadSensitivity
+    """
     j = int(parameter)
     _, tau, *_ = pop.unpack(membership.hyper)
     median = float(np.exp(pop.logtau_mean[j]))
@@ -93,4 +108,4 @@ def spread_sensitivity(pop, membership, module: int, parameter: int, module_id: 
 def driver(odd_one_prob, p_loo) -> tuple[int, int]:
     """The odd one (highest ``odd_one_prob``) and its parameter least like the others' (smallest ``p_loo``)."""
     i = int(np.argmax(odd_one_prob))
-    return i, int(np.argmin(np.asarray(p_loo)[i, :N_PARAMS]))
+    return i, int(np.argmin(np.asarray(p_loo)[i]))
