@@ -135,6 +135,17 @@ def test_the_answer_in_words_names_the_odd_one_how_far_and_what_would_decide_it(
     assert lines[3].startswith("With 3 modules") and "37 % (16 typical spreads)" in lines[3]
 
 
+def test_the_answer_says_when_the_deviation_is_approximate_and_when_the_spread_was_stated():
+    doc = _doc(3)
+    doc["population_diagnostics"] = {"deviation_k_hat": {"M1": 0.93, "M2": 0.2, "M3": 0.2}}
+    doc["population_prior"] = {"spread_S0_rel": {"median": 0.01, "log_sd": 0.3}}
+    lines = OutlierAnswer.of(RunSummary.from_json(doc)).lines()
+    assert "(approximate: leave-one-out Pareto k 0.93 > 0.7)" in lines[0]
+    # the S0 spread was stated: the run already knows what would decide it
+    assert not any("depends on this type's" in line for line in lines)
+    assert lines[-1].startswith("With 3 modules")
+
+
 def test_a_large_batch_flags_and_says_nothing_of_spreads():
     lines = OutlierAnswer.of(RunSummary.from_json(_doc(8))).lines()
     assert lines[0] == "Off the batch's population (outlier_prob > 0.5): M1."

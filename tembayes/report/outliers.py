@@ -117,7 +117,7 @@ class OutlierAnswer:
             f"({d['spreads']:+.1f} of their spreads); a unit of their population lies that far out "
             f"with probability {d['p_loo']:.2g}"
             + (
-                " (approximate: it sits where the batch's posterior rarely visits the others' population alone)."
+                f" (approximate: leave-one-out Pareto k {self.k_hat:.2f} > {K_HAT_MAX})."
                 if self.k_hat is not None and self.k_hat > K_HAT_MAX
                 else "."
             )
