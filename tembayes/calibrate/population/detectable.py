@@ -21,10 +21,10 @@ import warnings
 import numpy as np
 from scipy.special import ndtri
 
-from tembayes.calibrate.population.hyper import HyperPosterior, start_walkers
+from tembayes.calibrate.population.hyper import sample_hyper
 from tembayes.calibrate.population.membership import batch_membership
 from tembayes.calibrate.population.model import LEVEL
-from tembayes.calibrate.population.sampling import Budget, PopulationConvergenceWarning, run_emcee
+from tembayes.calibrate.population.sampling import Budget, PopulationConvergenceWarning
 from tembayes.calibrate.population.terms import GaussianTerms
 from tembayes.calibrate.sampler import Targets
 
@@ -43,14 +43,12 @@ PROBE_STEPS = 4000
 def _outlier_prob(pop, mean, cov, rng, nwalkers):
     """The first module's ``outlier_prob`` in a short population fit of Gaussian module likelihoods ``mean, cov``."""
     terms = GaussianTerms(mean, cov)
-    post = HyperPosterior(pop, terms, mean, cov)
-    p0 = start_walkers(post, mean, cov, rng, nwalkers)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PopulationConvergenceWarning)
-        kept, _ = run_emcee(
-            post, p0, int(rng.integers(2**32)), Budget(PROBE_STEPS, targets=PROBE_TARGETS), label="probe"
+        kept, _ = sample_hyper(
+            pop, terms, mean, cov, rng, nwalkers, Budget(PROBE_STEPS, targets=PROBE_TARGETS), label="probe"
         )
-    return float(batch_membership(pop, terms, post.natural(kept), 1024).outlier_prob[0])
+    return float(batch_membership(pop, terms, kept, 1024).outlier_prob[0])
 
 
 def smallest_flagged(pop, n_modules: int, parameter: int, cov, rng, nwalkers: int = 32) -> dict | None:

@@ -11,12 +11,12 @@ import numpy as np
 from tembayes.calibrate.population.check import compare_terms
 from tembayes.calibrate.population.detectable import smallest_flagged
 from tembayes.calibrate.population.deviation import loo_deviation
-from tembayes.calibrate.population.hyper import HyperPosterior, start_walkers
+from tembayes.calibrate.population.hyper import sample_hyper
 from tembayes.calibrate.population.inputs import sampler_seed, validate_draws
 from tembayes.calibrate.population.membership import batch_membership
 from tembayes.calibrate.population.model import N_HYPER, OUTLIER_FRACTION_PRIOR, OUTLIER_SCALE, Population
 from tembayes.calibrate.population.result import assemble
-from tembayes.calibrate.population.sampling import POPULATION_TARGETS, Budget, run_emcee
+from tembayes.calibrate.population.sampling import POPULATION_TARGETS, Budget
 from tembayes.calibrate.population.sensitivity import driver, spread_sensitivity
 from tembayes.calibrate.population.terms import GaussianTerms, module_summaries
 from tembayes.calibrate.priors import law_log_prior
@@ -188,10 +188,7 @@ def fit_population(
     summ = module_summaries(ids, arrays, pop, interim)
 
     def run(terms, label):
-        post = HyperPosterior(pop, terms, summ.mean, summ.cov)
-        p0 = start_walkers(post, summ.mean, summ.cov, rng, nwalkers)
-        kept, diag = run_emcee(post, p0, seed, budget, label=label)
-        return post.natural(kept), diag
+        return sample_hyper(pop, terms, summ.mean, summ.cov, rng, nwalkers, budget, label=label, seed=seed)
 
     sampled = _sample(pop, summ, method, max_draws_per_module, run)
     members = batch_membership(pop, sampled.terms, sampled.kept, n_rao_blackwell)

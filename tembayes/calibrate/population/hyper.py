@@ -147,3 +147,34 @@ def start_walkers(post, m, C, rng, nwalkers):
         p0[bad] = u + START_SHRINK * scale * rng.standard_normal((bad.sum(), len(u)))
         lp = post(p0)
     return p0
+
+
+def sample_hyper(pop, terms, mean, cov, rng, nwalkers, budget, *, label, seed=None):
+    """Sample the hyperposterior of module likelihood ``terms`` with emcee.
+
+    Parameters
+    ----------
+    pop : .model.Population
+    terms : GaussianTerms or ImportanceTerms
+    mean, cov : ndarray, shapes (N, 5) and (N, 5, 5)
+        The modules' likelihood moments (start and scale of the walkers).
+    rng : numpy.random.Generator
+        Starts the walkers (and draws the emcee seed after them when ``seed`` is None).
+    nwalkers : int
+    budget : .sampling.Budget
+    label : str
+    seed : int, optional
+
+    Returns
+    -------
+    kept : ndarray, shape (n, W, 11)
+        Natural hyper draws after burn-in.
+    diag : dict
+        The sampler's diagnostics (:func:`.sampling.run_emcee`).
+    """
+    from tembayes.calibrate.population.sampling import run_emcee
+
+    post = HyperPosterior(pop, terms, mean, cov)
+    p0 = start_walkers(post, mean, cov, rng, nwalkers)
+    kept, diag = run_emcee(post, p0, int(rng.integers(2**32)) if seed is None else seed, budget, label=label)
+    return post.natural(kept), diag

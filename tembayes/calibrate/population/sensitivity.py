@@ -18,6 +18,7 @@ import numpy as np
 from tembayes.calibrate.population.membership import odd_one
 from tembayes.calibrate.population.model import LEVEL, spread_key
 from tembayes.constants import MODULE_PARAMETERS
+from tembayes.data.write import to_jsonable
 
 #: Assumed spreads, as multiples of the spread hyperprior's median.
 SPREAD_FACTORS = (0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0)
@@ -56,20 +57,18 @@ class SpreadSensitivity:
         return spread_key(self.parameter)
 
     def to_json(self) -> dict:
-        """``summary.json``'s ``outlier_vs_spread``."""
-
-        def num(v):
-            return None if not np.isfinite(v) else float(v)
-
-        return {
-            "module": self.module_id,
-            "parameter": self.parameter,
-            "spread_name": self.spread_name,
-            "rows": [
-                {"spread_max": float(s), "outlier_prob": num(p), "odd_one_prob": num(q), "posterior_mass": float(m)}
-                for s, p, q, m in zip(self.spread, self.outlier_prob, self.odd_one_prob, self.posterior_mass)
-            ],
-        }
+        """``summary.json``'s ``outlier_vs_spread`` (a NaN row's probabilities null)."""
+        return to_jsonable(
+            {
+                "module": self.module_id,
+                "parameter": self.parameter,
+                "spread_name": self.spread_name,
+                "rows": [
+                    {"spread_max": s, "outlier_prob": p, "odd_one_prob": q, "posterior_mass": m}
+                    for s, p, q, m in zip(self.spread, self.outlier_prob, self.odd_one_prob, self.posterior_mass)
+                ],
+            }
+        )
 
 
 def spread_sensitivity(pop, membership, module: int, parameter: int, module_id: str) -> SpreadSensitivity:
