@@ -394,7 +394,7 @@ def clear_case(seed=1):
             "deviation_U3_S0": r.deviation["U3"]["S0_V_per_K"],
             "tau_S0_quantiles_5_50_95": np.quantile(tau, [0.05, 0.5, 0.95]).tolist(),
             "other_seven_S0_sd": float(np.std(np.delete(np.array(CLEAR_CASE_S0), 2), ddof=1) / 100.0),
-            "outlier_vs_spread": r.outlier_vs_spread,
+            "outlier_vs_spread": r.outlier_vs_spread.to_json(),
         }
     write_json(RESULTS / "outlier_clear_case.json", out)
     for name, v in out.items():

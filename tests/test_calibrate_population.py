@@ -327,8 +327,8 @@ def test_same_seed_same_numbers():
     a, b = fit(draws, seed=42), fit(draws, seed=42)
     assert a.outlier_prob == b.outlier_prob
     assert a.odd_one_prob == b.odd_one_prob and a.p_any_outlier == b.p_any_outlier
-    assert a.deviation == b.deviation and a.outlier_vs_spread == b.outlier_vs_spread
-    assert a.smallest_flagged == b.smallest_flagged and a.smallest_flagged["spreads"] > 1.0
+    assert a.deviation == b.deviation and a.outlier_vs_spread.to_json() == b.outlier_vs_spread.to_json()
+    assert a.smallest_flagged == b.smallest_flagged and a.smallest_flagged.spreads > 1.0
     np.testing.assert_array_equal(a.predictive, b.predictive)
     for k in HYPER_NAMES:
         np.testing.assert_array_equal(a.hyper[k], b.hyper[k])

@@ -36,7 +36,7 @@ def test_outlier_probability_rises_as_the_assumed_spread_falls():
     """
     draws, _, _ = make_batch(7, 3, outlier=0, shift=0.10, at_centre=True, clip=1.0)
     r = fit(draws)
-    curve = r.outlier_vs_spread
+    curve = r.outlier_vs_spread.to_json()
     assert curve["module"] == "U1" and curve["parameter"] == "S0_V_per_K" and curve["spread_name"] == "spread_S0_rel"
     rows = curve["rows"]
     at_1pc = next(x for x in rows if x["spread_max"] == pytest.approx(0.01))
@@ -87,9 +87,9 @@ def test_small_batches_need_larger_deviations_and_known_spreads_lower_them():
     known = Population(TEC1_12706, spread_prior={"tau_S0_rel": (0.01, 0.3)})
     three, eight = (smallest_flagged(default, n, 2, COV, rng) for n in (3, 8))
     three_known = smallest_flagged(known, 3, 2, COV, rng)
-    assert three["spreads"] > 1.5 * eight["spreads"] and eight["spreads"] > 3.0, (three, eight)
-    assert three_known["rel"] < 0.5 * three["rel"], (three_known, three)
-    assert 0.0 < three_known["rel"] < 0.15
+    assert three.spreads > 1.5 * eight.spreads and eight.spreads > 3.0, (three, eight)
+    assert three_known.rel < 0.5 * three.rel, (three_known, three)
+    assert 0.0 < three_known.rel < 0.15
 
 
 def _doc(n=3):

@@ -272,6 +272,11 @@ def prior_dataset(prior_draws: Mapping[str, ArrayLike], modules: Sequence[str]) 
     return _set_units(xr.Dataset(data, coords={"chain": [0], "draw": np.arange(n), "module": list(modules)}))
 
 
+def _json_or_none(result):
+    """A typed population result as its ``summary.json`` entry (None stays None)."""
+    return None if result is None else to_jsonable(result.to_json())
+
+
 def population_dataset(pop: PopulationResult) -> xr.Dataset:
     """The ``population`` group: predictive draws [chain, draw] and hyperparameters."""
     pred = np.asarray(pop.predictive)
@@ -292,8 +297,8 @@ def population_dataset(pop: PopulationResult) -> xr.Dataset:
     ds.attrs["odd_one_prob"] = json.dumps(to_jsonable(pop.odd_one_prob))
     ds.attrs["p_any_outlier"] = json.dumps(to_jsonable(pop.p_any_outlier))
     ds.attrs["deviation"] = json.dumps(to_jsonable(pop.deviation))
-    ds.attrs["outlier_vs_spread"] = json.dumps(to_jsonable(pop.outlier_vs_spread))
-    ds.attrs["smallest_flagged_deviation"] = json.dumps(to_jsonable(pop.smallest_flagged))
+    ds.attrs["outlier_vs_spread"] = json.dumps(_json_or_none(pop.outlier_vs_spread))
+    ds.attrs["smallest_flagged_deviation"] = json.dumps(_json_or_none(pop.smallest_flagged))
     ds.attrs["diagnostics"] = json.dumps(to_jsonable(pop.diagnostics))
     return ds
 
@@ -446,8 +451,8 @@ def summary(
                 mods[mid]["deviation"] = population.deviation.get(mid)
     out = {"tref_C": T_REF - KELVIN, "modules": mods}
     out["p_any_outlier"] = None if population is None else population.p_any_outlier
-    out["outlier_vs_spread"] = None if population is None else population.outlier_vs_spread
-    out["smallest_flagged_deviation"] = None if population is None else population.smallest_flagged
+    out["outlier_vs_spread"] = None if population is None else _json_or_none(population.outlier_vs_spread)
+    out["smallest_flagged_deviation"] = None if population is None else _json_or_none(population.smallest_flagged)
     if population is not None:
         out["population"] = population.summary()
         out["population_diagnostics"] = population.diagnostics

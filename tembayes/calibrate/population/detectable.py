@@ -17,6 +17,7 @@ is a short population fit (:data:`PROBE_TARGETS`): the bracket ends a factor
 from __future__ import annotations
 
 import warnings
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.special import ndtri
@@ -27,6 +28,7 @@ from tembayes.calibrate.population.model import LEVEL
 from tembayes.calibrate.population.sampling import Budget, PopulationConvergenceWarning
 from tembayes.calibrate.population.terms import GaussianTerms
 from tembayes.calibrate.sampler import Targets
+from tembayes.constants import MODULE_PARAMETERS
 
 #: The outlier probability a unit must exceed to be flagged.
 FLAG = 0.5
@@ -40,6 +42,38 @@ PROBE_TARGETS = Targets(tau_multiple=20.0, rhat_max=1.05, ess_min=200.0)
 PROBE_STEPS = 4000
 
 
+@dataclass(frozen=True)
+class FlaggedDeviation:
+    """The smallest deviation of one parameter that a batch of this design flags.
+
+    Attributes
+    ----------
+    parameter : str
+        The module parameter (``S0_V_per_K`` ...).
+    n_modules : int
+        Modules in the batch.
+    spreads : float or None
+        The deviation in prior-median spreads (about :data:`SEARCH`'s lower
+        end when even that is flagged); None when even its upper end is not.
+    rel : float or None
+        The same as a relative offset (levels; None for slopes).
+    si : float or None
+        The same in SI (slopes; None for levels).
+    """
+
+    parameter: str
+    n_modules: int
+    spreads: float | None
+    rel: float | None = None
+    si: float | None = None
+
+    def to_json(self) -> dict:
+        """``summary.json``'s ``smallest_flagged_deviation``: ``rel`` or ``si`` only when it has one."""
+        out = {"parameter": self.parameter, "n_modules": self.n_modules, "spreads": self.spreads}
+        out.update({k: v for k, v in (("rel", self.rel), ("si", self.si)) if v is not None})
+        return out
+
+
 def _outlier_prob(pop, mean, cov, rng, nwalkers):
     """The first module's ``outlier_prob`` in a short population fit of Gaussian module likelihoods ``mean, cov``."""
     terms = GaussianTerms(mean, cov)
@@ -51,7 +85,7 @@ def _outlier_prob(pop, mean, cov, rng, nwalkers):
     return float(batch_membership(pop, terms, kept, 1024).outlier_prob[0])
 
 
-def smallest_flagged(pop, n_modules: int, parameter: int, cov, rng, nwalkers: int = 32) -> dict | None:
+def smallest_flagged(pop, n_modules: int, parameter: int, cov, rng, nwalkers: int = 32) -> FlaggedDeviation:
     """The deviation at which one unit of ``n_modules`` is flagged, in ``parameter`` (index).
 
     Parameters
@@ -68,12 +102,7 @@ def smallest_flagged(pop, n_modules: int, parameter: int, cov, rng, nwalkers: in
 
     Returns
     -------
-    dict
-        ``{"spreads", "rel"}``: the deviation in prior-median spreads (about
-        :data:`SEARCH`'s lower end when even that is flagged), and as a
-        relative offset (levels) or in SI (slopes: ``"si"`` instead of
-        ``"rel"``); ``{"spreads": None}`` when even :data:`SEARCH`'s upper end
-        is not flagged.
+    FlaggedDeviation
     """
     j = int(parameter)
     tau0 = np.exp(pop.logtau_mean)
@@ -87,13 +116,14 @@ def smallest_flagged(pop, n_modules: int, parameter: int, cov, rng, nwalkers: in
         m[0, j] += d * tau0[j]
         return _outlier_prob(pop, m, C, rng, nwalkers) > FLAG
 
+    name = MODULE_PARAMETERS[j]
     lo, hi = SEARCH
     if not flagged(hi):
-        return {"spreads": None}
+        return FlaggedDeviation(name, n_modules, None)
     for _ in range(STEPS):
         mid = float(np.sqrt(lo * hi))
         lo, hi = (lo, mid) if flagged(mid) else (mid, hi)
     d = float(np.sqrt(lo * hi))
     if LEVEL[j]:
-        return {"spreads": d, "rel": float(np.expm1(d * tau0[j]))}
-    return {"spreads": d, "si": float(d * tau0[j] * pop.coords.ref[j])}
+        return FlaggedDeviation(name, n_modules, d, rel=float(np.expm1(d * tau0[j])))
+    return FlaggedDeviation(name, n_modules, d, si=float(d * tau0[j] * pop.coords.ref[j]))

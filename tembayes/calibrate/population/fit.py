@@ -21,7 +21,6 @@ from tembayes.calibrate.population.sensitivity import driver, spread_sensitivity
 from tembayes.calibrate.population.terms import GaussianTerms, module_summaries
 from tembayes.calibrate.priors import law_log_prior
 from tembayes.common.provenance import versions
-from tembayes.constants import MODULE_PARAMETERS
 from tembayes.errors import ModelError
 
 #: How a module's likelihood enters (:mod:`.terms`; "auto": Gaussian, checked by :mod:`.check`).
@@ -206,4 +205,4 @@ def fit_population(
         return result
     # after the result's own draws, from the same stream: they stay those of a run without it
     reach = smallest_flagged(pop, len(ids), j, summ.cov.mean(axis=0), np.random.default_rng(rng.integers(2**63)))
-    return replace(result, smallest_flagged={"parameter": MODULE_PARAMETERS[j], "n_modules": len(ids), **reach})
+    return replace(result, smallest_flagged=reach)

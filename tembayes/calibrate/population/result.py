@@ -6,7 +6,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from tembayes.calibrate.population.detectable import FlaggedDeviation
 from tembayes.calibrate.population.model import GROSS_SHARE, N_PARAMS, TAU_NAMES
+from tembayes.calibrate.population.sensitivity import SpreadSensitivity
 from tembayes.constants import MODULE_PARAMETERS
 
 #: Quantiles :meth:`PopulationResult.summary` reports.
@@ -56,14 +58,12 @@ class PopulationResult:
         Module id -> parameter -> ``{"rel", "spreads", "p_loo"}``: how far the
         module sits from the population of the other modules
         (:mod:`.deviation`; empty from the joint fit).
-    outlier_vs_spread : dict or None
+    outlier_vs_spread : .sensitivity.SpreadSensitivity or None
         The odd one's outlier probability against an assumed largest spread
-        of its most deviating parameter (:mod:`.sensitivity`; None from the joint fit).
-    smallest_flagged : dict or None
-        Batches under 8 modules: ``{"parameter", "n_modules", "spreads", "rel"
-        (levels) or "si" (slopes)}``, the deviation of that parameter at which
-        a unit of a batch of this design is flagged (:mod:`.detectable`;
-        ``spreads`` None when none within 64 spreads is).
+        of its most deviating parameter (None from the joint fit).
+    smallest_flagged : .detectable.FlaggedDeviation or None
+        Batches under 8 modules: the deviation of that parameter at which a
+        unit of a batch of this design is flagged.
     """
 
     module_ids: tuple
@@ -75,8 +75,8 @@ class PopulationResult:
     odd_one_prob: dict = field(default_factory=dict)
     p_any_outlier: float | None = None
     deviation: dict = field(default_factory=dict)
-    outlier_vs_spread: dict | None = None
-    smallest_flagged: dict | None = None
+    outlier_vs_spread: SpreadSensitivity | None = None
+    smallest_flagged: FlaggedDeviation | None = None
 
     def summary(self) -> dict:
         """Mean, sd, 5 % and 95 % quantiles of :attr:`predictive` (SI).
@@ -173,5 +173,5 @@ def assemble(pop, ids, kept, membership, rng, n_predictive, diag, deviation=None
         odd_one_prob={mid: float(p) for mid, p in zip(ids, membership.odd_one_prob)},
         p_any_outlier=float(membership.p_any_outlier),
         deviation={} if deviation is None else {mid: deviation.entry(i) for i, mid in enumerate(ids)},
-        outlier_vs_spread=None if sensitivity is None else sensitivity.to_json(),
+        outlier_vs_spread=sensitivity,
     )
