@@ -185,7 +185,7 @@ def draw_truth(config: BenchConfig, rng: np.random.Generator) -> dict:
         ``population`` (type means), ``modules`` (id -> law parameters,
         bench rig values and their lumped equivalent, outlier flag).
     """
-    population = _draw_type(config.datasheet, rng)
+    population = draw_type(config.datasheet, rng)
     if config.rig is not None:
         return _draw_truth_any_rig(config, rng, population)
     high = config.fidelity == "high"
@@ -234,7 +234,7 @@ def draw_truth(config: BenchConfig, rng: np.random.Generator) -> dict:
     return {"population": {k: float(v) for k, v in population.items()}, "modules": modules, "bench_layout": layout}
 
 
-def _draw_type(ds, rng):
+def draw_type(ds, rng):
     """The type's true laws and K: the datasheet conversions off by a few %."""
     R0 = ds.resistance() * rng.normal(1.0, 0.04)
     S0 = ds.seebeck() * rng.normal(1.0, 0.03)

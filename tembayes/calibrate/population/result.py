@@ -62,8 +62,9 @@ class PopulationResult:
         The odd one's outlier probability against an assumed largest spread
         of its most deviating parameter (None from the joint fit).
     smallest_flagged : .detectable.FlaggedDeviation or None
-        Batches under 8 modules: the deviation of that parameter at which a
-        unit of a batch of this design is flagged.
+        Batches under 8 modules: the deviation of the odd one's most
+        deviating parameter at which a unit of a batch of this design is
+        flagged (None otherwise, and from the joint fit).
     """
 
     module_ids: tuple
