@@ -19,8 +19,9 @@ Design (stated before the runs):
   (``simulate --outlier``), the two types alternating; fitted as the batch of
   4 and as each 3-module sub-batch that holds the outlier;
 * every fit twice: ``default`` (the spread hyperprior) and ``informed`` (the
-  spreads one null batch of the type learned, its first batch, which is then
-  left out of the null counts, as ``--population-prior`` passes them).
+  spreads one null batch of the type learned, its first batch, as
+  ``--population-prior`` passes them; that batch's own informed rows are
+  left out).
 
 The sub-batches of one batch share modules, so they are not independent
 cases; the batches of 4 are.  Reported per size and shift, beside the
@@ -28,7 +29,8 @@ synthetic study's rates (``analyses/results/outlier_study.json``, sizes 3 and 8)
 which one (the outlier has the highest ``odd_one_prob``), detected
 (``outlier_prob`` > 0.5), false alarms (a module above 0.3 without an
 outlier), and how far: the outlier's S0 ``deviation`` in % against its true
-deviation from the type's centre.
+S0 relative to the geometric mean of the other modules' true S0 (the tool's
+``rel`` is relative to the population of the other modules).
 
 Run:  python analyses/outlier_out_of_model.py --null-runs /work/lawcov_refhk --work /tmp/tembayes-oom-outliers --batches 4
       python analyses/outlier_out_of_model.py ... --summarise
@@ -49,6 +51,7 @@ from pathlib import Path
 
 import numpy as np
 
+from tembayes.bench.bench import UNIT_SPREAD
 from tembayes.calibrate.moduledigest import read_digest
 from tembayes.calibrate.population import PopulationConvergenceWarning, fit_population
 from tembayes.data import load_batch, write_json
@@ -57,7 +60,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from law_coverage import TYPES  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results"
-S0_SPREAD = 0.01  # the bench's S0 unit spread (tembayes.bench.bench.UNIT_SPREAD)
+S0_SPREAD = UNIT_SPREAD["S0_V_per_K"]
 SHIFTS = (4, 6)
 NULL_RUN_LABEL = "high-paper-full-robust-k"
 NULL_BATCH_LABEL = "high-paper"
@@ -115,9 +118,19 @@ def fit(law, datasheet, ids, spread_prior, seed):
         )
 
 
-def true_deviation(truth, mid):
-    """The module's true S0 relative to its type's centre."""
-    return truth["modules"][mid]["S0_V_per_K"] / truth["population"]["S0_V_per_K"] - 1.0
+def true_offset(truth, mid, others):
+    """The module's true S0 relative to the geometric mean of the ``others``' true S0."""
+    s0 = {m: v["S0_V_per_K"] for m, v in truth["modules"].items()}
+    return float(s0[mid] / np.exp(np.mean([np.log(s0[m]) for m in others])) - 1.0)
+
+
+def subsets_of(ids, out_id):
+    """The batch as a whole and its 3-module sub-batches (batches of 4), each holding the outlier if there is one."""
+    if out_id is not None and out_id not in ids:  # the outlier did not converge: nothing to ask
+        return []
+    if len(ids) != 4:  # 8 modules: their 3-module sub-batches are many, and the batches of 4 have them
+        return [tuple(ids)] if len(ids) >= 3 else []
+    return [tuple(ids)] + [s for s in itertools.combinations(ids, 3) if out_id is None or out_id in s]
 
 
 def rows_of(bdir, rdir, priors, shift, skip_prior_source=False):
@@ -126,12 +139,7 @@ def rows_of(bdir, rdir, priors, shift, skip_prior_source=False):
     law, ds = module_draws(bdir, rdir)
     t = ds.name
     out_id = next((m for m, v in truth["modules"].items() if v.get("outlier")), None)
-    ids = sorted(law)
-    subsets = [tuple(ids)] + [s for s in itertools.combinations(ids, 3) if out_id is None or out_id in s]
-    if len(ids) > 4:  # the batch as a whole: its 3-module sub-batches are many, and the batches of 4 have them
-        subsets = subsets[:1]
-    elif len(ids) < 4:
-        subsets = [tuple(ids)] if len(ids) >= 3 and (out_id is None or out_id in ids) else []
+    subsets = subsets_of(sorted(law), out_id)
     rows = []
     for name, prior in priors[t].items():
         if prior is None and name != "default":
@@ -157,10 +165,9 @@ def rows_of(bdir, rdir, priors, shift, skip_prior_source=False):
                     "converged": bool(pop.diagnostics.get("converged", False)),
                     "dev_rel": dev.get("rel"),
                     "dev_spreads": dev.get("spreads"),
-                    "true_rel": true_deviation(truth, out_id) if out_id else None,
-                    "true_rel_others": None
+                    "true_offset": None
                     if out_id is None
-                    else float(np.mean([true_deviation(truth, m) for m in sub if m != out_id])),
+                    else true_offset(truth, out_id, [m for m in sub if m != out_id]),
                 }
             )
     return rows
@@ -198,9 +205,7 @@ def rates(rows):
             e["detected"] = float(np.mean([r["outlier_prob"][r["outlier"]] > 0.5 for r in rs]))
             e["median_outlier_prob"] = float(np.median([r["outlier_prob"][r["outlier"]] for r in rs]))
             e["median_odd_one_prob"] = float(np.median([r["odd_one_prob"][r["outlier"]] for r in rs]))
-            err = [
-                100 * (r["dev_rel"] - (r["true_rel"] - r["true_rel_others"])) for r in rs if r["dev_rel"] is not None
-            ]
+            err = [100 * (r["dev_rel"] - r["true_offset"]) for r in rs if r["dev_rel"] is not None]
             e["deviation_error_pct_median_abs"] = float(np.median(np.abs(err))) if err else None
         table.append(e)
     return table
@@ -229,7 +234,8 @@ def markdown(res):
         f"Null batches: {res['n_null_batches']} (the law-coverage study's out-of-model runs); outlier batches: "
         f"{res['n_outlier_batches']}; the informed prior from {', '.join(res['prior_sources'].values())}.",
         "Sub-batches of 3 share modules with their batch of 4: not independent cases. The last column is the "
-        "synthetic study's rate at 3 modules (which one / detected, or false alarm), 40 batches each.",
+        "synthetic study's rate at 3 modules (which one / detected, or false alarm), "
+        f"{res['synthetic_batches_per_cell']} batches each.",
         "",
         "| prior | size | shift (spreads) | whole batch | cases | which one | detected (> 0.5) | median outlier_prob "
         "| median odd_one_prob | false alarm (> 0.3) | median abs error of the S0 deviation [%] | synthetic |",
@@ -254,12 +260,14 @@ def markdown(res):
         "| batch | outlier | true offset [%] | deviation [%] | deviation [spreads] | odd_one_prob | outlier_prob |",
         "|---|---|---|---|---|---|---|",
     ]
+
+    def pair(b, k, fmt, scale=1.0):
+        return " / ".join("–" if b[p][k] is None else format(scale * b[p][k], fmt) for p in ("default", "informed"))
+
     for b in res["outlier_batches"]:
-        d, i = b["default"], b["informed"]
         lines.append(
-            f"| {b['batch']} | {b['outlier']} | {100 * b['true_offset']:+.2f} | {100 * d['dev_rel']:+.2f} / "
-            f"{100 * i['dev_rel']:+.2f} | {d['dev_spreads']:+.1f} / {i['dev_spreads']:+.1f} | "
-            f"{d['odd_one_prob']:.2f} / {i['odd_one_prob']:.2f} | {d['outlier_prob']:.2f} / {i['outlier_prob']:.2f} |"
+            f"| {b['batch']} | {b['outlier']} | {100 * b['true_offset']:+.2f} | {pair(b, 'dev_rel', '+.2f', 100)} | "
+            f"{pair(b, 'dev_spreads', '+.1f')} | {pair(b, 'odd_one_prob', '.2f')} | {pair(b, 'outlier_prob', '.2f')} |"
         )
     return "\n".join(lines) + "\n"
 
@@ -271,9 +279,7 @@ def outlier_batches(rows):
         if not (r["whole"] and r["shift"]):
             continue
         o = r["outlier"]
-        e = out.setdefault(
-            r["batch"], {"batch": r["batch"], "outlier": o, "true_offset": r["true_rel"] - r["true_rel_others"]}
-        )
+        e = out.setdefault(r["batch"], {"batch": r["batch"], "outlier": o, "true_offset": r["true_offset"]})
         e[r["prior"]] = {
             "dev_rel": r["dev_rel"],
             "dev_spreads": r["dev_spreads"],
@@ -341,6 +347,7 @@ def main(argv=None):
         "rates": rates(rows),
         "outlier_batches": outlier_batches(rows),
         "synthetic_rates": synthetic_rates(),
+        "synthetic_batches_per_cell": (synthetic_rates() or {}).get("default", {}).get("3x0", {}).get("batches"),
     }
     RESULTS.mkdir(exist_ok=True)
     write_json(RESULTS / "outlier_out_of_model.json", res)
