@@ -255,7 +255,7 @@ def markdown(res):
     lines += ["", f"Population fits not converged: {res['not_converged']} of {res['n_fits']}.", ""]
     lines += [
         "Each outlier batch as a whole (default prior / informed): the outlier's true S0 offset from the "
-        "other modules' mean truth, and what the tool says.",
+        "geometric mean of the other modules' truths, and what the tool says.",
         "",
         "| batch | outlier | true offset [%] | deviation [%] | deviation [spreads] | odd_one_prob | outlier_prob |",
         "|---|---|---|---|---|---|---|",
