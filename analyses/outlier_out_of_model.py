@@ -137,40 +137,34 @@ def rows_of(bdir, rdir, priors, shift, skip_prior_source=False):
     """One row per fitted (sub-)batch and prior."""
     truth = json.loads((bdir / "truth.json").read_text())
     law, ds = module_draws(bdir, rdir)
-    t = ds.name
     out_id = next((m for m, v in truth["modules"].items() if v.get("outlier")), None)
     subsets = subsets_of(sorted(law), out_id)
     rows = []
-    for name, prior in priors[t].items():
-        if prior is None and name != "default":
-            continue
+    for name, prior in priors[ds.name].items():
         if skip_prior_source and name == "informed":
             continue
         for k, sub in enumerate(subsets):
             pop = fit(law, ds, sub, prior, seed=100 + k)
-            dev = pop.deviation.get(out_id, {}).get("S0_V_per_K", {}) if out_id else {}
-            rows.append(
-                {
-                    "batch": bdir.name,
-                    "type": t,
-                    "prior": name,
-                    "size": len(sub),
-                    "whole": k == 0,
-                    "shift": shift,
-                    "outlier": out_id,
-                    "modules": list(sub),
-                    "outlier_prob": pop.outlier_prob,
-                    "odd_one_prob": pop.odd_one_prob,
-                    "p_any_outlier": pop.p_any_outlier,
-                    "converged": bool(pop.diagnostics.get("converged", False)),
-                    "dev_rel": dev.get("rel"),
-                    "dev_spreads": dev.get("spreads"),
-                    "true_offset": None
-                    if out_id is None
-                    else true_offset(truth, out_id, [m for m in sub if m != out_id]),
-                }
-            )
+            head = {"batch": bdir.name, "type": ds.name, "prior": name, "size": len(sub), "whole": k == 0}
+            rows.append({**head, **answer_row(pop, truth, sub, out_id, shift)})
     return rows
+
+
+def answer_row(pop, truth, sub, out_id, shift):
+    """What the population fit of sub-batch ``sub`` says, and the truth about its outlier ``out_id``."""
+    dev = pop.deviation.get(out_id, {}).get("S0_V_per_K", {}) if out_id else {}
+    return {
+        "shift": shift,
+        "outlier": out_id,
+        "modules": list(sub),
+        "outlier_prob": pop.outlier_prob,
+        "odd_one_prob": pop.odd_one_prob,
+        "p_any_outlier": pop.p_any_outlier,
+        "converged": bool(pop.diagnostics.get("converged", False)),
+        "dev_rel": dev.get("rel"),
+        "dev_spreads": dev.get("spreads"),
+        "true_offset": None if out_id is None else true_offset(truth, out_id, [m for m in sub if m != out_id]),
+    }
 
 
 def informed_priors(null_root):
