@@ -369,11 +369,15 @@ def verdicts(res):
 def figure(res, path):
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(11, 4.2), layout="constrained")
-    axes = fig.subplots(1, 3)
-    for ax, (key, what) in zip(
-        axes, (("default", "outlier_prob"), ("informed", "outlier_prob"), ("default", "odd_one_prob"))
-    ):
+    fig = Figure(figsize=(14.5, 4.2), layout="constrained")
+    axes = fig.subplots(1, 4)
+    panels = (
+        ("default", "outlier_prob"),
+        ("informed", "outlier_prob"),
+        ("default", "odd_one_prob"),
+        ("oracle_design", "outlier_prob"),  # the reference at the design's odds: a check of the bands
+    )
+    for ax, (key, what) in zip(axes, panels):
         bins = [b for b in res["reliability"][key][what] if b["cases"]]
         m = [b["mean_prob"] for b in bins]
         f = [b["observed"] for b in bins]
