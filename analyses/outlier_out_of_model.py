@@ -32,7 +32,7 @@ outlier), and how far: the outlier's S0 ``deviation`` in % against its true
 S0 relative to the geometric mean of the other modules' true S0 (the tool's
 ``rel`` is relative to the population of the other modules).
 
-Run:  python analyses/outlier_out_of_model.py --null-runs /work/lawcov_refhk --work /tmp/tembayes-oom-outliers --batches 4
+Run:  python analyses/outlier_out_of_model.py --null-runs LAWCOV_WORK --work /tmp/tembayes-oom-outliers --batches 12
       python analyses/outlier_out_of_model.py ... --summarise
 Writes analyses/results/outlier_out_of_model.{json,md}.
 """
@@ -62,7 +62,8 @@ from law_coverage import TYPES  # noqa: E402
 RESULTS = Path(__file__).parent / "results"
 S0_SPREAD = UNIT_SPREAD["S0_V_per_K"]
 SHIFTS = (4, 6)
-NULL_RUN_LABEL = "high-paper-full-robust-k"
+#: The run label law_coverage.py --fidelity high writes (its defaults: --model full --discrepancy robust).
+NULL_RUN_LABEL = "high-paper-full-robust"
 NULL_BATCH_LABEL = "high-paper"
 
 
@@ -167,14 +168,12 @@ def answer_row(pop, truth, sub, out_id, shift):
     }
 
 
-def informed_priors(null_root):
+def informed_priors(null_root, run_label):
     """Per type: the spreads its first null batch learned (``spread_prior`` format), and that batch's name."""
     priors, sources = {}, {}
     for t in TYPES:
         name = f"{t}-b0"
-        law, ds = module_draws(
-            null_root / "batches" / NULL_BATCH_LABEL / name, null_root / "runs" / NULL_RUN_LABEL / name
-        )
+        law, ds = module_draws(null_root / "batches" / NULL_BATCH_LABEL / name, null_root / "runs" / run_label / name)
         pop = fit(law, ds, sorted(law), None, seed=99)
         priors[t] = {"default": None, "informed": pop.spread_prior()}
         sources[t] = name
@@ -295,9 +294,9 @@ def cached_rows(work, bdir, rdir, priors, shift, skip_prior_source=False):
 
 def fitted_rows(a):
     """Rows of every null batch and every calibrated outlier batch; the informed priors' sources."""
-    priors, sources = informed_priors(a.null_runs)
+    priors, sources = informed_priors(a.null_runs, a.null_label)
     rows = []
-    null_dirs = sorted((a.null_runs / "runs" / NULL_RUN_LABEL).glob("*-b*"))
+    null_dirs = sorted((a.null_runs / "runs" / a.null_label).glob("*-b*"))
     for rdir in null_dirs:
         bdir = a.null_runs / "batches" / NULL_BATCH_LABEL / rdir.name
         rows += cached_rows(a.work, bdir, rdir, priors, 0, skip_prior_source=rdir.name in sources.values())
@@ -312,6 +311,11 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument(
         "--null-runs", type=Path, required=True, help="the --work folder of law_coverage.py --fidelity high"
+    )
+    ap.add_argument(
+        "--null-label",
+        default=NULL_RUN_LABEL,
+        help=f"the null runs' label under --null-runs/runs (default {NULL_RUN_LABEL})",
     )
     ap.add_argument("--work", type=Path, default=Path("/tmp/tembayes-oom-outliers"))
     ap.add_argument("--batches", type=int, default=12, help="outlier batches (types and shifts alternate)")
