@@ -27,6 +27,9 @@ Design (stated before the runs):
   of the study's first record).
   ``compact_rule``: the issue's reference for "which one", knowing the spreads
   but not the centre (remove the unit that leaves the rest most compact).
+  ``tool_shape_rule``: "which one" by the Bayes rule of :func:`oracle_design`
+  with the tool's outlier shape (off in every parameter, a 6 x wider normal)
+  instead of the design's: how much of the shortfall that shape explains.
 
 Targets (issue "The outlier question answered honestly"):
 
@@ -76,6 +79,7 @@ from population_checks import (  # noqa: E402
 
 from tembayes.bench.bench import draw_type  # noqa: E402
 from tembayes.calibrate.population import PopulationConvergenceWarning, fit_population  # noqa: E402
+from tembayes.calibrate.population.model import OUTLIER_SCALE  # noqa: E402
 from tembayes.constants import MODULE_PARAMETERS  # noqa: E402
 from tembayes.data import write_json  # noqa: E402
 
@@ -360,6 +364,8 @@ def verdicts(res):
             "detection_ratio_tool_odds": _ratios(r, R[fair], "detected_0.5", cells),
             # the oracle that also knows the batch's centre (an upper bound no rule without it reaches)
             "which_one_ratio_centre_known": _ratios(r, R["oracle"], "which_one", cells),
+            # against the same rule with the tool's outlier shape (every parameter, a wide normal)
+            "which_one_ratio_tool_shape": _ratios(r, R["tool_shape_rule"], "which_one", cells),
             "detection_ratio_centre_known": _ratios(r, R["oracle"], "detected_0.5", cells),
             "false_alarm_max": max(r[f"{n}x0"]["false_alarm_0.3"] for n in SIZES),
         }
@@ -459,6 +465,29 @@ def compact_rule(batch):
     return np.eye(len(m))[int(np.argmin(chi2))]
 
 
+def tool_shape_rule(batch):
+    """Which one, by the Bayes rule whose outlier has the tool's shape: off in every parameter, spreads known.
+
+    As :func:`oracle_design` (the spreads known, the centre integrated out),
+    but the outlier's parameters scatter about the centre by a
+    ``OUTLIER_SCALE`` times wider normal in every parameter (the tool's
+    outlier component) instead of one parameter shifted by the design's
+    sizes.  It tells how much of the tool's shortfall against
+    :func:`oracle_design` the outlier component's shape explains.  Returns a
+    one-hot ``odd_one_prob``.
+    """
+    m0, P0 = centre_prior()
+    tau = _taus(batch, 0.0, 1)[0]
+    y = np.array([batch["lik"][m][0] for m in batch["ids"]]) - m0
+    member = np.array([batch["lik"][m][1] for m in batch["ids"]]) + tau**2 * np.eye(5)
+    logp = []
+    for i in range(len(y)):
+        V = member.copy()
+        V[i] += (OUTLIER_SCALE * tau) ** 2 * np.eye(5)
+        logp.append(_centre_integrated(y, V[None], P0)[0][0])
+    return np.eye(len(y))[int(np.argmax(logp))]
+
+
 def with_more_oracles(row):
     """The row with the other rules of the comparison (module docstring), the batch redrawn from its seed (:func:`_batch`).
 
@@ -477,6 +506,7 @@ def with_more_oracles(row):
         out[key] = {"outlier_prob": p.tolist(), "odd_one_prob": odd.tolist()}
     # no outlier probability: its "detected" and "false alarm" columns mean nothing
     out["compact_rule"] = {"outlier_prob": [0.0] * row["n"], "odd_one_prob": compact_rule(batch).tolist()}
+    out["tool_shape_rule"] = {"outlier_prob": [0.0] * row["n"], "odd_one_prob": tool_shape_rule(batch).tolist()}
     return out
 
 
@@ -488,6 +518,7 @@ KEYS = (
     "oracle_design_tool_odds",
     "oracle_design_history_tool_odds",
     "compact_rule",
+    "tool_shape_rule",
 )
 
 
