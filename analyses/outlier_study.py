@@ -73,6 +73,7 @@ from population_checks import (  # noqa: E402
     REF,
     SPREAD,
     draw_batch,
+    member_logn,
     to_theta,
     to_x,
 )
@@ -121,16 +122,9 @@ def oracle(batch, shift, p_none=None, tau_log_sd=0.0, n_tau=256):
     lr = np.zeros((T, n, len(SHIFTS)))  # log of the mean ratio "shifted by d" to "a member"
     for t, tau in enumerate(taus):
         for i, mid in enumerate(batch["ids"]):
-            mL, CL = batch["lik"][mid]
-            V = CL + np.diag(tau**2)
-            Vi = np.linalg.inv(V)
-
-            def logn(mean, mL=mL, Vi=Vi):
-                d = mL - mean
-                return -0.5 * d @ Vi @ d
-
+            logn, logdet = member_logn(*batch["lik"][mid], tau)
             base = logn(mu)
-            member[t, i] = base - 0.5 * np.linalg.slogdet(V)[1]
+            member[t, i] = base - 0.5 * logdet
             for k, d in enumerate(SHIFTS[1:], 1):
                 # the design shifts a level by d spreads of its value (SI), a log shift of log1p(+-d tau)
                 # (a spread the history oracle draws 10x below -100 % is no shift it can mean: floor it)

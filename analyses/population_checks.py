@@ -148,6 +148,23 @@ def gaussian_loglikes(lik):
     return out
 
 
+def member_logn(mL, CL, tau):
+    """A module's Gaussian log density about a candidate mean, and its log-determinant.
+
+    ``mL, CL``: the module's likelihood mean and covariance in x; ``tau``:
+    the spreads in x.  Returns ``(logn, logdet)``: ``logn(mean)`` is
+    ``-(mL - mean) V^-1 (mL - mean) / 2`` with ``V = CL + diag(tau^2)``.
+    """
+    V = CL + np.diag(tau**2)
+    Vi = np.linalg.inv(V)
+
+    def logn(mean):
+        d = mL - mean
+        return -0.5 * d @ Vi @ d
+
+    return logn, np.linalg.slogdet(V)[1]
+
+
 def oracle(batch):
     """Bayes-optimal outlier probabilities under the study design (true population known)."""
     typ = batch["type"]
@@ -157,14 +174,7 @@ def oracle(batch):
     shifts = np.linspace(3.0, 5.0, 21)
     lr = np.zeros(n)
     for i, mid in enumerate(batch["ids"]):
-        mL, CL = batch["lik"][mid]
-        V = CL + np.diag(tau**2)
-        Vi = np.linalg.inv(V)
-
-        def logn(mean, mL=mL, Vi=Vi):
-            d = mL - mean
-            return -0.5 * d @ Vi @ d
-
+        logn, _ = member_logn(*batch["lik"][mid], tau)
         base = logn(mu)
         # bench mechanism: S0 x (1 +- 4 %) -> x shift log(1 +- 0.04)
         e = np.zeros(5)

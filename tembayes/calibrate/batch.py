@@ -447,6 +447,7 @@ def finish_run(
         say(f"population: skipped ({len(law)} module(s) to fit it on; it needs 2)")
     del law
     argv = list(argv) if argv is not None else None
+    learned = None if pop is None else pop.spread_prior()
     extra = {
         "batch": {
             **(batch_record or {"path": os.path.abspath(batch.path), "inputs": batch_inputs(batch)}),
@@ -458,9 +459,9 @@ def finish_run(
         # here, in the [population] table's format for the next batch of the type
         "population_prior": {k: {"median": m, "log_sd": sd} for k, (m, sd) in spreads.items()},
         "population_spreads": None
-        if pop is None
-        else {"spread" + k[3:]: {"median": m, "log_sd": sd} for k, (m, sd) in pop.spread_prior().items()},
-        "population_table": None if pop is None else population_table(pop.spread_prior()),
+        if learned is None
+        else {"spread" + k[3:]: {"median": m, "log_sd": sd} for k, (m, sd) in learned.items()},
+        "population_table": None if learned is None else population_table(learned),
         "population_excluded": excluded,
         "failed_modules": failed,
         "calibration": {
