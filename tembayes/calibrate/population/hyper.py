@@ -16,6 +16,10 @@ START_SD_NU, START_SD_LOG_TAU, START_SD_LOGIT_F = 0.5, 0.2, 0.3
 START_RETRIES, START_SHRINK = 100, 0.1
 #: Floor of the start spread, relative to the typical spread of the hyperprior.
 START_TAU_FLOOR = 0.3
+#: The start spreads lie within this many sds of their prior: a stated spread
+#: (``--population-prior``) may be far tighter than a few units' scatter, and
+#: a start outside the sampler's box leaves every walker at -inf.
+START_PRIOR_SDS = 3.0
 #: MAD -> sd of a Gaussian.
 MAD_TO_SD = 1.4826
 
@@ -108,8 +112,10 @@ def _robust_start(post, m, C):
     meas = np.median(np.sqrt(np.einsum("ijj->ij", C)), axis=0)
     typical = np.exp(pop.logtau_mean)
     tau0 = np.sqrt(np.maximum(mad**2 - meas**2, (START_TAU_FLOOR * typical) ** 2))
+    reach = START_PRIOR_SDS * pop.logtau_sd
+    logtau0 = np.clip(np.log(tau0), pop.logtau_mean - reach, pop.logtau_mean + reach)
     a, b = pop.beta
-    return post.from_natural(np.concatenate([mu0, np.log(tau0), [np.log(a / b)]]))
+    return post.from_natural(np.concatenate([mu0, logtau0, [np.log(a / b)]]))
 
 
 def start_walkers(post, m, C, rng, nwalkers):
