@@ -30,6 +30,7 @@ from tembayes.calibrate.population import (
     fit_population,
     joint_fit,
 )
+from tembayes.calibrate.population.deviation import loo_deviation
 from tembayes.calibrate.population.hyper import HyperPosterior
 from tembayes.calibrate.population.membership import odd_one
 from tembayes.calibrate.population.model import TAU_NAMES, Population
@@ -295,6 +296,40 @@ def test_three_modules_name_the_one_that_breaks_the_symmetry():
     assert np.argmax(odd) == 0 and odd[0] > 0.6 and odd[0] > 3 * odd[1:].max(), odd
     assert r.p_any_outlier >= max(r.outlier_prob.values())
     assert r.deviation["U1"]["S0_V_per_K"]["spreads"] > 3.0
+    # a module whose reweighting is unreliable is left out by a refit, and only such a module
+    k_hat = r.diagnostics["deviation_k_hat"]
+    assert r.diagnostics["deviation_refit"] == [m for m in r.module_ids if k_hat[m] > 0.7]
+
+
+def test_a_module_the_reweighting_cannot_leave_out_is_refitted():
+    """Known answer: above Pareto k 0.7 the refit's draws give the deviation, below it the batch's reweighted.
+
+    Every batch draw has the same centre and spreads, so the reweighting
+    cannot move a module's deviation; the refit's draws sit at another
+    centre and twice the spreads, so the refitted row is exactly theirs.
+    """
+    pop = Population(TEC1_12706)
+    tau = np.exp(pop.logtau_mean)
+    S, rng = 2000, np.random.default_rng(0)
+
+    def draws(centre, spread):
+        return np.tile(np.concatenate([centre, np.log(spread), [-2.0]]), (S, 1))
+
+    mean = pop.mu_mean + np.array([[0.05, 0, 0.02, 0, 0.0], [0.01, 0, 0, 0, 0], [0, 0, 0, 0, -0.01]])
+    cov = np.tile(1e-6 * np.eye(5), (3, 1, 1))
+    log_like = np.column_stack([5.0 * rng.standard_normal(S), 0.01 * rng.standard_normal((S, 2))])
+    moved = pop.mu_mean + 0.01
+    called = []
+
+    def refit(i):
+        called.append(i)
+        return draws(moved, 2 * tau)
+
+    dev = loo_deviation(pop, mean, cov, draws(pop.mu_mean, tau), log_like, refit)
+    assert called == [0] and dev.refit.tolist() == [True, False, False] and dev.k_hat[0] > 0.7 > dev.k_hat[1:].max()
+    np.testing.assert_allclose(dev.spreads[0], (mean[0] - moved) / (2 * tau))
+    np.testing.assert_allclose(dev.spreads[1:], (mean[1:] - pop.mu_mean) / tau)
+    np.testing.assert_allclose(dev.rel[0, [0, 2, 4]], np.expm1(mean[0] - moved)[[0, 2, 4]])
 
 
 @pytest.mark.parametrize("n", [3, 8])

@@ -141,6 +141,9 @@ def test_the_answer_says_when_the_deviation_is_approximate_and_when_the_spread_w
     doc["population_prior"] = {"spread_S0_rel": {"median": 0.01, "log_sd": 0.3}}
     lines = OutlierAnswer.of(RunSummary.from_json(doc)).lines()
     assert "(approximate: leave-one-out Pareto k 0.93 > 0.7)" in lines[0]
+    # left out by a refit, its deviation is no approximation
+    doc["population_diagnostics"]["deviation_refit"] = ["M1"]
+    assert "approximate" not in OutlierAnswer.of(RunSummary.from_json(doc)).lines()[0]
     # the S0 spread was stated: the run already knows what would decide it
     assert not any("depends on this type's" in line for line in lines)
     assert lines[-1].startswith("With 3 modules")

@@ -56,8 +56,11 @@ class OutlierAnswer:
     reach : dict or None
         ``smallest_flagged_deviation`` (batches under 8 modules).
     k_hat : float or None
-        Pareto k of the odd one's leave-one-out weights (its deviation is an
-        approximation above :data:`~tembayes.calibrate.population.deviation.K_HAT_MAX`).
+        Pareto k of the odd one's leave-one-out weights (above
+        :data:`~tembayes.calibrate.population.deviation.K_HAT_MAX` its
+        deviation is an approximation, unless ``refit``).
+    refit : bool
+        Its deviation comes from a fit of the other modules without it.
     spread_stated : bool
         The run started from a stated spread of the odd one's parameter
         (``[population]`` or ``--population-prior``).
@@ -73,6 +76,7 @@ class OutlierAnswer:
     what_it_takes: list
     reach: dict | None = None
     k_hat: float | None = None
+    refit: bool = False
     spread_stated: bool = False
 
     @classmethod
@@ -101,6 +105,7 @@ class OutlierAnswer:
             what_it_takes=rows,
             reach=summary.smallest_flagged_deviation,
             k_hat=(summary.population_diagnostics.get("deviation_k_hat") or {}).get(top),
+            refit=top in (summary.population_diagnostics.get("deviation_refit") or ()),
             spread_stated=spread_key(par) in (summary.population_prior or {}),
         )
 
@@ -118,7 +123,7 @@ class OutlierAnswer:
             f"with probability {d['p_loo']:.2g}"
             + (
                 f" (approximate: leave-one-out Pareto k {self.k_hat:.2f} > {K_HAT_MAX})."
-                if self.k_hat is not None and self.k_hat > K_HAT_MAX
+                if self.k_hat is not None and self.k_hat > K_HAT_MAX and not self.refit
                 else "."
             )
         )

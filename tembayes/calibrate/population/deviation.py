@@ -2,9 +2,11 @@
 
 Leaving module ``i`` out reweights the hyper draws by ``1 / L_i(alpha)``
 (its likelihood term, :mod:`.terms`), Pareto-smoothed (PSIS, Vehtari et al.
-2017; its ``k_hat`` says whether the reweighting can be trusted: above 0.7
+2017).  Its ``k_hat`` says whether the reweighting can be trusted: above 0.7
 the module is so far from the others that the batch's posterior rarely
-visits the hyperparameters of the rest alone; the answer in words says so).
+visits the hyperparameters of the rest alone -- typical of the odd one, and
+of three-module batches -- and, as PSIS-LOO practice has it, the rest is
+refitted without the module (given a ``refit``) and its draws used as they are.
 Under those weights, per parameter, with the module's likelihood mean ``m``
 (its posterior with the datasheet prior divided out) and variance ``v`` in the
 population coordinates (levels in log, slopes linear):
@@ -43,12 +45,16 @@ class Deviation:
     rel, spreads, p_loo : ndarray, shape (N, 5)
     k_hat : ndarray, shape (N,)
         Pareto k of each module's leave-one-out weights.
+    refit : ndarray of bool, shape (N,)
+        The module's row comes from a refit of the other modules, not from
+        the reweighting (``k_hat`` above :data:`K_HAT_MAX`).
     """
 
     rel: np.ndarray
     spreads: np.ndarray
     p_loo: np.ndarray
     k_hat: np.ndarray
+    refit: np.ndarray
 
     def entry(self, i: int) -> dict[str, dict[str, float]]:
         """Module ``i``'s ``deviation`` entry of ``summary.json``: parameter -> ``{"rel", "spreads", "p_loo"}``."""
@@ -58,7 +64,26 @@ class Deviation:
         }
 
 
-def loo_deviation(pop, mean, cov, hyper, log_like) -> Deviation:
+def _psis_weights(log_like_i):
+    """Normalised PSIS weights that leave a module out (``1 / L_i``), and their Pareto k."""
+    with warnings.catch_warnings():  # its k is reported (deviation_k_hat), not warned about
+        warnings.simplefilter("ignore", UserWarning)
+        lw, k = az.psislw(-log_like_i + log_like_i.max(), reff=1.0)
+    w = np.exp(np.asarray(lw, float) - np.max(lw))
+    return w / w.sum(), float(k)
+
+
+def _offsets(pop, m, v, hyper, w):
+    """``rel``, ``spreads``, ``p_loo`` (5,) of likelihood mean ``m`` and variances ``v`` under weighted hyper draws."""
+    mu, tau, *_ = pop.unpack(hyper)
+    d = m[None] - mu  # (S, 5)
+    slope_rel = np.divide(d, np.abs(mu), out=np.full_like(d, np.nan), where=mu != 0)  # a centre at 0: none
+    rel_draws = np.where(LEVEL[None], np.expm1(d), slope_rel)
+    sd = np.sqrt(tau**2 + v[None])
+    return w @ rel_draws, w @ (d / tau), w @ (2.0 * ndtr(-np.abs(d) / sd))
+
+
+def loo_deviation(pop, mean, cov, hyper, log_like, refit=None) -> Deviation:
     """The :class:`Deviation` of every module.
 
     Parameters
@@ -73,27 +98,23 @@ def loo_deviation(pop, mean, cov, hyper, log_like) -> Deviation:
         Natural hyper draws of the batch's posterior.
     log_like : ndarray, shape (S, N)
         Each module's ``log L_i`` at those draws.
+    refit : callable, optional
+        ``refit(i) -> (S', 11)`` natural hyper draws of the batch without
+        module ``i``; called for the modules whose ``k_hat`` exceeds
+        :data:`K_HAT_MAX`.
 
     Returns
     -------
     Deviation
     """
-    mu, tau, *_ = pop.unpack(hyper)
     N = len(mean)
     rel, spreads, p_loo = (np.empty((N, mean.shape[1])) for _ in range(3))
-    k_hat = np.empty(N)
+    k_hat, refitted = np.empty(N), np.zeros(N, bool)
     for i in range(N):
-        with warnings.catch_warnings():  # its k is reported (deviation_k_hat), not warned about
-            warnings.simplefilter("ignore", UserWarning)
-            lw, k = az.psislw(-log_like[:, i] + log_like[:, i].max(), reff=1.0)
-        w = np.exp(np.asarray(lw, float) - np.max(lw))
-        w /= w.sum()
-        d = mean[i][None] - mu  # (S, 5)
-        slope_rel = np.divide(d, np.abs(mu), out=np.full_like(d, np.nan), where=mu != 0)  # a centre at 0: none
-        rel_draws = np.where(LEVEL[None], np.expm1(d), slope_rel)
-        sd = np.sqrt(tau**2 + np.diag(cov[i])[None])
-        rel[i] = w @ rel_draws
-        spreads[i] = w @ (d / tau)
-        p_loo[i] = w @ (2.0 * ndtr(-np.abs(d) / sd))
-        k_hat[i] = float(k)
-    return Deviation(rel=rel, spreads=spreads, p_loo=p_loo, k_hat=k_hat)
+        w, k_hat[i] = _psis_weights(log_like[:, i])
+        draws = hyper
+        if refit is not None and k_hat[i] > K_HAT_MAX:
+            draws, refitted[i] = refit(i), True
+            w = np.full(len(draws), 1.0 / len(draws))
+        rel[i], spreads[i], p_loo[i] = _offsets(pop, mean[i], np.diag(cov[i]), draws, w)
+    return Deviation(rel=rel, spreads=spreads, p_loo=p_loo, k_hat=k_hat, refit=refitted)

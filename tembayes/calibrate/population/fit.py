@@ -20,6 +20,7 @@ from tembayes.calibrate.population.sampling import POPULATION_TARGETS, Budget
 from tembayes.calibrate.population.sensitivity import driver, spread_sensitivity
 from tembayes.calibrate.population.terms import GaussianTerms, module_summaries
 from tembayes.calibrate.priors import law_log_prior
+from tembayes.common.draws import even_indices
 from tembayes.common.provenance import versions
 from tembayes.errors import ModelError
 
@@ -75,6 +76,33 @@ def _sample(pop, summ, method, max_draws_per_module, run):
         stacklevel=3,
     )
     return with_importance(check)
+
+
+def _refitter(pop, summ, ids, terms_name, sampler, max_draws_per_module, n_draws):
+    """``refit(i)`` of :func:`.deviation.loo_deviation`: about ``n_draws`` natural hyper draws without module ``i``.
+
+    The same kind of terms as the batch's run, each refit on its own
+    stream, so that the rest of the result stays that of a run without
+    refits.  None below three modules: one module left is no population.
+    """
+    if len(ids) < 3:
+        return None
+    seed, nwalkers, budget = sampler
+
+    def refit(i):
+        rest = summ.without(i)
+        terms = (
+            rest.importance_terms(_sampler_draws(len(rest.x), max_draws_per_module))
+            if terms_name == "importance"
+            else GaussianTerms(rest.mean, rest.cov)
+        )
+        rng = np.random.default_rng([seed, i])
+        label = f"population without {ids[i]}"
+        kept, _ = sample_hyper(pop, terms, rest.mean, rest.cov, rng, nwalkers, budget, label=label)
+        flat = kept.reshape(-1, N_HYPER)
+        return flat[even_indices(len(flat), n_draws)]
+
+    return refit
 
 
 def _result_diagnostics(pop, ids, summ, sampled, max_draws_per_module):
@@ -154,7 +182,9 @@ def fit_population(
         Draws of :attr:`PopulationResult.predictive`.
     n_rao_blackwell : int
         Hyper draws averaged for ``outlier_prob``, ``odd_one_prob``,
-        ``p_any_outlier`` and the modules' leave-one-out ``deviation``.
+        ``p_any_outlier`` and the modules' leave-one-out ``deviation`` (a
+        module whose reweighting is unreliable, Pareto k above 0.7, is left
+        out by sampling the others again: a few seconds each).
     design_reach : bool
         For batches under :data:`SMALL_BATCH` modules, find the smallest
         deviation this design flags (:mod:`.detectable`; a few seconds).
@@ -191,7 +221,11 @@ def fit_population(
 
     sampled = _sample(pop, summ, method, max_draws_per_module, run)
     members = batch_membership(pop, sampled.terms, sampled.kept, n_rao_blackwell)
-    deviation = loo_deviation(pop, summ.mean, summ.cov, members.hyper, members.log_like)
+
+    refit = _refitter(
+        pop, summ, ids, sampled.terms.name, (seed, nwalkers, budget), max_draws_per_module, n_rao_blackwell
+    )
+    deviation = loo_deviation(pop, summ.mean, summ.cov, members.hyper, members.log_like, refit)
     i, j = driver(members.odd_one_prob, deviation.p_loo)
     sensitivity = spread_sensitivity(pop, members, i, j, ids[i])
 

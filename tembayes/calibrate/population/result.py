@@ -152,7 +152,9 @@ def assemble(pop, ids, kept, membership, rng, n_predictive, diag, deviation=None
     n_predictive : int
     diag : dict
         Diagnostics so far; the outlier probabilities' se, the leave-one-out
-        Pareto k (``deviation_k_hat``) and the number of modules are added.
+        Pareto k (``deviation_k_hat``), the modules whose deviation comes
+        from a refit without them (``deviation_refit``) and the number of
+        modules are added.
     deviation : .deviation.Deviation, optional
     sensitivity : .sensitivity.SpreadSensitivity, optional
     """
@@ -163,6 +165,7 @@ def assemble(pop, ids, kept, membership, rng, n_predictive, diag, deviation=None
     diag["outlier_prob_mcse"] = {mid: float(s) for mid, s in zip(ids, membership.mcse)}
     if deviation is not None:
         diag["deviation_k_hat"] = {mid: float(k) for mid, k in zip(ids, deviation.k_hat)}
+        diag["deviation_refit"] = [mid for mid, r in zip(ids, deviation.refit) if r]
     diag["n_modules"] = len(ids)
     return PopulationResult(
         module_ids=ids,

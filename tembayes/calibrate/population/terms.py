@@ -171,6 +171,17 @@ class ModuleSummaries:
     cov: np.ndarray
     interim_ess: np.ndarray
 
+    def without(self, i):
+        """The summaries of the other modules (module ``i`` left out)."""
+        keep = np.delete(np.arange(len(self.x)), i)
+        return ModuleSummaries(
+            [self.x[k] for k in keep],
+            [self.log_w[k] for k in keep],
+            self.mean[keep],
+            self.cov[keep],
+            self.interim_ess[keep],
+        )
+
     def importance_terms(self, per_module):
         """:class:`ImportanceTerms` over at most ``per_module`` evenly thinned draws of each module."""
         tx, tl = [], []
