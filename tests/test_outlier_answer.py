@@ -237,3 +237,30 @@ def test_a_run_from_before_the_outlier_answer_reads_and_reports_without_it():
         del m["odd_one_prob"], m["deviation"]
     s = RunSummary.from_json(doc)
     assert OutlierAnswer.of(s) is None and s.p_any_outlier is None and s.modules["M1"].deviation is None
+
+
+def test_the_spread_curve_carries_its_monte_carlo_error():
+    """Known answer: a row holding every draw has the module's own outlier_prob se; a row of fewer, that se scaled.
+
+    The effective share of the draws is the module's (its se against the
+    per-draw values' sd); a row's se is its draws' sd over the root of that
+    share of their number.
+    """
+    from tembayes.calibrate.population.membership import Membership
+    from tembayes.calibrate.population.sensitivity import SPREAD_FACTORS, spread_sensitivity
+
+    pop = Population(TEC1_12706)
+    S, rng = 1000, np.random.default_rng(1)
+    h = np.tile(np.concatenate([pop.mu_mean, pop.logtau_mean, [-2.0]]), (S, 1))
+    h[:, 5 + 2] += rng.uniform(np.log(0.3), np.log(2.9), S)  # tau_S0 from 0.3 to 2.9 x its prior median
+    lmem = np.log(rng.uniform(0.05, 0.95, (S, 3)))
+    off = -np.expm1(lmem[:, 0])
+    mcse = np.array([2.0, 1.0, 1.0]) * off.std() / np.sqrt(S)  # an effective share of 1/4
+    m = Membership(1 - np.exp(lmem).mean(0), mcse, np.full(3, 1 / 3), 0.5, hyper=h, log_member=lmem)
+    curve = spread_sensitivity(pop, m, 0, 2, "U1")
+    assert SPREAD_FACTORS[-1] == 3.0 and curve.posterior_mass[-1] == 1.0
+    assert curve.outlier_prob_mcse[-1] == pytest.approx(mcse[0])
+    sel = np.exp(h[:, 7] - pop.logtau_mean[2]) <= SPREAD_FACTORS[3]  # the row at the prior median
+    assert 0.2 < sel.mean() < 0.8 and curve.posterior_mass[3] == sel.mean()
+    assert curve.outlier_prob_mcse[3] == pytest.approx(off[sel].std() / np.sqrt(sel.sum() / 4))
+    assert curve.to_json()["rows"][-1]["outlier_prob_mcse"] == pytest.approx(mcse[0])

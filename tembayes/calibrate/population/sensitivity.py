@@ -42,6 +42,10 @@ class SpreadSensitivity:
         Given ``spread <= s``: the module's outlier probability, its odd-one
         probability; and the batch's posterior probability of ``spread <= s``.
         NaN where fewer than :data:`MIN_DRAWS` draws lie below ``s``.
+    outlier_prob_mcse : ndarray, shape (k,)
+        Monte Carlo se of ``outlier_prob``: the sd of the per-draw values
+        below ``s`` over the root of their effective number, taken as the
+        same fraction of them as of all draws (the module's ``mcse``).
     """
 
     module_id: str
@@ -50,6 +54,7 @@ class SpreadSensitivity:
     outlier_prob: np.ndarray
     odd_one_prob: np.ndarray
     posterior_mass: np.ndarray
+    outlier_prob_mcse: np.ndarray
 
     @property
     def spread_name(self) -> str:
@@ -64,8 +69,10 @@ class SpreadSensitivity:
                 "parameter": self.parameter,
                 "spread_name": self.spread_name,
                 "rows": [
-                    {"spread_max": s, "outlier_prob": p, "odd_one_prob": q, "posterior_mass": m}
-                    for s, p, q, m in zip(self.spread, self.outlier_prob, self.odd_one_prob, self.posterior_mass)
+                    {"spread_max": s, "outlier_prob": p, "outlier_prob_mcse": e, "odd_one_prob": q, "posterior_mass": m}
+                    for s, p, e, q, m in zip(
+                        self.spread, self.outlier_prob, self.outlier_prob_mcse, self.odd_one_prob, self.posterior_mass
+                    )
                 ],
             }
         )
@@ -92,16 +99,25 @@ def spread_sensitivity(pop, membership, module: int, parameter: int, module_id: 
     median = float(np.exp(pop.logtau_mean[j]))
     grid = median * np.asarray(SPREAD_FACTORS)
     lmem = membership.log_member
+    off = -np.expm1(lmem[:, module])  # per-draw outlier probability
+    ess_fraction = _ess_fraction(off, membership.mcse[module])
     k = len(grid)
-    p_out, p_odd, mass = np.full(k, np.nan), np.full(k, np.nan), np.empty(k)
+    p_out, p_odd, mass, mcse = np.full(k, np.nan), np.full(k, np.nan), np.empty(k), np.full(k, np.nan)
     for r, s in enumerate(grid):
         sel = tau[:, j] <= s
         mass[r] = sel.mean()
         if sel.sum() >= MIN_DRAWS:
-            p_out[r] = 1.0 - np.exp(lmem[sel, module]).mean()
+            p_out[r] = off[sel].mean()
+            mcse[r] = off[sel].std() / np.sqrt(ess_fraction * sel.sum())
             p_odd[r] = odd_one(lmem[sel])[0][module]
     si = grid if LEVEL[j] else grid * pop.coords.ref[j]
-    return SpreadSensitivity(module_id, MODULE_PARAMETERS[j], si, p_out, p_odd, mass)
+    return SpreadSensitivity(module_id, MODULE_PARAMETERS[j], si, p_out, p_odd, mass, mcse)
+
+
+def _ess_fraction(values, mcse):
+    """Effective share of the draws ``values`` (S,) given their mean's Monte Carlo se (1 when it is 0)."""
+    sd = values.std()
+    return 1.0 if mcse <= 0 or sd <= 0 else min(1.0, (sd / mcse) ** 2 / len(values))
 
 
 def driver(odd_one_prob, p_loo) -> tuple[int, int]:
