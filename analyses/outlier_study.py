@@ -27,9 +27,15 @@ Design (stated before the runs):
   of the study's first record).
   ``compact_rule``: the issue's reference for "which one", knowing the spreads
   but not the centre (remove the unit that leaves the rest most compact).
-  ``tool_shape_rule``: "which one" by the Bayes rule of :func:`oracle_design`
-  with the tool's outlier shape (off in every parameter, a 6 x wider normal)
-  instead of the design's: how much of the shortfall that shape explains.
+  ``tool_model_rule``: "which one" by the Bayes rule of the tool's own
+  outlier model (one parameter off by a 6 x wider normal) instead of the
+  design's, the spreads known (``_history``: to one batch's precision): what
+  the tool's model can reach, apart from its inference.
+* the reference rules' rates are also measured on ``--reference`` fresh
+  batches a cell (no fit needed): the targets' "which one" compares the
+  tool's count with 0.95 x that rate by a one-sided binomial test
+  (:func:`which_one_test`), and with its own model's rule pair by pair
+  (:func:`paired`, McNemar).
 
 Targets (issue "The outlier question answered honestly"):
 
@@ -45,7 +51,9 @@ Run:  python analyses/outlier_study.py [--batches 40] [--workers 2]
       python analyses/outlier_study.py --summarise      (from the cached rows)
       python analyses/outlier_study.py --clear-case     (the issue's 8-module batch, S0 7.2 % low)
       python analyses/outlier_study.py --check-oracle   (known answer: oracle_design with the centre known is oracle)
-Writes analyses/results/outlier_study.{json,md} and outlier_reliability.png.
+      python analyses/outlier_study.py --reference 1000 (the reference rules' rates, ~15 min; read by --summarise)
+      python analyses/outlier_study.py --told           (the 4-spread batches with the true spreads stated, ~15 min)
+Writes analyses/results/outlier_study.{json,md}, outlier_reliability.png and outlier_reference.json.
 """
 
 from __future__ import annotations
@@ -61,7 +69,7 @@ from pathlib import Path
 
 import numpy as np
 from scipy.special import logsumexp
-from scipy.stats import binom
+from scipy.stats import binom, binomtest
 
 sys.path.insert(0, str(Path(__file__).parent))
 from population_checks import (  # noqa: E402
@@ -80,11 +88,12 @@ from population_checks import (  # noqa: E402
 
 from tembayes.bench.bench import draw_type  # noqa: E402
 from tembayes.calibrate.population import PopulationConvergenceWarning, fit_population  # noqa: E402
-from tembayes.calibrate.population.model import OUTLIER_SCALE  # noqa: E402
+from tembayes.calibrate.population.model import OUTLIER_SCALE, TAU_NAMES, Population  # noqa: E402
 from tembayes.constants import MODULE_PARAMETERS  # noqa: E402
 from tembayes.data import write_json  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results"
+REFERENCE = RESULTS / "outlier_reference.json"
 SIZES = (3, 8)
 SHIFTS = (0, 2, 4, 6, 10)
 BINS = (0.0, 0.05, 0.1, 0.3, 0.5, 0.7, 0.9, 1.0)
@@ -101,6 +110,23 @@ def earlier_prior(seed):
     """The spreads one earlier 8-module batch of the type (no outlier) learns."""
     batch = draw_batch(np.random.default_rng(seed), 8, "none")
     return _fit(batch["draws"], seed).spread_prior()
+
+
+#: The informed priors of the rows, by their seed (a fit each: cached).
+PRIORS = RESULTS / "outlier_study_priors.json"
+
+
+def _cached_priors():
+    return json.loads(PRIORS.read_text()) if PRIORS.exists() else {}
+
+
+def informed_prior(seed):
+    """:func:`earlier_prior`, read from or added to :data:`PRIORS`."""
+    cache = _cached_priors()
+    if str(seed) not in cache:
+        cache[str(seed)] = earlier_prior(seed)
+        write_json(PRIORS, cache)
+    return {k: tuple(v) for k, v in cache[str(seed)].items()}
 
 
 def oracle(batch, shift, p_none=None, tau_log_sd=0.0, n_tau=256):
@@ -269,10 +295,11 @@ def _batch(seed, n, shift):
 
 
 def _one(task):
-    seed, n, shift, prior = task
+    seed, n, shift, prior_seed, prior = task
     batch = _batch(seed, n, shift)
     p_or, odd_or = oracle(batch, shift)
     row = {"seed": seed, "n": n, "shift": shift, "outlier": batch["outlier"], "param": batch["param"]}
+    row["prior_seed"] = prior_seed
     row["oracle"] = {"outlier_prob": p_or.tolist(), "odd_one_prob": odd_or.tolist()}
     for name, sp in (("default", None), ("informed", prior)):
         t = time.perf_counter()
@@ -336,6 +363,50 @@ def _ratios(r, o, what, cells):
     return {c: (r[c][what] / o[c][what] if o[c][what] else 1.0) for c in cells}
 
 
+def _named(rows, key, n, d):
+    """Per batch of size ``n`` and shift ``d``: did ``key`` give the outlier the highest odd_one_prob."""
+    return np.array(
+        [np.argmax(r[key]["odd_one_prob"]) == r["outlier"] for r in rows if r["n"] == n and r["shift"] == d], dtype=bool
+    )
+
+
+def which_one_test(rows, key, reference):
+    """The tool's "which one" rate per cell against 0.95 x a reference rate measured on many batches.
+
+    ``reference``: cell -> rate (:func:`reference_rates`).  Per cell: the
+    tool's count ``k`` of ``N``, the ratio, and the one-sided binomial
+    p-value of a rate >= 0.95 x the reference given ``k``; the verdict
+    "met" (ratio >= 0.95), "short" (p < 0.05) or "unresolved" (short by
+    less than ``N`` batches can tell).
+    """
+    out = {}
+    for n in SIZES:
+        for d in SHIFTS[1:]:
+            hit = _named(rows, key, n, d)
+            k, N, ref = int(hit.sum()), len(hit), reference[f"{n}x{d}"]["which_one"]
+            p = float(binom.cdf(k, N, 0.95 * ref))
+            verdict = "met" if k >= 0.95 * ref * N else ("short" if p < 0.05 else "unresolved")
+            out[f"{n}x{d}"] = {"k": k, "N": N, "reference": ref, "ratio": k / N / ref, "p": p, "verdict": verdict}
+    return out
+
+
+def paired(rows, key, rule):
+    """Discordant pairs of "which one": batches only ``key`` names right, only ``rule`` does, and McNemar's exact p.
+
+    Per cell and pooled over the cells with an outlier.
+    """
+    out, tot = {}, np.zeros(2, int)
+    for n in SIZES:
+        for d in SHIFTS[1:]:
+            a, b = _named(rows, key, n, d), _named(rows, rule, n, d)
+            dis = np.array([np.sum(a & ~b), np.sum(~a & b)])
+            tot += dis
+            out[f"{n}x{d}"] = dis.tolist()
+    p = binomtest(int(tot[0]), int(tot.sum())).pvalue if tot.sum() else 1.0
+    out["pooled"] = {"only_tool": int(tot[0]), "only_rule": int(tot[1]), "p": float(p)}
+    return out
+
+
 def verdicts(res):
     """The targets, per prior, against the Bayes-optimal rule of the design (:func:`oracle_design`) and the others."""
     out = {}
@@ -358,8 +429,8 @@ def verdicts(res):
             "detection_ratio_tool_odds": _ratios(r, R[fair], "detected_0.5", cells),
             # the oracle that also knows the batch's centre (an upper bound no rule without it reaches)
             "which_one_ratio_centre_known": _ratios(r, R["oracle"], "which_one", cells),
-            # against the same rule with the tool's outlier shape (every parameter, a wide normal)
-            "which_one_ratio_tool_shape": _ratios(r, R["tool_shape_rule"], "which_one", cells),
+            # against the Bayes rule of the tool's own outlier model, on the same batches
+            "which_one_ratio_tool_model": _ratios(r, R["tool_model_rule"], "which_one", cells),
             "detection_ratio_centre_known": _ratios(r, R["oracle"], "detected_0.5", cells),
             "false_alarm_max": max(r[f"{n}x0"]["false_alarm_0.3"] for n in SIZES),
         }
@@ -369,13 +440,14 @@ def verdicts(res):
 def figure(res, path):
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(14.5, 4.2), layout="constrained")
-    axes = fig.subplots(1, 4)
+    fig = Figure(figsize=(18, 4.2), layout="constrained")
+    axes = fig.subplots(1, 5)
     panels = (
         ("default", "outlier_prob"),
         ("informed", "outlier_prob"),
         ("default", "odd_one_prob"),
         ("oracle_design", "outlier_prob"),  # the reference at the design's odds: a check of the bands
+        ("oracle_design_tool_odds", "outlier_prob"),  # the same rule at the tool's odds: what odds alone do
     )
     for ax, (key, what) in zip(axes, panels):
         bins = [b for b in res["reliability"][key][what] if b["cases"]]
@@ -397,6 +469,10 @@ def figure(res, path):
         ax.set_title(f"{key}: {what}")
         ax.legend(loc="upper left", fontsize="small")
     fig.savefig(path, dpi=110)
+
+
+def _shown(x):
+    return f"{x:.3f}" if isinstance(x, float) else str(x)
 
 
 def markdown(res):
@@ -433,8 +509,21 @@ def markdown(res):
     for key, v in res["verdicts"].items():
         lines.append(f"- {key}:")
         for k, val in v.items():
-            shown = ", ".join(f"{c} {x:.3f}" for c, x in val.items()) if isinstance(val, dict) else val
+            if k == "which_one_vs_reference":
+                continue
+            shown = ", ".join(f"{c} {_shown(x)}" for c, x in val.items()) if isinstance(val, dict) else val
             lines.append(f"  - {k}: {shown}")
+    if "reference" in res:
+        lines.append(
+            f"\n## Which one against the Bayes-optimal rate ({res['reference']['batches_per_cell']} reference batches a cell)\n"
+        )
+        lines.append("| prior | cell | named | reference | ratio | p (rate >= 0.95 x reference) | verdict |")
+        lines.append("|---|---|---|---|---|---|---|")
+        for key in ("default", "informed"):
+            for c, t in res["verdicts"][key]["which_one_vs_reference"].items():
+                lines.append(
+                    f"| {key} | {c} | {t['k']} of {t['N']} | {t['reference']:.3f} | {t['ratio']:.3f} | {t['p']:.3f} | {t['verdict']} |"
+                )
     return "\n".join(lines) + "\n"
 
 
@@ -459,38 +548,47 @@ def compact_rule(batch):
     return np.eye(len(m))[int(np.argmin(chi2))]
 
 
-def tool_shape_rule(batch):
-    """Which one, by the Bayes rule whose outlier has the tool's shape: off in every parameter, spreads known.
+def prior_taus(batch, spread_prior=None, n_tau=1024):
+    """``n_tau`` spreads in x (T, 5) drawn from the tool's spread prior: its default, or ``spread_prior`` (the informed one)."""
+    pop = Population(DS, spread_prior=spread_prior)
+    z = np.random.default_rng(batch["seed_oracle"]).standard_normal((n_tau, 5))
+    return np.exp(pop.logtau_mean + pop.logtau_sd * z)
 
-    As :func:`oracle_design` (the spreads known, the centre integrated out),
-    but the outlier's parameters scatter about the centre by a
-    ``OUTLIER_SCALE`` times wider normal in every parameter (the tool's
-    outlier component) instead of one parameter shifted by the design's
-    sizes.  It tells how much of the tool's shortfall against
-    :func:`oracle_design` the outlier component's shape explains.  Returns a
-    one-hot ``odd_one_prob``.
+
+def tool_model_rule(batch, taus):
+    """Which one, by the Bayes rule of the tool's own outlier model: one parameter off by a wider normal.
+
+    As :func:`oracle_design` (the centre integrated out), averaged over the
+    spreads ``taus`` (T, 5) in x -- the true ones (:func:`_taus`), draws about
+    them (one batch's knowledge), or draws of the tool's default hyperprior
+    (:func:`prior_taus`) -- but the odd module has one parameter, each alike,
+    drawn from the tool's moderate outlier component -- a normal
+    ``OUTLIER_SCALE`` times wider than the spread -- instead of shifted by the
+    design's sizes.  That is the tool's model at small outlier fractions
+    (two parameters off at once, and the 20 % gross share, are left out).  The
+    tool's "which one" against it separates what its model's shape costs
+    from what its inference (learning the spreads, sampling) costs.  Returns
+    its ``odd_one_prob``.
     """
     m0, P0 = centre_prior()
-    tau = _taus(batch, 0.0, 1)[0]
     y = np.array([batch["lik"][m][0] for m in batch["ids"]]) - m0
-    member = np.array([batch["lik"][m][1] for m in batch["ids"]]) + tau**2 * np.eye(5)
-    logp = []
-    for i in range(len(y)):
-        V = member.copy()
-        V[i] += (OUTLIER_SCALE * tau) ** 2 * np.eye(5)
-        logp.append(_centre_integrated(y, V[None], P0)[0][0])
-    return np.eye(len(y))[int(np.argmax(logp))]
+    n, T = len(y), len(taus)
+    member = np.array([batch["lik"][m][1] for m in batch["ids"]])[None] + taus[:, None, :, None] ** 2 * np.eye(5)
+    V = np.repeat(member[:, None, None], n, axis=1).repeat(5, axis=2)  # (T, i, j, n, 5, 5)
+    i, j = np.meshgrid(np.arange(n), np.arange(5), indexing="ij")
+    V[:, i, j, i, j, j] += (OUTLIER_SCALE * taus[:, None, :]) ** 2
+    L = _centre_integrated(y, V.reshape(-1, n, 5, 5), P0)[0].reshape(T, n, 5)
+    log_hi = logsumexp(L, axis=(0, 2))  # module i off in one parameter, each alike, averaged over the spread draws
+    return np.exp(log_hi - logsumexp(log_hi))
 
 
-def with_more_oracles(row):
-    """The row with the other rules of the comparison (module docstring), the batch redrawn from its seed (:func:`_batch`).
+def _rule_answers(batch, default_knowledge=False):
+    """The answers of the reference rules on one batch: ``{rule: {"outlier_prob": [...], "odd_one_prob": [...]}}``.
 
-    The Bayes-optimal rule of the design, not knowing the centre
-    (:func:`oracle_design`), at the design's and at the tool's prior odds,
-    and with the spreads known to one batch's precision; the compact rule.
+    ``default_knowledge``: also the tool's model's rule knowing the spreads
+    only through the default hyperprior (1024 draws: ~0.5 s a batch of 8).
     """
-    batch = _batch(row["seed"], row["n"], row["shift"])
-    out = dict(row)
+    out = {}
     for key, odds, sd in (
         ("oracle_design", None, 0.0),
         ("oracle_design_tool_odds", tool_p_none, 0.0),
@@ -498,36 +596,128 @@ def with_more_oracles(row):
     ):
         p, odd = oracle_design(batch, p_none=odds, tau_log_sd=sd)
         out[key] = {"outlier_prob": p.tolist(), "odd_one_prob": odd.tolist()}
-    # no outlier probability: its "detected" and "false alarm" columns mean nothing
-    out["compact_rule"] = {"outlier_prob": [0.0] * row["n"], "odd_one_prob": compact_rule(batch).tolist()}
-    out["tool_shape_rule"] = {"outlier_prob": [0.0] * row["n"], "odd_one_prob": tool_shape_rule(batch).tolist()}
+    # no outlier probability: their "detected" and "false alarm" columns mean nothing
+    n = len(batch["ids"])
+    out["compact_rule"] = {"outlier_prob": [0.0] * n, "odd_one_prob": compact_rule(batch).tolist()}
+    for key, taus in (
+        ("tool_model_rule", _taus(batch, 0.0, 1)),
+        ("tool_model_rule_history", _taus(batch, HISTORY_TAU_LOG_SD, 256)),
+        *((("tool_model_rule_default", prior_taus(batch)),) if default_knowledge else ()),
+    ):
+        out[key] = {"outlier_prob": [0.0] * n, "odd_one_prob": tool_model_rule(batch, taus).tolist()}
     return out
 
 
-KEYS = (
-    "default",
-    "informed",
-    "oracle",
+def with_more_oracles(row):
+    """The row with the reference rules' answers (:func:`_rule_answers`), the batch redrawn from its seed (:func:`_batch`)."""
+    batch = _batch(row["seed"], row["n"], row["shift"])
+    out = {**row, **_rule_answers(batch, default_knowledge=True)}
+    prior = _cached_priors().get(str(row.get("prior_seed")))
+    if prior is not None:  # a row whose informed prior was not kept: fitting it again takes 10 s a rep
+        taus = prior_taus(batch, {k: tuple(v) for k, v in prior.items()})
+        out["tool_model_rule_informed"] = {
+            "outlier_prob": [0.0] * row["n"],
+            "odd_one_prob": tool_model_rule(batch, taus).tolist(),
+        }
+    return out
+
+
+#: The reference rules, computed on the study's batches and, for their rates, on many more.
+RULES = (
     "oracle_design",
     "oracle_design_tool_odds",
     "oracle_design_history_tool_odds",
     "compact_rule",
-    "tool_shape_rule",
+    "tool_model_rule",
+    "tool_model_rule_history",
 )
+
+
+def reference_rates(per_cell, seed=2711):
+    """The reference rules' rates on ``per_cell`` fresh batches per size and shift: a reference without the study's sampling error.
+
+    The rules need no fit, so their rates can be measured on many more
+    batches than the tool's (the same design, the module draws left out).
+    """
+    seeds = np.random.SeedSequence(seed).generate_state(per_cell * len(SIZES) * len(SHIFTS))
+    rows, k = [], 0
+    t0 = time.perf_counter()
+    for n in SIZES:
+        for d in SHIFTS:
+            for _ in range(per_cell):
+                s = int(seeds[k])
+                k += 1
+                batch = draw_batch(np.random.default_rng(s), n, "spreads" if d else "none", spreads=d, n_draws=1)
+                batch["seed_oracle"] = s + 7
+                rows.append({"n": n, "shift": d, "outlier": batch["outlier"], **_rule_answers(batch)})
+            print(f"  reference {n}x{d}: {per_cell} batches ({time.perf_counter() - t0:.0f} s)", flush=True)
+    return {"batches_per_cell": per_cell, "seed": seed, "rates": {key: rates(rows, key) for key in RULES}}
+
+
+KEYS = ("default", "informed", "oracle", *RULES, "tool_model_rule_default", "tool_model_rule_informed")
+
+
+#: The study's batches fitted once more with the true spreads stated (to this log-sd), and which.
+TOLD_ROWS, TOLD_LOG_SD, TOLD_SHIFT = RESULTS / "outlier_study_told_rows.jsonl", 0.05, 4
+
+
+def told_spreads(rows_path):
+    """Fit the study's 4-spread batches with the bench's true spreads stated: the tool with its rule's knowledge.
+
+    Against :func:`tool_model_rule` with the spreads known, batch by batch,
+    this separates the tool's inference from what it knows: the same
+    knowledge should give the same answer.
+    """
+    done = {r["seed"] for r in map(json.loads, TOLD_ROWS.read_text().splitlines())} if TOLD_ROWS.exists() else set()
+    for row in map(json.loads, rows_path.read_text().splitlines()):
+        if row["shift"] != TOLD_SHIFT or row["seed"] in done:
+            continue
+        batch = _batch(row["seed"], row["n"], row["shift"])
+        tau = np.where(LEVEL, SPREAD, SPREAD * np.abs(batch["type"]))
+        told = {name: (float(t), TOLD_LOG_SD) for name, t in zip(TAU_NAMES, tau)}
+        r = _fit(batch["draws"], row["seed"] + 1, told)
+        out = {"seed": row["seed"], "n": row["n"], "shift": row["shift"], "outlier": row["outlier"]}
+        out["told"] = {
+            "odd_one_prob": [r.odd_one_prob[m] for m in batch["ids"]],
+            "converged": r.diagnostics["converged"],
+        }
+        with open(TOLD_ROWS, "a") as f:
+            f.write(json.dumps(out) + "\n")
+
+
+def told_verdict(rows):
+    """The told fits against the spreads-knowing rule of the tool's model on the same batches (:func:`paired`)."""
+    told = {r["seed"]: r["told"] for r in map(json.loads, TOLD_ROWS.read_text().splitlines())}
+    sel = [{**r, "told": told[r["seed"]]} for r in rows if r["seed"] in told]
+    return {
+        "batches": len(sel),
+        "converged": float(np.mean([r["told"]["converged"] for r in sel])),
+        **paired(sel, "told", "tool_model_rule"),
+    }
 
 
 def summarise(rows_path):
     rows = [with_more_oracles(json.loads(line)) for line in rows_path.read_text().splitlines() if line.strip()]
     res = {"n_batches": len(rows)}
-    res["rates"] = {k: rates(rows, k) for k in KEYS}
+    res["rates"] = {k: rates([r for r in rows if k in r], k) for k in KEYS}
     res["reliability"] = {
         k: {w: reliability(rows, k, w) for w in ("outlier_prob", "odd_one_prob")}
-        for k in ("default", "informed", "oracle_design")  # the last: the design's own odds, a check of the bands
+        # the design's own odds (a check of the bands), and the tool's: what odds alone do to calibration
+        for k in ("default", "informed", "oracle_design", "oracle_design_tool_odds")
     }
     res["oracle_design_check_max_abs"] = check = check_oracle_design()
     if check > ORACLE_CHECK_TOL:
         raise AssertionError(f"oracle_design with the centre known differs from oracle by {check:.2e}")
     res["verdicts"] = verdicts(res)
+    # each prior against its model's Bayes rule with the same knowledge of the spreads, batch by batch
+    for key, rule in (("default", "tool_model_rule_default"), ("informed", "tool_model_rule_informed")):
+        res["verdicts"][key]["which_one_paired_vs_own_rule"] = paired([r for r in rows if rule in r], key, rule)
+    if TOLD_ROWS.exists():
+        res["told_spreads"] = told_verdict(rows)
+    if REFERENCE.exists():
+        res["reference"] = ref = json.loads(REFERENCE.read_text())
+        for key in ("default", "informed"):
+            res["verdicts"][key]["which_one_vs_reference"] = which_one_test(rows, key, ref["rates"]["oracle_design"])
     res["converged"] = float(np.mean([r[k]["converged"] for r in rows for k in ("default", "informed")]))
     res["median_fit_seconds"] = float(np.median([r[k]["seconds"] for r in rows for k in ("default", "informed")]))
     write_json(RESULTS / "outlier_study.json", res)
@@ -590,12 +780,29 @@ def main(argv=None):
     ap.add_argument("--summarise", action="store_true")
     ap.add_argument("--clear-case", action="store_true", help="only the issue's 8-module case (S0 7.2 %% low)")
     ap.add_argument("--check-oracle", action="store_true", help="only the known-answer check of oracle_design")
+    ap.add_argument(
+        "--told",
+        action="store_true",
+        help=f"only the 4-spread batches with the true spreads stated -> {TOLD_ROWS.name}",
+    )
+    ap.add_argument(
+        "--reference",
+        type=int,
+        metavar="N",
+        help=f"only the reference rules' rates on N batches per cell -> {REFERENCE.name}",
+    )
     args = ap.parse_args(argv)
     if args.check_oracle:
         print(f"oracle_design with the centre known against oracle: max |difference| {check_oracle_design():.2e}")
         return
+    if args.reference:
+        write_json(REFERENCE, reference_rates(args.reference))
+        return
     if args.clear_case:
         clear_case()
+        return
+    if args.told:
+        told_spreads(args.rows)
         return
     if not args.summarise:
         done = set()
@@ -604,19 +811,19 @@ def main(argv=None):
         print(f"earlier batches: {args.batches} spread priors ...", flush=True)
         seeds = np.random.SeedSequence(args.seed).generate_state(args.batches * len(SIZES) * len(SHIFTS) + args.batches)
         tasks, b = [], 0
-        priors = {}
         for rep in range(args.batches):
             for n in SIZES:
                 for d in SHIFTS:
                     s = int(seeds[b])
                     b += 1
                     if (s, n, d) not in done:
-                        tasks.append((s, n, d, rep))
+                        tasks.append((s, n, d, int(seeds[-1 - rep])))
         need = sorted({t[3] for t in tasks})
         with multiprocessing.get_context("fork").Pool(args.workers) as pool:
-            for rep, sp in zip(need, pool.map(earlier_prior, [int(seeds[-1 - r]) for r in need])):
-                priors[rep] = sp
-            tasks = [(s, n, d, priors[rep]) for s, n, d, rep in tasks]
+            cache = _cached_priors()
+            cache.update(zip(map(str, need), pool.map(earlier_prior, need)))
+            write_json(PRIORS, cache)
+            tasks = [(s, n, d, ps, informed_prior(ps)) for s, n, d, ps in tasks]
             print(f"study: {len(tasks)} batches x 2 priors on {args.workers} workers", flush=True)
             t0 = time.perf_counter()
             with open(args.rows, "a") as f:

@@ -184,7 +184,7 @@ def fit_population(
         Hyper draws averaged for ``outlier_prob``, ``odd_one_prob``,
         ``p_any_outlier`` and the modules' leave-one-out ``deviation`` (a
         module whose reweighting is unreliable, Pareto k above 0.7, is left
-        out by sampling the others again: a few seconds each).
+        out by sampling the others again: 10-40 s each in a batch of three).
     design_reach : bool
         For batches under :data:`SMALL_BATCH` modules, find the smallest
         deviation this design flags (:mod:`.detectable`; a few seconds).
