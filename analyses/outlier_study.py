@@ -582,6 +582,16 @@ def tool_model_rule(batch, taus):
     return np.exp(log_hi - logsumexp(log_hi))
 
 
+def _which_only(odd):
+    """A rule's answer that has only ``odd_one_prob``: its "detected" and "false alarm" columns mean nothing."""
+    return {"outlier_prob": [0.0] * len(odd), "odd_one_prob": odd.tolist()}
+
+
+def _jsonl(path):
+    """The rows of a JSON-lines file."""
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
 def _rule_answers(batch, default_knowledge=False):
     """The answers of the reference rules on one batch: ``{rule: {"outlier_prob": [...], "odd_one_prob": [...]}}``.
 
@@ -596,15 +606,13 @@ def _rule_answers(batch, default_knowledge=False):
     ):
         p, odd = oracle_design(batch, p_none=odds, tau_log_sd=sd)
         out[key] = {"outlier_prob": p.tolist(), "odd_one_prob": odd.tolist()}
-    # no outlier probability: their "detected" and "false alarm" columns mean nothing
-    n = len(batch["ids"])
-    out["compact_rule"] = {"outlier_prob": [0.0] * n, "odd_one_prob": compact_rule(batch).tolist()}
+    out["compact_rule"] = _which_only(compact_rule(batch))
     for key, taus in (
         ("tool_model_rule", _taus(batch, 0.0, 1)),
         ("tool_model_rule_history", _taus(batch, HISTORY_TAU_LOG_SD, 256)),
         *((("tool_model_rule_default", prior_taus(batch)),) if default_knowledge else ()),
     ):
-        out[key] = {"outlier_prob": [0.0] * n, "odd_one_prob": tool_model_rule(batch, taus).tolist()}
+        out[key] = _which_only(tool_model_rule(batch, taus))
     return out
 
 
@@ -615,10 +623,7 @@ def with_more_oracles(row):
     prior = _cached_priors().get(str(row.get("prior_seed")))
     if prior is not None:  # a row whose informed prior was not kept: fitting it again takes 10 s a rep
         taus = prior_taus(batch, {k: tuple(v) for k, v in prior.items()})
-        out["tool_model_rule_informed"] = {
-            "outlier_prob": [0.0] * row["n"],
-            "odd_one_prob": tool_model_rule(batch, taus).tolist(),
-        }
+        out["tool_model_rule_informed"] = _which_only(tool_model_rule(batch, taus))
     return out
 
 
@@ -668,8 +673,8 @@ def told_spreads(rows_path):
     this separates the tool's inference from what it knows: the same
     knowledge should give the same answer.
     """
-    done = {r["seed"] for r in map(json.loads, TOLD_ROWS.read_text().splitlines())} if TOLD_ROWS.exists() else set()
-    for row in map(json.loads, rows_path.read_text().splitlines()):
+    done = {r["seed"] for r in _jsonl(TOLD_ROWS)} if TOLD_ROWS.exists() else set()
+    for row in _jsonl(rows_path):
         if row["shift"] != TOLD_SHIFT or row["seed"] in done:
             continue
         batch = _batch(row["seed"], row["n"], row["shift"])
@@ -687,7 +692,7 @@ def told_spreads(rows_path):
 
 def told_verdict(rows):
     """The told fits against the spreads-knowing rule of the tool's model on the same batches (:func:`paired`)."""
-    told = {r["seed"]: r["told"] for r in map(json.loads, TOLD_ROWS.read_text().splitlines())}
+    told = {r["seed"]: r["told"] for r in _jsonl(TOLD_ROWS)}
     sel = [{**r, "told": told[r["seed"]]} for r in rows if r["seed"] in told]
     return {
         "batches": len(sel),
@@ -697,7 +702,7 @@ def told_verdict(rows):
 
 
 def summarise(rows_path):
-    rows = [with_more_oracles(json.loads(line)) for line in rows_path.read_text().splitlines() if line.strip()]
+    rows = [with_more_oracles(r) for r in _jsonl(rows_path)]
     res = {"n_batches": len(rows)}
     res["rates"] = {k: rates([r for r in rows if k in r], k) for k in KEYS}
     res["reliability"] = {
@@ -807,7 +812,7 @@ def main(argv=None):
     if not args.summarise:
         done = set()
         if args.rows.exists():
-            done = {(r["seed"], r["n"], r["shift"]) for r in map(json.loads, args.rows.read_text().splitlines()) if r}
+            done = {(r["seed"], r["n"], r["shift"]) for r in _jsonl(args.rows)}
         print(f"earlier batches: {args.batches} spread priors ...", flush=True)
         seeds = np.random.SeedSequence(args.seed).generate_state(args.batches * len(SIZES) * len(SHIFTS) + args.batches)
         tasks, b = [], 0
