@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
-from population_checks import DS, draw_batch  # noqa: E402
+from population_checks import DS, draw_batch, read_jsonl  # noqa: E402
 
 from tembayes.calibrate.population import deviation as deviation_module  # noqa: E402
 from tembayes.calibrate.population import fit_population  # noqa: E402
@@ -122,11 +122,7 @@ def main(argv=None):
     ap.add_argument("--summarise", action="store_true")
     args = ap.parse_args(argv)
     if not args.summarise:
-        done = (
-            {(r["seed"], r["n"], r["shift"]) for r in map(json.loads, ROWS.read_text().splitlines())}
-            if ROWS.exists()
-            else set()
-        )
+        done = {(r["seed"], r["n"], r["shift"]) for r in read_jsonl(ROWS)} if ROWS.exists() else set()
         seeds = np.random.SeedSequence(args.seed).generate_state(args.batches * len(CELLS))
         for k, (seed, (n, shift)) in enumerate(zip(seeds, CELLS * args.batches)):
             if (int(seed), n, shift) in done:
@@ -135,7 +131,7 @@ def main(argv=None):
                 for row in batch_rows(int(seed), n, shift):
                     f.write(json.dumps(row) + "\n")
             print(f"  {k + 1}/{len(seeds)}: {n} modules, shift {shift}", flush=True)
-    summarise([json.loads(line) for line in ROWS.read_text().splitlines() if line.strip()])
+    summarise(read_jsonl(ROWS))
 
 
 if __name__ == "__main__":

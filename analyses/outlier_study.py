@@ -82,6 +82,7 @@ from population_checks import (  # noqa: E402
     SPREAD,
     draw_batch,
     member_logn,
+    read_jsonl,
     to_theta,
     to_x,
 )
@@ -116,17 +117,15 @@ def earlier_prior(seed):
 PRIORS = RESULTS / "outlier_study_priors.json"
 
 
-def _cached_priors():
+def cached_priors():
+    """The informed priors kept in :data:`PRIORS`: seed (str) -> ``spread_prior``, lists for tuples."""
     return json.loads(PRIORS.read_text()) if PRIORS.exists() else {}
 
 
-def informed_prior(seed):
-    """:func:`earlier_prior`, read from or added to :data:`PRIORS`."""
-    cache = _cached_priors()
-    if str(seed) not in cache:
-        cache[str(seed)] = earlier_prior(seed)
-        write_json(PRIORS, cache)
-    return {k: tuple(v) for k, v in cache[str(seed)].items()}
+def _prior_of(priors, seed):
+    """The ``spread_prior`` of ``seed`` from :func:`cached_priors`' dict, or None if it was not kept."""
+    prior = priors.get(str(seed))
+    return None if prior is None else {k: tuple(v) for k, v in prior.items()}
 
 
 def oracle(batch, shift, p_none=None, tau_log_sd=0.0, n_tau=256):
@@ -163,13 +162,18 @@ def oracle(batch, shift, p_none=None, tau_log_sd=0.0, n_tau=256):
     return _answers(log_hi[:, 1:], p_none, shift)
 
 
+def _true_spreads(batch, x=True):
+    """The bench's unit spreads of the batch's type: in x (slopes relative to the datasheet), or in SI (``x=False``)."""
+    return np.where(LEVEL, SPREAD, SPREAD * np.abs(batch["type"]) / (REF if x else 1.0))
+
+
 def _taus(batch, tau_log_sd, n_tau):
     """The spreads in x (T, 5) an oracle integrates over: the true ones, or ``n_tau`` draws about them.
 
     The slopes' spreads are relative to the type's slopes (the bench's
     parameterisation): an oracle knows them in x units, as the true type's.
     """
-    tau0 = np.where(LEVEL, SPREAD, SPREAD * np.abs(batch["type"]) / REF)
+    tau0 = _true_spreads(batch)
     z = np.random.default_rng(batch["seed_oracle"]).standard_normal((n_tau, 5)) if tau_log_sd else np.zeros((1, 5))
     return tau0 * np.exp(tau_log_sd * z)
 
@@ -538,7 +542,7 @@ def compact_rule(batch):
     mean, each module's deviations standardised by its spread and measurement.
     Returns a one-hot ``odd_one_prob`` (it has no outlier probability).
     """
-    tau = np.where(LEVEL, SPREAD, SPREAD * np.abs(batch["type"]) / REF)
+    tau = _true_spreads(batch)
     m = np.array([batch["lik"][mid][0] for mid in batch["ids"]])
     v = np.array([np.diag(batch["lik"][mid][1]) for mid in batch["ids"]]) + tau**2
     chi2 = []
@@ -587,11 +591,6 @@ def _which_only(odd):
     return {"outlier_prob": [0.0] * len(odd), "odd_one_prob": odd.tolist()}
 
 
-def _jsonl(path):
-    """The rows of a JSON-lines file."""
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-
-
 def _rule_answers(batch, default_knowledge=False):
     """The answers of the reference rules on one batch: ``{rule: {"outlier_prob": [...], "odd_one_prob": [...]}}``.
 
@@ -607,23 +606,28 @@ def _rule_answers(batch, default_knowledge=False):
         p, odd = oracle_design(batch, p_none=odds, tau_log_sd=sd)
         out[key] = {"outlier_prob": p.tolist(), "odd_one_prob": odd.tolist()}
     out["compact_rule"] = _which_only(compact_rule(batch))
-    for key, taus in (
-        ("tool_model_rule", _taus(batch, 0.0, 1)),
-        ("tool_model_rule_history", _taus(batch, HISTORY_TAU_LOG_SD, 256)),
-        *((("tool_model_rule_default", prior_taus(batch)),) if default_knowledge else ()),
-    ):
+    spreads = {
+        "tool_model_rule": _taus(batch, 0.0, 1),
+        "tool_model_rule_history": _taus(batch, HISTORY_TAU_LOG_SD, 256),
+    }
+    if default_knowledge:
+        spreads["tool_model_rule_default"] = prior_taus(batch)
+    for key, taus in spreads.items():
         out[key] = _which_only(tool_model_rule(batch, taus))
     return out
 
 
-def with_more_oracles(row):
-    """The row with the reference rules' answers (:func:`_rule_answers`), the batch redrawn from its seed (:func:`_batch`)."""
+def with_more_oracles(row, priors):
+    """The row with the reference rules' answers (:func:`_rule_answers`), the batch redrawn from its seed (:func:`_batch`).
+
+    ``priors``: :func:`cached_priors`; a row whose informed prior was not
+    kept gets no ``tool_model_rule_informed`` (fitting it again takes 10 s a rep).
+    """
     batch = _batch(row["seed"], row["n"], row["shift"])
     out = {**row, **_rule_answers(batch, default_knowledge=True)}
-    prior = _cached_priors().get(str(row.get("prior_seed")))
-    if prior is not None:  # a row whose informed prior was not kept: fitting it again takes 10 s a rep
-        taus = prior_taus(batch, {k: tuple(v) for k, v in prior.items()})
-        out["tool_model_rule_informed"] = _which_only(tool_model_rule(batch, taus))
+    prior = _prior_of(priors, row.get("prior_seed"))
+    if prior is not None:
+        out["tool_model_rule_informed"] = _which_only(tool_model_rule(batch, prior_taus(batch, prior)))
     return out
 
 
@@ -673,12 +677,12 @@ def told_spreads(rows_path):
     this separates the tool's inference from what it knows: the same
     knowledge should give the same answer.
     """
-    done = {r["seed"] for r in _jsonl(TOLD_ROWS)} if TOLD_ROWS.exists() else set()
-    for row in _jsonl(rows_path):
+    done = {r["seed"] for r in read_jsonl(TOLD_ROWS)} if TOLD_ROWS.exists() else set()
+    for row in read_jsonl(rows_path):
         if row["shift"] != TOLD_SHIFT or row["seed"] in done:
             continue
         batch = _batch(row["seed"], row["n"], row["shift"])
-        tau = np.where(LEVEL, SPREAD, SPREAD * np.abs(batch["type"]))
+        tau = _true_spreads(batch, x=False)
         told = {name: (float(t), TOLD_LOG_SD) for name, t in zip(TAU_NAMES, tau)}
         r = _fit(batch["draws"], row["seed"] + 1, told)
         out = {"seed": row["seed"], "n": row["n"], "shift": row["shift"], "outlier": row["outlier"]}
@@ -692,7 +696,7 @@ def told_spreads(rows_path):
 
 def told_verdict(rows):
     """The told fits against the spreads-knowing rule of the tool's model on the same batches (:func:`paired`)."""
-    told = {r["seed"]: r["told"] for r in _jsonl(TOLD_ROWS)}
+    told = {r["seed"]: r["told"] for r in read_jsonl(TOLD_ROWS)}
     sel = [{**r, "told": told[r["seed"]]} for r in rows if r["seed"] in told]
     return {
         "batches": len(sel),
@@ -702,7 +706,8 @@ def told_verdict(rows):
 
 
 def summarise(rows_path):
-    rows = [with_more_oracles(r) for r in _jsonl(rows_path)]
+    priors = cached_priors()
+    rows = [with_more_oracles(r, priors) for r in read_jsonl(rows_path)]
     res = {"n_batches": len(rows)}
     res["rates"] = {k: rates([r for r in rows if k in r], k) for k in KEYS}
     res["reliability"] = {
@@ -812,7 +817,7 @@ def main(argv=None):
     if not args.summarise:
         done = set()
         if args.rows.exists():
-            done = {(r["seed"], r["n"], r["shift"]) for r in _jsonl(args.rows)}
+            done = {(r["seed"], r["n"], r["shift"]) for r in read_jsonl(args.rows)}
         print(f"earlier batches: {args.batches} spread priors ...", flush=True)
         seeds = np.random.SeedSequence(args.seed).generate_state(args.batches * len(SIZES) * len(SHIFTS) + args.batches)
         tasks, b = [], 0
@@ -823,12 +828,12 @@ def main(argv=None):
                     b += 1
                     if (s, n, d) not in done:
                         tasks.append((s, n, d, int(seeds[-1 - rep])))
-        need = sorted({t[3] for t in tasks})
+        priors = cached_priors()
+        need = sorted({t[3] for t in tasks} - set(map(int, priors)))
         with multiprocessing.get_context("fork").Pool(args.workers) as pool:
-            cache = _cached_priors()
-            cache.update(zip(map(str, need), pool.map(earlier_prior, need)))
-            write_json(PRIORS, cache)
-            tasks = [(s, n, d, ps, informed_prior(ps)) for s, n, d, ps in tasks]
+            priors.update(zip(map(str, need), pool.map(earlier_prior, need)))
+            write_json(PRIORS, priors)
+            tasks = [(s, n, d, ps, _prior_of(priors, ps)) for s, n, d, ps in tasks]
             print(f"study: {len(tasks)} batches x 2 priors on {args.workers} workers", flush=True)
             t0 = time.perf_counter()
             with open(args.rows, "a") as f:

@@ -33,6 +33,7 @@ Writes analyses/results/population_checks.json and prints the tables.
 from __future__ import annotations
 
 import argparse
+import json
 import multiprocessing
 import sys
 import time
@@ -146,6 +147,11 @@ def gaussian_loglikes(lik):
 
         out[mid] = f
     return out
+
+
+def read_jsonl(path):
+    """The rows of a JSON-lines file (blank lines skipped)."""
+    return [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
 
 
 def member_logn(mL, CL, tau):

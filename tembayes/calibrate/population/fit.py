@@ -49,6 +49,11 @@ def _sampler_draws(n_modules, max_draws_per_module):
     return max(IMPORTANCE_MIN_DRAWS, min(max_draws_per_module, IMPORTANCE_BUDGET // n_modules))
 
 
+def _importance(summ, max_draws_per_module):
+    """The importance terms the sampler uses for these module summaries."""
+    return summ.importance_terms(_sampler_draws(len(summ.x), max_draws_per_module))
+
+
 def _sample(pop, summ, method, max_draws_per_module, run):
     """Sample with the terms ``method`` asks for; "auto" re-runs with importance sums if the check fails.
 
@@ -56,7 +61,7 @@ def _sample(pop, summ, method, max_draws_per_module, run):
     """
 
     def with_importance(check):
-        terms = summ.importance_terms(_sampler_draws(len(summ.x), max_draws_per_module))
+        terms = _importance(summ, max_draws_per_module)
         return _Sampled(terms, *run(terms, "population (importance)"), check)
 
     if method == "importance":
@@ -78,7 +83,7 @@ def _sample(pop, summ, method, max_draws_per_module, run):
     return with_importance(check)
 
 
-def _refitter(pop, summ, ids, terms_name, sampler, max_draws_per_module, n_draws):
+def _refitter(pop, summ, ids, terms_name, max_draws_per_module, n_draws, *, seed, nwalkers, budget):
     """``refit(i)`` of :func:`.deviation.loo_deviation`: about ``n_draws`` natural hyper draws without module ``i``.
 
     The same kind of terms as the batch's run, each refit on its own
@@ -87,12 +92,11 @@ def _refitter(pop, summ, ids, terms_name, sampler, max_draws_per_module, n_draws
     """
     if len(ids) < 3:
         return None
-    seed, nwalkers, budget = sampler
 
     def refit(i):
         rest = summ.without(i)
         terms = (
-            rest.importance_terms(_sampler_draws(len(rest.x), max_draws_per_module))
+            _importance(rest, max_draws_per_module)
             if terms_name == "importance"
             else GaussianTerms(rest.mean, rest.cov)
         )
@@ -223,7 +227,15 @@ def fit_population(
     members = batch_membership(pop, sampled.terms, sampled.kept, n_rao_blackwell)
 
     refit = _refitter(
-        pop, summ, ids, sampled.terms.name, (seed, nwalkers, budget), max_draws_per_module, n_rao_blackwell
+        pop,
+        summ,
+        ids,
+        sampled.terms.name,
+        max_draws_per_module,
+        n_rao_blackwell,
+        seed=seed,
+        nwalkers=nwalkers,
+        budget=budget,
     )
     deviation = loo_deviation(pop, summ.mean, summ.cov, members.hyper, members.log_like, refit)
     i, j = driver(members.odd_one_prob, deviation.p_loo)
