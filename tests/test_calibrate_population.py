@@ -299,6 +299,30 @@ def test_three_modules_name_the_one_that_breaks_the_symmetry():
     # a module whose reweighting is unreliable is left out by a refit, and only such a module
     k_hat = r.diagnostics["deviation_k_hat"]
     assert r.diagnostics["deviation_refit"] == [m for m in r.module_ids if k_hat[m] > 0.7]
+    assert r.diagnostics["deviation_refit_unconverged"] == []
+
+
+def test_a_refit_past_the_fits_time_budget_stops_and_says_it_did_not_converge():
+    """A refit gets what is left of the fit's ``max_seconds``: none left, it stops at its first check."""
+    import time
+
+    from tembayes.calibrate.population.fit import _refitter
+    from tembayes.calibrate.population.sampling import POPULATION_TARGETS, Budget
+    from tembayes.calibrate.population.terms import module_summaries
+    from tembayes.calibrate.priors import law_log_prior
+
+    draws, _, _ = make_batch(7, 3, outlier=0, shift=0.10, at_centre=True, clip=1.0)
+    pop = Population(TEC1_12706)
+    ids = tuple(draws)
+    summ = module_summaries(ids, [draws[m] for m in ids], pop, law_log_prior(TEC1_12706))
+    budget = Budget(40000, 600.0, False, POPULATION_TARGETS)
+    kw = dict(seed=1, nwalkers=32, budget=budget)
+    late = _refitter(pop, summ, ids, "gaussian", 256, 400, deadline=time.perf_counter() - 1.0, **kw)
+    with pytest.warns(PopulationConvergenceWarning):
+        hyper, converged = late(0)
+    assert not converged and hyper.shape == (400, 11)
+    _, converged = _refitter(pop, summ, ids, "gaussian", 256, 400, deadline=None, **kw)(0)
+    assert converged
 
 
 def test_a_module_the_reweighting_cannot_leave_out_is_refitted():
@@ -323,10 +347,11 @@ def test_a_module_the_reweighting_cannot_leave_out_is_refitted():
 
     def refit(i):
         called.append(i)
-        return draws(moved, 2 * tau)
+        return draws(moved, 2 * tau), False
 
     dev = loo_deviation(pop, mean, cov, draws(pop.mu_mean, tau), log_like, refit)
     assert called == [0] and dev.refit.tolist() == [True, False, False] and dev.k_hat[0] > 0.7 > dev.k_hat[1:].max()
+    assert not dev.refit_converged.any()  # the refit said it did not converge
     np.testing.assert_allclose(dev.spreads[0], (mean[0] - moved) / (2 * tau))
     np.testing.assert_allclose(dev.spreads[1:], (mean[1:] - pop.mu_mean) / tau)
     np.testing.assert_allclose(dev.rel[0, [0, 2, 4]], np.expm1(mean[0] - moved)[[0, 2, 4]])

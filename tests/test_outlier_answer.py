@@ -144,6 +144,10 @@ def test_the_answer_says_when_the_deviation_is_approximate_and_when_the_spread_w
     # left out by a refit, its deviation is no approximation
     doc["population_diagnostics"]["deviation_refit"] = ["M1"]
     assert "approximate" not in OutlierAnswer.of(RunSummary.from_json(doc)).lines()[0]
+    # ... unless that refit did not converge
+    doc["population_diagnostics"]["deviation_refit_unconverged"] = ["M1"]
+    first = OutlierAnswer.of(RunSummary.from_json(doc)).lines()[0]
+    assert "(approximate: the fit of the other modules without it did not converge)." in first
     # the S0 spread was stated: the run already knows what would decide it
     assert not any("depends on this type's" in line for line in lines)
     assert lines[-1].startswith("With 3 modules")

@@ -61,6 +61,9 @@ class OutlierAnswer:
         deviation is an approximation, unless ``refit``).
     refit : bool
         Its deviation comes from a fit of the other modules without it.
+    refit_converged : bool
+        That fit met its convergence targets (otherwise its deviation is
+        an approximation still).
     spread_stated : bool
         The run started from a stated spread of the odd one's parameter
         (``[population]`` or ``--population-prior``).
@@ -77,6 +80,7 @@ class OutlierAnswer:
     reach: dict | None = None
     k_hat: float | None = None
     refit: bool = False
+    refit_converged: bool = True
     spread_stated: bool = False
 
     @classmethod
@@ -90,6 +94,7 @@ class OutlierAnswer:
         dev = mods[top].deviation
         par = min(MODULE_PARAMETERS, key=lambda p: dev[p]["p_loo"])
         curve = summary.outlier_vs_spread or {}
+        diag = summary.population_diagnostics
         rows = []
         if curve.get("module") == top:  # the fit picked its parameter by the same rule
             par = curve["parameter"]
@@ -104,10 +109,23 @@ class OutlierAnswer:
             flagged=tuple(m for m, e in mods.items() if (e.outlier_prob or 0.0) > FLAG_PROB),
             what_it_takes=rows,
             reach=summary.smallest_flagged_deviation,
-            k_hat=(summary.population_diagnostics.get("deviation_k_hat") or {}).get(top),
-            refit=top in (summary.population_diagnostics.get("deviation_refit") or ()),
+            k_hat=(diag.get("deviation_k_hat") or {}).get(top),
+            refit=top in (diag.get("deviation_refit") or ()),
+            refit_converged=top not in (diag.get("deviation_refit_unconverged") or ()),
             spread_stated=spread_key(par) in (summary.population_prior or {}),
         )
+
+    def _caveat(self) -> str:
+        """Why the deviation is approximate, if it is."""
+        if self.refit:
+            return (
+                ""
+                if self.refit_converged
+                else " (approximate: the fit of the other modules without it did not converge)"
+            )
+        if self.k_hat is not None and self.k_hat > K_HAT_MAX:
+            return f" (approximate: leave-one-out Pareto k {self.k_hat:.2f} > {K_HAT_MAX})"
+        return ""
 
     def lines(self) -> list[str]:
         """The answer as sentences, the odd one first."""
@@ -120,12 +138,7 @@ class OutlierAnswer:
             f"Likeliest odd one: {self.odd_one} (odd_one_prob {self.odd_one_prob[self.odd_one]:.2f}; "
             f"{', '.join(nxt)}). Its {p} sits {100 * d['rel']:+.1f} % from the other modules "
             f"({d['spreads']:+.1f} of their spreads); a unit of their population lies that far out "
-            f"with probability {d['p_loo']:.2g}"
-            + (
-                f" (approximate: leave-one-out Pareto k {self.k_hat:.2f} > {K_HAT_MAX})."
-                if self.k_hat is not None and self.k_hat > K_HAT_MAX and not self.refit
-                else "."
-            )
+            f"with probability {d['p_loo']:.2g}{self._caveat()}."
         )
         out.append(f"Probability that the batch holds an outlier at all: {self.p_any_outlier:.2f}.")
         if self.n_modules < SMALL_BATCH and self.odd_one not in self.flagged and not self.spread_stated:

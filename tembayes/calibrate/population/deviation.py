@@ -48,6 +48,9 @@ class Deviation:
     refit : ndarray of bool, shape (N,)
         The module's row comes from a refit of the other modules, not from
         the reweighting (``k_hat`` above :data:`K_HAT_MAX`).
+    refit_converged : ndarray of bool, shape (N,)
+        That refit met its convergence targets (False where there was none):
+        an unconverged refit's row is an approximation too.
     """
 
     rel: np.ndarray
@@ -55,6 +58,7 @@ class Deviation:
     p_loo: np.ndarray
     k_hat: np.ndarray
     refit: np.ndarray
+    refit_converged: np.ndarray
 
     def entry(self, i: int) -> dict[str, dict[str, float]]:
         """Module ``i``'s ``deviation`` entry of ``summary.json``: parameter -> ``{"rel", "spreads", "p_loo"}``."""
@@ -99,8 +103,9 @@ def loo_deviation(pop, mean, cov, hyper, log_like, refit=None) -> Deviation:
     log_like : ndarray, shape (S, N)
         Each module's ``log L_i`` at those draws.
     refit : callable, optional
-        ``refit(i) -> (S', 11)`` natural hyper draws of the batch without
-        module ``i``; called for the modules whose ``k_hat`` exceeds
+        ``refit(i) -> (draws (S', 11), converged)``: natural hyper draws of
+        the batch without module ``i`` and whether their sampler met its
+        targets; called for the modules whose ``k_hat`` exceeds
         :data:`K_HAT_MAX`.
 
     Returns
@@ -109,12 +114,12 @@ def loo_deviation(pop, mean, cov, hyper, log_like, refit=None) -> Deviation:
     """
     N = len(mean)
     rel, spreads, p_loo = (np.empty((N, mean.shape[1])) for _ in range(3))
-    k_hat, refitted = np.empty(N), np.zeros(N, bool)
+    k_hat, refitted, converged = np.empty(N), np.zeros(N, bool), np.zeros(N, bool)
     for i in range(N):
         w, k_hat[i] = _psis_weights(log_like[:, i])
         draws = hyper
         if refit is not None and k_hat[i] > K_HAT_MAX:
-            draws, refitted[i] = refit(i), True
+            (draws, converged[i]), refitted[i] = refit(i), True
             w = np.full(len(draws), 1.0 / len(draws))
         rel[i], spreads[i], p_loo[i] = _offsets(pop, mean[i], np.diag(cov[i]), draws, w)
-    return Deviation(rel=rel, spreads=spreads, p_loo=p_loo, k_hat=k_hat, refit=refitted)
+    return Deviation(rel=rel, spreads=spreads, p_loo=p_loo, k_hat=k_hat, refit=refitted, refit_converged=converged)

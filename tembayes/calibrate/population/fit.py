@@ -83,12 +83,14 @@ def _sample(pop, summ, method, max_draws_per_module, run):
     return with_importance(check)
 
 
-def _refitter(pop, summ, ids, terms_name, max_draws_per_module, n_draws, *, seed, nwalkers, budget):
+def _refitter(pop, summ, ids, terms_name, max_draws_per_module, n_draws, *, seed, nwalkers, budget, deadline):
     """``refit(i)`` of :func:`.deviation.loo_deviation`: about ``n_draws`` natural hyper draws without module ``i``.
 
     The same kind of terms as the batch's run, each refit on its own
     stream, so that the rest of the result stays that of a run without
-    refits.  None below three modules: one module left is no population.
+    refits, and within what is left of the fit's wall-clock budget
+    (``deadline``, :func:`time.perf_counter` seconds; None: no limit).
+    None below three modules: one module left is no population.
     """
     if len(ids) < 3:
         return None
@@ -102,9 +104,10 @@ def _refitter(pop, summ, ids, terms_name, max_draws_per_module, n_draws, *, seed
         )
         rng = np.random.default_rng([seed, i])
         label = f"population without {ids[i]}"
-        kept, _ = sample_hyper(pop, terms, rest.mean, rest.cov, rng, nwalkers, budget, label=label)
+        left = budget if deadline is None else replace(budget, max_seconds=max(0.0, deadline - time.perf_counter()))
+        kept, diag = sample_hyper(pop, terms, rest.mean, rest.cov, rng, nwalkers, left, label=label)
         flat = kept.reshape(-1, N_HYPER)
-        return flat[even_indices(len(flat), n_draws)]
+        return flat[even_indices(len(flat), n_draws)], bool(diag["converged"])
 
     return refit
 
@@ -165,7 +168,8 @@ def fit_population(
         Budget of emcee steps.
     max_seconds : float, optional
         Wall-clock budget of the sampling [s], checked at the sampler's
-        convergence checks (every 1000 steps).
+        convergence checks (every 1000 steps); the leave-one-out refits get
+        what the batch's sampling left of it.
     progress : bool
         emcee's progress bar.
     method : {"auto", "gaussian", "importance"}
@@ -236,6 +240,7 @@ def fit_population(
         seed=seed,
         nwalkers=nwalkers,
         budget=budget,
+        deadline=None if max_seconds is None else t0 + max_seconds,
     )
     deviation = loo_deviation(pop, summ.mean, summ.cov, members.hyper, members.log_like, refit)
     i, j = driver(members.odd_one_prob, deviation.p_loo)

@@ -153,8 +153,9 @@ def assemble(pop, ids, kept, membership, rng, n_predictive, diag, deviation=None
     diag : dict
         Diagnostics so far; the outlier probabilities' se, the leave-one-out
         Pareto k (``deviation_k_hat``), the modules whose deviation comes
-        from a refit without them (``deviation_refit``) and the number of
-        modules are added.
+        from a refit without them (``deviation_refit``), those of them whose
+        refit did not converge (``deviation_refit_unconverged``) and the
+        number of modules are added.
     deviation : .deviation.Deviation, optional
     sensitivity : .sensitivity.SpreadSensitivity, optional
     """
@@ -166,6 +167,9 @@ def assemble(pop, ids, kept, membership, rng, n_predictive, diag, deviation=None
     if deviation is not None:
         diag["deviation_k_hat"] = {mid: float(k) for mid, k in zip(ids, deviation.k_hat)}
         diag["deviation_refit"] = [mid for mid, r in zip(ids, deviation.refit) if r]
+        diag["deviation_refit_unconverged"] = [
+            mid for mid, r, c in zip(ids, deviation.refit, deviation.refit_converged) if r and not c
+        ]
     diag["n_modules"] = len(ids)
     return PopulationResult(
         module_ids=ids,
