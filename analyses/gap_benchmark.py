@@ -185,6 +185,12 @@ def _laws(d, diag):
     return out
 
 
+def _by_parameter(v):
+    """``R0 0.90, R1 0.80, ...``: a law row's coverage per parameter (absent in rows summarised before it)."""
+    by = v.get("coverage90_by_parameter") or {}
+    return ", ".join(f"{k.split('_')[0]} {c:.2f}" for k, c in by.items()) or "–"
+
+
 def law_coverage(work, cases):
     """Per effect: the base laws' 90 % coverage, the share covered or flagged, the coverage after the gap's recalibration."""
     from tembayes.constants import MODULE_PARAMETERS
@@ -199,8 +205,9 @@ def law_coverage(work, cases):
             for k in MODULE_PARAMETERS:
                 t = m["truth"][k]
                 inside = m["base"][k]["q05"] <= t <= m["base"][k]["q95"]
-                row = per.setdefault(effect or "null", {"inside": [], "inside_or_flagged": [], "after": []})
+                row = per.setdefault(effect or "null", {"inside": [], "inside_or_flagged": [], "after": [], "by": {}})
                 row["inside"].append(inside)
+                row["by"].setdefault(k, []).append(inside)
                 row["inside_or_flagged"].append(inside or m["adequacy_flagged"])
                 row["after"].append(after[k]["q05"] <= t <= after[k]["q95"])
     return {
@@ -209,6 +216,8 @@ def law_coverage(work, cases):
             "coverage90": float(np.mean(r["inside"])),
             "covered_or_flagged": float(np.mean(r["inside_or_flagged"])),
             "coverage90_after_gap": float(np.mean(r["after"])),
+            # a module's five laws miss together (the R0-S0-K ridge): per parameter, over modules
+            "coverage90_by_parameter": {k: float(np.mean(v)) for k, v in r["by"].items()},
         }
         for e, r in per.items()
     }
@@ -371,12 +380,12 @@ def _markdown(s, command="python analyses/gap_benchmark.py"):
             "The laws against the bench's truth (90 % intervals of the five law parameters; "
             "target: covered or flagged by the adequacy verdict, and covered after the gap's recalibration, >= 0.80):",
             "",
-            "| true effect | modules | coverage | covered or flagged | coverage after gap |",
-            "|---|---|---|---|---|",
+            "| true effect | modules | coverage | covered or flagged | coverage after gap | per parameter |",
+            "|---|---|---|---|---|---|",
         ]
         lines += [
             f"| {k} | {v['modules']} | {v['coverage90']:.2f} | {v['covered_or_flagged']:.2f} "
-            f"| {v['coverage90_after_gap']:.2f} |"
+            f"| {v['coverage90_after_gap']:.2f} | {_by_parameter(v)} |"
             for k, v in s["law_coverage"].items()
         ]
     if s.get("null_cases"):

@@ -580,7 +580,7 @@ def tool_model_rule(batch, taus):
     member = np.array([batch["lik"][m][1] for m in batch["ids"]])[None] + taus[:, None, :, None] ** 2 * np.eye(5)
     V = np.repeat(member[:, None, None], n, axis=1).repeat(5, axis=2)  # (T, i, j, n, 5, 5)
     i, j = np.meshgrid(np.arange(n), np.arange(5), indexing="ij")
-    V[:, i, j, i, j, j] += (OUTLIER_SCALE * taus[:, None, :]) ** 2
+    V[:, i, j, i, j, j] += (OUTLIER_SCALE**2 - 1.0) * taus[:, None, :] ** 2  # the member's tau^2 widened to (6 tau)^2
     L = _centre_integrated(y, V.reshape(-1, n, 5, 5), P0)[0].reshape(T, n, 5)
     log_hi = logsumexp(L, axis=(0, 2))  # module i off in one parameter, each alike, averaged over the spread draws
     return np.exp(log_hi - logsumexp(log_hi))
