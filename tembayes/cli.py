@@ -25,6 +25,7 @@ examples:
   tembayes simulate runs/real --fidelity high --validation-start rest --modules 8   # out-of-model bench
   tembayes simulate runs/sink --rig heatsink-al --modules 4    # another shipped rig
   tembayes simulate runs/mine --rig my_rig.toml                # your rig file (copied into the batch)
+  tembayes simulate runs/short --protocol runs/design/protocol.csv --fidelity high   # try a design
 
 effects (NAME or NAME=VALUE; VALUE sets the first parameter, others scale along):
 {effects}
@@ -176,6 +177,7 @@ def _cmd_simulate(args):
     from tembayes.bench import TEC1_12706, BenchConfig, simulate_batch
     from tembayes.data import load_batch_toml
     from tembayes.data.outputs import check_output
+    from tembayes.design.protocol import read_protocol
     from tembayes.physics.effects import parse_effects
     from tembayes.physics.rigread import rig_source
 
@@ -183,12 +185,14 @@ def _cmd_simulate(args):
     rig = rig_source(args.rig) if args.rig else None
     if args.datasheet:
         datasheet, _ = load_batch_toml(args.datasheet)
+    protocol = read_protocol(args.protocol, imax=datasheet.imax) if args.protocol else None
     check_output(
         args.out,
         kind="simulate",
         overwrite=args.overwrite,
         inputs=([(args.datasheet, "datasheet file")] if args.datasheet else [])
-        + ([(Path(rig["file"]), "rig file")] if rig and "file" in rig else []),
+        + ([(Path(rig["file"]), "rig file")] if rig and "file" in rig else [])
+        + ([(args.protocol, "protocol file")] if args.protocol else []),
     )
     config = BenchConfig(
         n_modules=args.modules,
@@ -206,6 +210,7 @@ def _cmd_simulate(args):
         validation_start=args.validation_start,
         physics=args.physics,
         rig=rig,
+        protocol=protocol,
     )
     truth = simulate_batch(args.out, config, overwrite=args.overwrite)
     print(
@@ -528,6 +533,40 @@ def _cmd_rig(args):
     return 0
 
 
+def _cmd_design(args):
+    from tembayes.data import load_batch_toml
+    from tembayes.data.outputs import check_output
+    from tembayes.design.search import Designer, design, design_json, parse_target
+    from tembayes.physics.rigread import rig_source
+
+    targets = [parse_target(t) for t in args.target]  # refused input: nothing is written
+    datasheet, rig_config = load_batch_toml(args.batch_or_toml)
+    if args.rig:
+        rig_config = rig_source(args.rig)
+    check_output(args.out, kind="design", inputs=[(args.batch_or_toml, "batch or datasheet")], overwrite=args.overwrite)
+    designer = Designer(datasheet, rig_config, seed=args.seed, n_draws=args.draws, jobs=args.jobs, say=_progress)
+    d = design(designer, targets or None, max_hours=args.max_hours)
+
+    def files(tmp):
+        from tembayes.design.protocol import write_protocol
+        from tembayes.plots.design import save_design_figure
+
+        write_protocol(tmp / "protocol.csv", d.best.protocol)
+        save_design_figure(d, tmp / "design.png")
+
+    _write_result(args, "design.json", design_json(d, designer), files)
+    best, ref = d.best, d.reference
+    print(
+        f"design: {len(best.protocol.levels)} levels, step {best.step_A * datasheet.imax / 6.4:.3g} A, "
+        f"hold {best.hold_s:g} s: {best.duration_s / 3600:.2f} h against the reference's {ref.duration_s / 3600:.2f} h"
+    )
+    for k, v in best.sd_rel().items():
+        print(f"  {k:<14s} expected sd {100 * v:.3f} %  (reference {100 * ref.sd_rel()[k]:.3f} %)")
+    print(f"wrote {args.out / 'protocol.csv'}, design.json and design.png; try it: tembayes simulate OUT --protocol "
+          f"{args.out / 'protocol.csv'}")  # fmt: skip
+    return 0
+
+
 def _cmd_report(args):
     from tembayes.calibrate.run import load_run
     from tembayes.report import build_report, write_report
@@ -734,6 +773,7 @@ def build_parser():
     _add_export(sub)
     _add_inspect(sub)
     _add_rig(sub)
+    _add_design(sub)
     return parser
 
 
@@ -779,6 +819,13 @@ def _add_simulate(sub):
         "--validation-rate", type=float, metavar="HZ", help="sampling rate of the validation runs (default: --rate)"
     )
     p.add_argument("--hold", type=float, default=600.0, metavar="S", help="identification hold (default 600 s)")
+    p.add_argument(
+        "--protocol",
+        type=Path,
+        metavar="CSV",
+        help="the identification run's current program (time_s,current_A, e.g. tembayes design's protocol.csv) "
+        "instead of the staircase with --hold",
+    )
     p.add_argument("--validations", type=int, default=1, metavar="K", help="validation runs per module (default 1)")
     p.add_argument(
         "--validation-hours", type=float, default=4.0, metavar="H", help="length of a validation run (default 4 h)"
@@ -1131,6 +1178,49 @@ example:
   tembayes rig reference --out rig_check              # a shipped rig
   tembayes rig my_rig.toml --out rig_check --module-k 0.3
 """
+
+
+_EPILOG_DESIGN = """\
+examples:
+  tembayes design data/example --out runs/design                       # the reference's R0, S0, K widths
+  tembayes design data/example --out runs/design --target R0_ohm=0.3% --target K_W_per_K=0.5% --max-hours 2
+  tembayes simulate runs/short --protocol runs/design/protocol.csv --fidelity high   # then try it
+
+Targets are posterior sds, relative (PARAM=SD%) or absolute in SI (PARAM=SD).  The expected widths
+come from modules the bench draws from the type, each run simulated and linearised as the calibration
+would (Laplace, plus the rig parameters the calibration holds fixed); docs/design.md.
+"""
+
+
+def _add_design(sub):
+    """The ``tembayes design`` subcommand."""
+    p = sub.add_parser(
+        "design",
+        help="the shortest identification staircase that reaches target posterior widths",
+        description="Search current staircases (step size and hold; both step directions at every level, as the "
+        "hysteresis check needs) for the shortest that reaches the target posterior sds of the laws, and write "
+        "protocol.csv (the current program), design.json (its duration and expected widths, and the reference "
+        "staircase's) and design.png.",
+        epilog=_EPILOG_DESIGN,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("batch_or_toml", type=Path, metavar="BATCH_OR_TOML", help="a batch folder or its batch.toml")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder to create")
+    p.add_argument(
+        "--target",
+        action="append",
+        default=[],
+        metavar="PARAM=SD",
+        help="a posterior sd to reach, e.g. R0_ohm=0.3%% (repeatable; default: the reference staircase's R0, S0 "
+        "and K widths)",
+    )
+    p.add_argument("--rig", metavar="RIG", help="a shipped rig or a rig file (default: the batch's [rig])")
+    p.add_argument("--max-hours", type=float, default=8.0, metavar="H", help="longest test allowed (default 8 h)")
+    p.add_argument("--draws", type=int, default=2, metavar="N", help="bench modules each width averages (default 2)")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the drawn modules (default 0)")
+    p.add_argument("--jobs", type=int, default=2, metavar="N", help="worker processes (default 2)")
+    p.add_argument("--overwrite", action="store_true", help="replace DIR if it is an earlier design output")
+    p.set_defaults(func=_cmd_design)
 
 
 def _add_rig(sub):

@@ -123,6 +123,10 @@ class BenchConfig:
         sensor response time drawn in :data:`SENSOR_TAU_RANGE`, sensor depths
         drawn in their range, a temperature slope of K) or ``"paper"``
         (Evers et al.'s form).  The high-fidelity bench has its own.
+    protocol : Protocol or None
+        The identification run's current program (``simulate --protocol``,
+        :mod:`tembayes.design.protocol`), levels in A as given; None: the
+        rig's identification staircase with ``hold``.
     rig : dict or None
         A ``[rig]`` table (``{"preset": NAME}`` or ``{"file": PATH}``,
         :func:`tembayes.physics.rigread.rig_source`) for a rig other than the
@@ -145,6 +149,7 @@ class BenchConfig:
     validation_start: str = "steady"
     physics: str = "full"
     rig: dict | None = None
+    protocol: Protocol | None = None
 
     def __post_init__(self):
         if self.rig == {"preset": "reference"}:
@@ -417,6 +422,49 @@ def _batch_rig(rig, folder):
     return dict(rig)
 
 
+@dataclass(frozen=True)
+class BenchSetup:
+    """A batch's draws before any experiment: what :func:`run_experiment` needs per module.
+
+    Attributes
+    ----------
+    truth : dict
+        :func:`draw_truth`'s result.
+    effects : dict
+        Effect parameters of every run: the bench's own physics, then the asked-for effects.
+    run : dict
+        Keyword arguments of :func:`run_experiment` (``rig``, ``slow_noise``).
+    module_rngs : list of numpy.random.Generator
+        One stream per module, in the modules' order (adding modules does
+        not change the earlier ones).
+    """
+
+    truth: dict
+    effects: dict
+    run: dict
+    module_rngs: list
+
+
+def bench_setup(config: BenchConfig) -> BenchSetup:
+    """Draw a batch's type, modules and bench rig from ``config.seed`` (as :func:`simulate_batch` does)."""
+    ss = np.random.SeedSequence(config.seed)
+    batch_ss, *module_ss = ss.spawn(1 + config.n_modules)
+    truth = draw_truth(config, np.random.default_rng(batch_ss))
+    high = config.fidelity == "high"
+    asked = {k: v for params in config.effects.values() for k, v in params.items()}
+    rig = (
+        outside.outside_rig(truth["bench_layout"]["depth_sides"])
+        if high and config.rig is None
+        else bench_rig_of(config)
+    )
+    return BenchSetup(
+        truth=truth,
+        effects={**truth["bench_layout"]["physics"], **asked},
+        run={"rig": rig, "slow_noise": SLOW_NOISE if high else None},
+        module_rngs=[np.random.default_rng(m) for m in module_ss],
+    )
+
+
 def simulate_batch(
     out: Path | str, config: BenchConfig, *, overwrite: bool = False, progress: Callable[[str], None] | None = None
 ) -> dict:
@@ -441,30 +489,17 @@ def simulate_batch(
         def progress(msg):
             print(msg, file=sys.stderr, flush=True)
 
-    # one stream for the batch-level draws, one per module (adding modules
-    # does not change the earlier ones)
-    ss = np.random.SeedSequence(config.seed)
-    batch_ss, *module_ss = ss.spawn(1 + config.n_modules)
-    rng = np.random.default_rng(batch_ss)
-    truth = draw_truth(config, rng)
-    eff_flat = {k: v for params in config.effects.values() for k, v in params.items()}
+    bench = bench_setup(config)
+    truth, eff_flat, run, rig = bench.truth, bench.effects, bench.run, bench.run["rig"]
     ds = config.datasheet
     high = config.fidelity == "high"
-    # the catalogue effects asked for come on top of (or replace) the bench's own physics
-    eff_flat = {**truth["bench_layout"]["physics"], **eff_flat}
-    rig = (
-        outside.outside_rig(truth["bench_layout"]["depth_sides"])
-        if high and config.rig is None
-        else bench_rig_of(config)
-    )
-    run = {"rig": rig, "slow_noise": SLOW_NOISE if high else None}
-    identification = identification_run(rig, ds.imax, config.hold)
+    identification = config.protocol or identification_run(rig, ds.imax, config.hold)
+    what = f"{len(identification.levels)} levels, {identification.duration / 3600:.2f} h"
     with atomic_directory(out, overwrite=overwrite, kind="simulate") as tmp:
         write_batch_toml(tmp / "batch.toml", ds, _batch_rig(config.rig, tmp))
-        for (mid, module), mss in zip(truth["modules"].items(), module_ss):
-            mrng = np.random.default_rng(mss)
+        for (mid, module), mrng in zip(truth["modules"].items(), bench.module_rngs):
             (tmp / mid).mkdir()
-            progress(f"bench: {mid} identification ({config.hold:.0f} s holds)")
+            progress(f"bench: {mid} identification ({what})")
             exp = run_experiment(
                 identification,
                 module,
@@ -498,7 +533,10 @@ def simulate_batch(
                 "seed": config.seed,
                 "rate_Hz": config.rate,
                 "validation_rate_Hz": config.validation_rate or config.rate,
-                "hold_s": config.hold,
+                "hold_s": None if config.protocol else config.hold,
+                "protocol": None
+                if config.protocol is None
+                else {"levels_A": config.protocol.levels, "durations_s": config.protocol.durations},
                 **_setpoints_C(identification),
                 "n_validations": config.n_validations,
                 "validation_duration_s": config.validation_duration,

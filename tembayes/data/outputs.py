@@ -89,6 +89,7 @@ KINDS = {
         OutputKind("simulate", (("truth.json", "batch.toml"),), ("truth.json", "batch.toml", "*/")),
         OutputKind("export", (), (), is_file=True),
         OutputKind("rig", (("rig.json",),), ("rig.json", "rig.png")),
+        OutputKind("design", (("design.json",),), ("design.json", "protocol.csv", "design.png")),
     )
 }
 

@@ -1,0 +1,175 @@
+"""Does a design keep its promise?  Predicted against realised posterior sds, per protocol.
+
+For each staircase (``--designs STEP:HOLD ...``, step for the reference
+module [A], hold [s]) the widths ``tembayes design`` predicts (the standard
+bench's drawn modules, :class:`tembayes.design.search.Designer`) are compared
+with the posterior sds ``tembayes calibrate`` realises on bench batches run
+with that staircase (``simulate --protocol``): the out-of-model bench
+(``--fidelity high``) by default.  The same batch seeds for every design, so
+each module is calibrated under every protocol.  Per design and law: the
+median of realised / predicted sd (target 0.75-1.33 for R0, S0, K and
+0.67-1.5 for R1, S1), its 10-90 % range over modules, and the laws' 90 %
+coverage of the truth.
+
+    python analyses/design_check.py --batches 5 --modules 4                 (~1 h a design on 1 core)
+    python analyses/design_check.py --batches 5 --modules 4 --summarise
+
+Writes analyses/results/design_check_<fidelity>.{json,md}.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from law_coverage import PARAMS, TYPES, run  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS = ROOT / "analyses" / "results"
+DEFAULT_DESIGNS = ("0.2:600", "0.2:120", "0.8:240")
+
+
+def _designs(texts):
+    return [tuple(float(v) for v in t.split(":")) for t in texts]
+
+
+def _name(step, hold):
+    return f"s{step:g}-h{hold:g}"
+
+
+def _datasheet(work, t):
+    from tembayes.data import load_batch_toml
+
+    f = work / f"{t}.toml"
+    f.write_text(TYPES[t])
+    return f, load_batch_toml(f)[0]
+
+
+def predicted(designs, ds, n_draws):
+    """``{design name: Evaluated}`` of the designer (the standard bench's drawn modules, seed 0)."""
+    from tembayes.design.search import Designer
+
+    d = Designer(ds, None, seed=0, n_draws=n_draws, jobs=1, say=print)
+    return {_name(s, h): e for (s, h), e in zip(designs, d.evaluate(designs))}, d
+
+
+def one(work, args, t, dsfile, designer, step, hold, b):
+    """Simulate and calibrate batch ``b`` of type ``t`` under one staircase; the run folder."""
+    from tembayes.design.protocol import write_protocol
+
+    name = _name(step, hold)
+    proto = work / f"{t}-{name}.csv"
+    if not proto.exists():
+        write_protocol(proto, designer.protocol(step, hold))
+    bdir = work / "batches" / args.fidelity / name / f"{t}-b{b}"
+    if not (bdir / "truth.json").exists():
+        seed = 1000 * (list(TYPES).index(t) + 1) + b
+        run(["simulate", bdir, "--modules", args.modules, "--fidelity", args.fidelity, "--datasheet", dsfile,
+             "--seed", seed, "--validations", 0, "--protocol", proto, "--overwrite"])  # fmt: skip
+    rdir = work / "runs" / args.fidelity / name / f"{t}-b{b}"
+    if not (rdir / "summary.json").exists():
+        run(["calibrate", bdir, "--out", rdir, "--seed", 0, "--quiet", "--no-figures", "--workers", 1,
+             "--overwrite"])  # fmt: skip
+    return bdir, rdir
+
+
+def rows(work, args, t, name):
+    out = []
+    for bdir in sorted((work / "batches" / args.fidelity / name).glob(f"{t}-b*")):
+        rdir = work / "runs" / args.fidelity / name / bdir.name
+        if not (rdir / "summary.json").exists():
+            continue
+        s = json.loads((rdir / "summary.json").read_text())
+        truth = json.loads((bdir / "truth.json").read_text())
+        for mid, m in s["modules"].items():
+            row = {"batch": bdir.name, "module": mid, "converged": bool(m["diagnostics"]["converged"])}
+            for p in PARAMS:
+                tv, e = truth["modules"][mid][p], m[p]
+                row[p] = {"sd": e["sd"], "inside": e["q05"] <= tv <= e["q95"], "mean": e["mean"]}
+            out.append(row)
+    return out
+
+
+BANDS = {"R0_ohm": (0.75, 1.33), "S0_V_per_K": (0.75, 1.33), "K_W_per_K": (0.75, 1.33)}
+
+
+def summarise(per, pred):
+    out = {}
+    for name, rs in per.items():
+        e = pred[name]
+        cell = {"modules": len(rs), "duration_h": e.duration_s / 3600, "laws": {}}
+        for p in PARAMS:
+            r = np.array([x[p]["sd"] for x in rs]) / e.sd[p]
+            lo, hi = BANDS.get(p, (0.67, 1.5))
+            cell["laws"][p] = {
+                "predicted_sd_rel": e.sd[p] / abs(e.mean[p]),
+                "ratio_median": float(np.median(r)) if len(r) else None,
+                "ratio_p10": float(np.quantile(r, 0.1)) if len(r) else None,
+                "ratio_p90": float(np.quantile(r, 0.9)) if len(r) else None,
+                "band": [lo, hi],
+                "coverage90": float(np.mean([x[p]["inside"] for x in rs])) if rs else None,
+            }
+        out[name] = cell
+    return out
+
+
+def markdown(res, args):
+    lines = [
+        f"# Design check: predicted against realised posterior sds ({args.fidelity} bench)",
+        "",
+        f"`python analyses/design_check.py --batches {args.batches} --modules {args.modules} "
+        f"--fidelity {args.fidelity} --designs {' '.join(args.designs)}` (type {args.type}; the prediction "
+        f"from {args.draws} modules the standard bench draws, seed 0).",
+        "",
+        "| design | h | modules | law | predicted sd % | realised / predicted (median) | 10-90 % | band | coverage 90 % |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, c in res["designs"].items():
+        for p, v in c["laws"].items():
+            med = "–" if v["ratio_median"] is None else f"{v['ratio_median']:.2f}"
+            rng = "–" if v["ratio_p10"] is None else f"{v['ratio_p10']:.2f}–{v['ratio_p90']:.2f}"
+            cov = "–" if v["coverage90"] is None else f"{v['coverage90']:.2f}"
+            lines.append(
+                f"| {name} | {c['duration_h']:.2f} | {c['modules']} | {p} | {100 * v['predicted_sd_rel']:.3f} "
+                f"| {med} | {rng} | {v['band'][0]}–{v['band'][1]} | {cov} |"
+            )
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--designs", nargs="+", default=list(DEFAULT_DESIGNS), metavar="STEP:HOLD")
+    ap.add_argument("--batches", type=int, default=5)
+    ap.add_argument("--modules", type=int, default=4)
+    ap.add_argument("--type", default="TEC1-12706", choices=list(TYPES))
+    ap.add_argument("--fidelity", default="high", choices=("standard", "high"))
+    ap.add_argument("--draws", type=int, default=4, help="modules the prediction averages over")
+    ap.add_argument("--work", type=Path, default=ROOT / "runs" / "design_check")
+    ap.add_argument("--summarise", action="store_true")
+    args = ap.parse_args(argv)
+    args.work.mkdir(parents=True, exist_ok=True)
+    designs = _designs(args.designs)
+    dsfile, ds = _datasheet(args.work, args.type)
+    pred, designer = predicted(designs, ds, args.draws)
+    if not args.summarise:
+        for b in range(args.batches):
+            for step, hold in designs:
+                one(args.work, args, args.type, dsfile, designer, step, hold, b)
+                print(f"{_name(step, hold)} b{b} done", flush=True)
+    per = {_name(s, h): rows(args.work, args, args.type, _name(s, h)) for s, h in designs}
+    res = {"type": args.type, "fidelity": args.fidelity, "designs": summarise(per, pred)}
+    from tembayes.data.write import write_json
+
+    write_json(RESULTS / f"design_check_{args.fidelity}.json", res)
+    text = markdown(res, args)
+    (RESULTS / f"design_check_{args.fidelity}.md").write_text(text)
+    print(text)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,307 @@
+"""The shortest identification staircase that reaches the target widths.
+
+A candidate is the reference staircase's shape -- 0 up to +0.8 A, down to
+-1.6 A and back to 0 (reference module's levels, scaled by the type's Imax),
+every level reached by an up- and a down-step so the hysteresis check keeps
+both directions -- with a coarser step and shorter holds.  Its expected
+widths (:mod:`.widths`) are averaged over modules the standard bench draws
+from the type (the rig's nominal spread of values, the type's unit spread),
+each run simulated on the bench (the same noise stream for every candidate)
+and linearised at its truth.  Every candidate of the grid
+:data:`STEPS_A` x :data:`HOLDS_S` within the time allowed is evaluated: the
+widths need not fall monotonically with the holds (on the reference rig they
+are set mostly by the rig parameters the calibration holds fixed, which a
+longer run does not remove), so no candidate is skipped on the assumption.
+The shortest candidate that meets every target wins.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import re
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+from tembayes.bench.protocols import Protocol, identification_staircase
+from tembayes.constants import MODULE_PARAMETERS
+from tembayes.errors import ModelError
+
+#: Step sizes of the candidates, for the reference module (6.4 A Imax) [A].
+STEPS_A = (0.2, 0.4, 0.8)
+#: Hold lengths of the candidates [s].
+HOLDS_S = (120.0, 240.0, 420.0, 600.0, 900.0)
+#: The reference protocol: the rig's identification staircase.
+REFERENCE = (0.2, 600.0)
+#: Modules drawn per candidate: enough for the mean width to ~10 %, few enough for 2 minutes.
+N_DRAWS = 2
+#: Sampling rate of the simulated runs [Hz] (the reference rig's).
+RATE_HZ = 5.0
+
+
+@dataclass(frozen=True)
+class Target:
+    """A posterior sd a design must reach: relative (``rel``) or absolute [SI]."""
+
+    parameter: str
+    value: float
+    rel: bool
+
+    def met(self, sd: float, mean: float) -> bool:
+        """Whether posterior sd ``sd`` of a law whose value is ``mean`` reaches the target."""
+        return (sd / abs(mean) if self.rel else sd) <= self.value
+
+    def __str__(self) -> str:
+        return f"{self.parameter}={100 * self.value:g}%" if self.rel else f"{self.parameter}={self.value:g}"
+
+
+def parse_target(text: str) -> Target:
+    """``"R0_ohm=0.3%"`` (relative) or ``"K_W_per_K=0.002"`` (absolute, SI).
+
+    Raises
+    ------
+    ModelError
+        An unknown parameter or a value that is not a positive number.
+    """
+    m = re.fullmatch(r"\s*([A-Za-z0-9_]+)\s*=\s*([0-9.eE+-]+)\s*(%?)\s*", text)
+    if not m:
+        raise ModelError(f"--target '{text}': write PARAM=SD or PARAM=SD%, e.g. R0_ohm=0.3%")
+    name, value, pct = m.groups()
+    if name not in MODULE_PARAMETERS:
+        raise ModelError(f"--target '{text}': unknown parameter '{name}' (one of {', '.join(MODULE_PARAMETERS)})")
+    try:
+        v = float(value)
+    except ValueError:
+        raise ModelError(f"--target '{text}': '{value}' is not a number") from None
+    if not v > 0:
+        raise ModelError(f"--target '{text}': the sd must be positive")
+    return Target(name, v / 100.0 if pct else v, bool(pct))
+
+
+@dataclass(frozen=True)
+class Evaluated:
+    """A candidate staircase and its expected widths.
+
+    Attributes
+    ----------
+    step_A : float
+        Step size for the reference module [A] (the program's levels scale with Imax).
+    hold_s : float
+    protocol : Protocol
+    sd, mean : dict
+        Law name -> expected posterior sd and the mean of the drawn modules' modes [SI].
+    sd_laplace : dict
+        Law name -> the part of ``sd`` the run's own data leave (without the held rig parameters) [SI].
+    """
+
+    step_A: float
+    hold_s: float
+    protocol: Protocol
+    sd: dict
+    mean: dict
+    sd_laplace: dict
+
+    @property
+    def duration_s(self) -> float:
+        """The program's duration [s]."""
+        return self.protocol.duration
+
+    def sd_rel(self) -> dict:
+        """Law name -> expected sd relative to the modules' mean value."""
+        return {k: self.sd[k] / abs(self.mean[k]) for k in MODULE_PARAMETERS}
+
+    def meets(self, targets) -> bool:
+        """Whether every target is reached."""
+        return all(t.met(self.sd[t.parameter], self.mean[t.parameter]) for t in targets)
+
+    def predicted(self) -> dict:
+        """``design.json``'s ``predicted``: law name -> ``{"sd", "sd_rel"}``."""
+        rel = self.sd_rel()
+        return {k: {"sd": self.sd[k], "sd_rel": rel[k]} for k in MODULE_PARAMETERS}
+
+
+#: The designer whose modules the workers simulate (inherited by the forked workers: its rig cannot be pickled).
+_ACTIVE = None
+
+
+def _one_width(args):
+    """Expected widths of drawn module ``k`` on one protocol (a worker's job)."""
+    from tembayes.bench.bench import run_experiment
+    from tembayes.design.widths import expected_widths
+
+    protocol, k, seed = args
+    setup, datasheet, rig_config = _ACTIVE.setup, _ACTIVE.datasheet, _ACTIVE.rig_config
+    module = list(setup.truth["modules"].values())[k]
+    exp = run_experiment(protocol, module, setup.effects, np.random.default_rng(seed), rate=RATE_HZ, **setup.run)
+    # the truth of every coordinate the calibration samples that the bench knows (the step phase does not matter)
+    start = {**setup.effects, **module.get("rig", {}), **{k: module[k] for k in MODULE_PARAMETERS}}
+    w = expected_widths(exp, datasheet, rig_config=rig_config, start=start, max_nfev=3)
+    return w.sd, w.mode, w.sd_laplace
+
+
+class Designer:
+    """Evaluates candidate staircases for one module type and rig on drawn bench modules.
+
+    Parameters
+    ----------
+    datasheet : tembayes.data.Datasheet
+    rig_config : dict or None
+        The ``[rig]`` table (None: the reference rig).
+    seed : int
+        Draws the modules; the same seed gives the same design.
+    n_draws : int
+    jobs : int
+        Worker processes.
+    say : callable, optional
+        Progress lines.
+    """
+
+    def __init__(self, datasheet, rig_config=None, *, seed=0, n_draws=N_DRAWS, jobs=2, say=None):
+        from tembayes.bench.bench import BenchConfig, bench_setup
+
+        rig = None if not rig_config or rig_config.get("preset", "reference") == "reference" else dict(rig_config)
+        config = BenchConfig(n_modules=n_draws, seed=seed, datasheet=datasheet, n_validations=0, rig=rig)
+        self.setup = bench_setup(config)
+        if self.setup.run["rig"].layout.faces_held:
+            raise ModelError(
+                "the rig's plates hold both module faces: its identification steps the plate temperatures too "
+                "(a plate staircase), which tembayes design does not search; design on a rig with a free face"
+            )
+        self.datasheet = datasheet
+        self.rig_config = rig_config
+        self.jobs = jobs
+        self.say = say or (lambda msg: None)
+        self.cache: dict = {}
+        self.seed = seed
+
+    def protocol(self, step: float, hold: float) -> Protocol:
+        """The candidate staircase of step ``step`` (reference module's A) and hold ``hold`` [s] for this type."""
+        return identification_staircase(self.datasheet.imax, hold=hold, step=step)
+
+    def evaluate(self, pairs) -> list[Evaluated]:
+        """The :class:`Evaluated` of every ``(step_A, hold_s)``, the same modules for each."""
+        todo = [p for p in dict.fromkeys(pairs) if p not in self.cache]
+        jobs = []
+        for step, hold in todo:
+            proto = self.protocol(step, hold)
+            for k in range(len(self.setup.module_rngs)):
+                jobs.append((proto, k, [self.seed, k]))  # common random numbers across the candidates
+        if jobs:
+            global _ACTIVE
+            _ACTIVE = self
+            self.say(f"design: {len(todo)} staircases x {len(self.setup.module_rngs)} modules")
+            if self.jobs > 1:
+                ctx = multiprocessing.get_context("fork")
+                with ProcessPoolExecutor(max_workers=self.jobs, mp_context=ctx) as ex:
+                    out = list(ex.map(_one_width, jobs))
+            else:
+                out = [_one_width(j) for j in jobs]
+            n = len(self.setup.module_rngs)
+            for i, (step, hold) in enumerate(todo):
+                part = out[i * n : (i + 1) * n]
+                sd, mean, lap = (
+                    {k: float(np.mean([r[i][k] for r in part])) for k in MODULE_PARAMETERS} for i in range(3)
+                )
+                self.cache[(step, hold)] = Evaluated(step, hold, self.protocol(step, hold), sd, mean, lap)
+        return [self.cache[p] for p in pairs]
+
+
+@dataclass(frozen=True)
+class Design:
+    """The result of :func:`design`.
+
+    Attributes
+    ----------
+    best : Evaluated
+        The shortest staircase found that meets the targets.
+    reference : Evaluated
+        The reference staircase.
+    targets : tuple of Target
+    evaluated : tuple of Evaluated
+        Every candidate evaluated, shortest first.
+    """
+
+    best: Evaluated
+    reference: Evaluated
+    targets: tuple
+    evaluated: tuple
+
+
+def reference_targets(reference: Evaluated, names=("R0_ohm", "S0_V_per_K", "K_W_per_K")) -> tuple:
+    """Targets equal to the reference staircase's relative widths on ``names``."""
+    rel = reference.sd_rel()
+    return tuple(Target(k, rel[k], True) for k in names)
+
+
+def design(
+    designer: Designer,
+    targets: tuple[Target, ...] | None,
+    *,
+    max_hours: float = 8.0,
+) -> Design:
+    """The shortest candidate staircase meeting ``targets`` (None: the reference's R0, S0, K widths).
+
+    Raises
+    ------
+    ModelError
+        No candidate within ``max_hours`` meets the targets; the message says
+        what the longest allowed candidate reaches.
+    """
+    max_s = 3600.0 * max_hours
+    grid = [(s, h) for s in STEPS_A for h in HOLDS_S if designer.protocol(s, h).duration <= max_s]
+    reference, *_ = designer.evaluate([REFERENCE, *grid])
+    targets = tuple(targets) if targets else reference_targets(reference)
+    evaluated = tuple(sorted(designer.cache.values(), key=lambda e: e.duration_s))
+    found = [e for e in evaluated if e.duration_s <= max_s and e.meets(targets)]
+    if not found:
+        allowed = [e for e in evaluated if e.duration_s <= max_s] or list(evaluated)
+        best = min(allowed, key=lambda e: sum(e.sd_rel()[t.parameter] for t in targets))
+        reach = ", ".join(
+            f"{t.parameter} {100 * best.sd_rel()[t.parameter]:.2g} %"
+            if t.rel
+            else f"{t.parameter} {best.sd[t.parameter]:.3g}"
+            for t in targets
+        )
+        raise ModelError(
+            f"no staircase within {max_hours:g} h reaches {', '.join(map(str, targets))}: the best evaluated "
+            f"({best.duration_s / 3600:.2f} h, step {best.step_A:g} A, hold {best.hold_s:g} s) reaches {reach}. "
+            "Loosen the targets or allow more time (--max-hours)"
+        )
+    best = found[0]
+    return Design(best=best, reference=reference, targets=targets, evaluated=evaluated)
+
+
+def design_json(d: Design, designer: Designer) -> dict:
+    """``design.json`` (contract keys first, then what the design rests on)."""
+
+    def cand(e):
+        lap = {k: e.sd_laplace[k] / abs(e.mean[k]) for k in MODULE_PARAMETERS}
+        return {
+            "step_A": e.step_A,
+            "hold_s": e.hold_s,
+            "duration_s": e.duration_s,
+            "predicted": e.predicted(),
+            "sd_rel_data_only": lap,
+        }
+
+    return {
+        "duration_s": d.best.duration_s,
+        "predicted": d.best.predicted(),
+        "reference": {"duration_s": d.reference.duration_s, "predicted": d.reference.predicted()},
+        "targets": {t.parameter: {"value": t.value, "relative": t.rel} for t in d.targets},
+        "staircase": {
+            "step_A": d.best.step_A * designer.datasheet.imax / 6.4,
+            "step_A_reference_module": d.best.step_A,
+            "hold_s": d.best.hold_s,
+            "levels": len(d.best.protocol.levels),
+            "sampling_rate_Hz": RATE_HZ,
+        },
+        "method": {
+            "widths": "Laplace at the drawn modules' truths plus the held rig parameters' carry-over "
+            "(the window sandwich left at 1)",
+            "modules_drawn": len(designer.setup.module_rngs),
+            "seed": designer.seed,
+        },
+        "evaluated": [cand(e) for e in d.evaluated],
+    }

@@ -1,0 +1,141 @@
+"""Expected posterior widths of an identification run, before it is made.
+
+The laws' posterior sd a calibration reaches on a run is, to first order,
+that of its Laplace approximation: the step-response likelihood's
+Gauss-Newton information at the mode, plus the datasheet's and the rig's
+priors, with the rig nuisances and the step phase sampled alongside the laws.
+:func:`expected_widths` computes it on one run of a module -- a bench
+simulation of the protocol to be designed -- exactly as the calibration
+builds its problem (step windows, model form, nuisances), and adds what the
+robust discrepancy carries over from the rig parameters it holds fixed
+(:func:`~tembayes.calibrate.discrepancy.held_nuisance_spread`).  The window
+sandwich's stretch is left at 1: it measures a disagreement between the
+windows that only the real data show.
+
+Averaged over modules drawn from the prior (or a population), these are the
+widths a design promises; ``analyses/design_check.py`` compares them with
+realised posteriors on both benches.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from tembayes.constants import MODULE_PARAMETERS
+
+
+@dataclass(frozen=True)
+class Widths:
+    """The laws' expected posterior sds on one run.
+
+    Attributes
+    ----------
+    sd : dict
+        Law name -> expected posterior sd [SI].
+    mode : dict
+        Law name -> the posterior mode the sds were taken at [SI].
+    sd_laplace : dict
+        Law name -> the Laplace sd alone, without the held rig parameters [SI].
+    nfev : int
+        Model evaluations of the mode search.
+    seconds : float
+    """
+
+    sd: dict
+    mode: dict
+    sd_laplace: dict
+    nfev: int
+    seconds: float
+
+    def relative(self) -> dict:
+        """Law name -> sd relative to the mode's magnitude."""
+        return {k: self.sd[k] / abs(self.mode[k]) for k in MODULE_PARAMETERS}
+
+
+def _law_jacobian(space, x):
+    """``d law_SI / d x`` (5,) of each law's own coordinate at ``x`` (the law coordinates are one-dimensional maps)."""
+    out = {}
+    for k in MODULE_PARAMETERS:
+        j = space.index(k)
+        h = 1e-6 * max(1.0, abs(x[j]))
+        X = np.repeat(x[None], 2, axis=0)
+        X[0, j] += h
+        X[1, j] -= h
+        v = space.values(X)[k]
+        out[k] = (j, float((v[0] - v[1]) / (2 * h)), float(space.values(x[None])[k][0]))
+    return out
+
+
+def _held(rig, model_space):
+    """The rig parameters the calibration holds at nominal though their range is not a point."""
+    return {
+        q: rig.parameter(q)
+        for q in model_space.fixed
+        if q in rig.parameter_names and rig.parameter(q).high > rig.parameter(q).low
+    }
+
+
+def expected_widths(experiment, datasheet, *, rig_config=None, options=None, start=None, max_nfev=30) -> Widths:
+    """The laws' expected posterior sds from one identification run (module docstring).
+
+    Parameters
+    ----------
+    experiment : tembayes.data.Experiment
+        The run (a bench simulation of the protocol, or a measured one).
+    datasheet : tembayes.data.Datasheet
+    rig_config : dict, optional
+        The batch's ``[rig]`` table.
+    options : CalibrationOptions, optional
+        The calibration's model form and resolution.
+    start : dict, optional
+        ``name -> value`` (SI) where the mode search starts, e.g. the
+        bench's truth; default the prior centres.
+    max_nfev : int
+        Model evaluations of the mode search.
+
+    Returns
+    -------
+    Widths
+    """
+    from threadpoolctl import threadpool_limits
+
+    from tembayes.calibrate.discrepancy import held_nuisance_spread
+    from tembayes.calibrate.model import StepResponseModel
+    from tembayes.calibrate.module import CalibrationOptions, calibration_rig, fit_map, parameter_space, start_point
+    from tembayes.calibrate.stepdata import step_data
+
+    t0 = time.perf_counter()
+    opt = options or CalibrationOptions()
+    rig = calibration_rig(rig_config, opt)
+    data = step_data(experiment, face=rig.layout.face)
+    model = StepResponseModel(data, rig)
+    space, _ = parameter_space(rig, datasheet, data, model.shift_bound, opt.effects, opt.model)
+    with threadpool_limits(limits=1, user_api="blas"):
+        x, _, sol = fit_map(model, space, data, start_point(space, start), max_nfev=max_nfev)
+    Jr = sol.jac  # standardised residuals (data rows, then prior rows) per coordinate
+    H = Jr.T @ Jr
+    for j, p in enumerate(space.priors):
+        if p.kind == "uniform":  # a coordinate the data leave open keeps its prior's width
+            H[j, j] += 3.0 / p.scale**2
+    cov = np.linalg.inv(H)
+    nc, n = data.obs.shape
+    # the prediction's slopes (p, nc, n): residual = (obs - f) / noise
+    J = -(Jr[: nc * n].T.reshape(len(x), nc, n)) * data.noise[None, :, None]
+    held = _held(rig, space)
+    cov_total = cov
+    if held:
+        spread = held_nuisance_spread(model, space, x, J, data.noise, held)
+        cov_total = cov + (spread.shift * spread.log_sd**2) @ spread.shift.T
+    laws = _law_jacobian(space, x)
+    sd = {k: abs(d) * float(np.sqrt(cov_total[j, j])) for k, (j, d, _) in laws.items()}
+    sd0 = {k: abs(d) * float(np.sqrt(cov[j, j])) for k, (j, d, _) in laws.items()}
+    return Widths(
+        sd=sd,
+        mode={k: v for k, (_, _, v) in laws.items()},
+        sd_laplace=sd0,
+        nfev=int(sol.nfev),
+        seconds=time.perf_counter() - t0,
+    )

@@ -1,0 +1,65 @@
+"""A design drawn: the current program beside the reference's, and the expected widths against test time.
+
+Reads a :class:`~tembayes.design.search.Design` only.
+"""
+
+from __future__ import annotations
+
+import io
+from typing import TYPE_CHECKING
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from tembayes.constants import MODULE_PARAMETERS
+from tembayes.data.write import atomic_write_bytes
+
+if TYPE_CHECKING:
+    from pathlib import Path
+
+    from tembayes.design.search import Design
+
+__all__ = ["plot_design", "save_design_figure"]
+
+DPI = 120
+SHORT = {"R0_ohm": "R0", "R1_ohm_per_K": "R1", "S0_V_per_K": "S0", "S1_V_per_K2": "S1", "K_W_per_K": "K"}
+
+
+def _program(ax, protocol, **kw):
+    t = np.concatenate([[0.0], np.cumsum(protocol.durations)]) / 3600.0
+    ax.step(t, np.concatenate([protocol.levels, [protocol.levels[-1]]]), where="post", **kw)
+
+
+def plot_design(design: Design) -> Figure:
+    """Left: the designed and the reference current programs; right: expected sd (%) per law against test time."""
+    fig = Figure(figsize=(11, 4.2), layout="constrained")
+    a, b = fig.subplots(1, 2)
+    _program(a, design.reference.protocol, color="0.6", label=f"reference ({design.reference.duration_s / 3600:.2f} h)")
+    _program(a, design.best.protocol, color="C3", lw=2, label=f"design ({design.best.duration_s / 3600:.2f} h)")
+    a.set(xlabel="time [h]", ylabel="current [A]", title="identification program")
+    a.legend(loc="lower left", fontsize=8)
+    hours = np.array([e.duration_s for e in design.evaluated]) / 3600.0
+    targets = {t.parameter: t for t in design.targets}
+    for k, p in enumerate(MODULE_PARAMETERS):
+        rel = np.array([100 * e.sd_rel()[p] for e in design.evaluated])
+        b.plot(hours, rel, "o", ms=4, color=f"C{k}", alpha=0.7, label=SHORT[p])
+        t = targets.get(p)
+        if t is not None and t.rel:
+            b.axhline(100 * t.value, color=f"C{k}", ls="--", lw=1)
+        b.plot(design.best.duration_s / 3600, 100 * design.best.sd_rel()[p], "*", ms=12, color=f"C{k}", mec="k")
+    b.axvline(design.reference.duration_s / 3600, color="0.6", lw=1)
+    b.set(
+        xlabel="test time [h]",
+        ylabel="expected posterior sd [%]",
+        yscale="log",
+        title="candidates (dashed: targets; star: the design)",
+    )
+    b.legend(fontsize=8, ncol=5, loc="upper center", bbox_to_anchor=(0.5, -0.16))
+    return fig
+
+
+def save_design_figure(design: Design, path: Path) -> Path:
+    """Write :func:`plot_design` as a PNG, atomically."""
+    buf = io.BytesIO()
+    plot_design(design).savefig(buf, format="png", dpi=DPI)
+    return atomic_write_bytes(path, buf.getvalue())
