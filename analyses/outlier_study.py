@@ -388,6 +388,9 @@ def which_one_test(rows, key, reference):
         for d in SHIFTS[1:]:
             hit = _named(rows, key, n, d)
             k, N, ref = int(hit.sum()), len(hit), reference[f"{n}x{d}"]["which_one"]
+            if N == 0 or ref == 0:  # no batch of the cell fitted, or a reference that never names the unit
+                out[f"{n}x{d}"] = {"k": k, "N": N, "reference": ref, "ratio": None, "p": None, "verdict": "no data"}
+                continue
             p = float(binom.cdf(k, N, 0.95 * ref))
             verdict = "met" if k >= 0.95 * ref * N else ("short" if p < 0.05 else "unresolved")
             out[f"{n}x{d}"] = {"k": k, "N": N, "reference": ref, "ratio": k / N / ref, "p": p, "verdict": verdict}
@@ -525,8 +528,9 @@ def markdown(res):
         lines.append("|---|---|---|---|---|---|---|")
         for key in ("default", "informed"):
             for c, t in res["verdicts"][key]["which_one_vs_reference"].items():
+                ratio, p = ("–", "–") if t["ratio"] is None else (f"{t['ratio']:.3f}", f"{t['p']:.3f}")
                 lines.append(
-                    f"| {key} | {c} | {t['k']} of {t['N']} | {t['reference']:.3f} | {t['ratio']:.3f} | {t['p']:.3f} | {t['verdict']} |"
+                    f"| {key} | {c} | {t['k']} of {t['N']} | {t['reference']:.3f} | {ratio} | {p} | {t['verdict']} |"
                 )
     return "\n".join(lines) + "\n"
 
@@ -698,6 +702,8 @@ def told_verdict(rows):
     """The told fits against the spreads-knowing rule of the tool's model on the same batches (:func:`paired`)."""
     told = {r["seed"]: r["told"] for r in read_jsonl(TOLD_ROWS)}
     sel = [{**r, "told": told[r["seed"]]} for r in rows if r["seed"] in told]
+    if not sel:
+        return {"batches": 0}
     return {
         "batches": len(sel),
         "converged": float(np.mean([r["told"]["converged"] for r in sel])),
