@@ -98,8 +98,17 @@ def rows(work, args, t, name):
 BANDS = {"R0_ohm": (0.75, 1.33), "S0_V_per_K": (0.75, 1.33), "K_W_per_K": (0.75, 1.33)}
 
 
+def _paired(rs, ref_rows, p):
+    """Median over the modules run under both: this design's realised sd over the reference design's."""
+    ref = {(r["batch"], r["module"]): r[p]["sd"] for r in ref_rows}
+    r = [x[p]["sd"] / ref[(x["batch"], x["module"])] for x in rs if (x["batch"], x["module"]) in ref]
+    return float(np.median(r)) if r else None
+
+
 def summarise(per, pred):
+    """Per design and law: realised / predicted sd, coverage, and the realised sd against the first design's."""
     out = {}
+    first = next(iter(per.values()))
     for name, rs in per.items():
         e = pred[name]
         cell = {"modules": len(rs), "duration_h": e.duration_s / 3600, "laws": {}}
@@ -113,6 +122,7 @@ def summarise(per, pred):
                 "ratio_p90": float(np.quantile(r, 0.9)) if len(r) else None,
                 "band": [lo, hi],
                 "coverage90": float(np.mean([x[p]["inside"] for x in rs])) if rs else None,
+                "realised_over_first_design": _paired(rs, first, p),
             }
         out[name] = cell
     return out
@@ -126,17 +136,19 @@ def markdown(res, args):
         f"--fidelity {args.fidelity} --designs {' '.join(args.designs)}` (type {args.type}; the prediction "
         f"from {args.draws} modules the standard bench draws, seed 0).",
         "",
-        "| design | h | modules | law | predicted sd % | realised / predicted (median) | 10-90 % | band | coverage 90 % |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| design | h | modules | law | predicted sd % | realised / predicted (median) | 10-90 % | band | coverage 90 % "
+        "| realised sd / the first design's (same modules, median) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, c in res["designs"].items():
         for p, v in c["laws"].items():
             med = "–" if v["ratio_median"] is None else f"{v['ratio_median']:.2f}"
             rng = "–" if v["ratio_p10"] is None else f"{v['ratio_p10']:.2f}–{v['ratio_p90']:.2f}"
             cov = "–" if v["coverage90"] is None else f"{v['coverage90']:.2f}"
+            pair = "–" if v["realised_over_first_design"] is None else f"{v['realised_over_first_design']:.2f}"
             lines.append(
                 f"| {name} | {c['duration_h']:.2f} | {c['modules']} | {p} | {100 * v['predicted_sd_rel']:.3f} "
-                f"| {med} | {rng} | {v['band'][0]}–{v['band'][1]} | {cov} |"
+                f"| {med} | {rng} | {v['band'][0]}–{v['band'][1]} | {cov} | {pair} |"
             )
     return "\n".join(lines) + "\n"
 

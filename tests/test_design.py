@@ -140,3 +140,27 @@ def test_design_writes_the_program_the_widths_and_the_figure(tmp_path, monkeypat
 def test_a_rig_whose_plates_hold_both_faces_is_refused():
     with pytest.raises(ModelError, match="plate staircase"):
         Designer(TEC1_12706, {"preset": "liquid-plates"}, n_draws=1, jobs=1)
+
+
+def test_a_short_hold_staircase_passes_the_data_checks_and_an_offset_sensor_still_fails(tmp_path):
+    """240 s holds end before the reference rig (slowest time constant 165 s) settles at zero current.
+
+    The zero-current check allows what such a hold leaves of the relaxation
+    (this batch was refused before: T3 6 K above the boundaries after a 23 K
+    fall); a 15 K offset on T3 is still refused.
+    """
+    from tembayes.bench.protocols import identification_staircase
+
+    proto = identification_staircase(6.4, hold=240.0, step=0.8)
+    config = BenchConfig(n_modules=2, n_validations=0, seed=2, protocol=proto)
+    simulate_batch(tmp_path / "b", config, progress=lambda msg: None)
+    assert set(load_batch(tmp_path / "b").modules) == {"TEM1", "TEM2"}
+    f = tmp_path / "b" / "TEM2" / "identification.csv"
+    lines = f.read_text().splitlines()
+    col = lines[0].split(",").index("T3_C")
+    rows = [line.split(",") for line in lines[1:]]
+    for r in rows:
+        r[col] = f"{float(r[col]) + 15.0:.4f}"
+    f.write_text("\n".join([lines[0], *(",".join(r) for r in rows)]) + "\n")
+    with pytest.raises(DataError, match="T3_C"):
+        load_batch(tmp_path / "b")

@@ -97,9 +97,13 @@ SERIES_MIN_HOLDS = 4
 
 #: Zero-current holds this many settling times long are used for the maximum principle ...
 ZERO_HOLD_SETTLINGS = 2.0
-#: ... with this margin [K] plus this fraction of the sensor's change over the hold.
+#: ... with this margin [K] plus this fraction of the sensor's change over the hold, at least ...
 ZERO_MARGIN_K = 2.0
 ZERO_MARGIN_FRACTION = 0.2
+#: ... this many times what a hold of ``h`` leaves of a relaxation with the rig's slowest time
+#: constant ``tau``, per kelvin moved: ``r / (1 - r)``, ``r = exp(-h / tau)`` (short holds, e.g. a
+#: designed staircase's 240 s against the reference rig's 165 s, end well before the rig settles).
+ZERO_MARGIN_SAFETY = 1.5
 
 #: Seebeck ratio (the voltage per degree of the face sensors at zero current, over the datasheet's S)
 #: in [LOW, this) with a tight linear fit (R^2 >= SEEBECK_MIN_R2) reads degF; in degC it is 0.85-0.9 on
@@ -521,8 +525,9 @@ def _settled_holds(exp, steps, settle, layout, *, zero):
     Also at least the rig's slowest time constant long: in holds shorter than the rig's slowest
     mode the face sensors' 63 % time measures the hold, not the rig.  One time constant leaves
     up to 37 % of a move unrelaxed; the checks that read these holds leave room for it (the
-    zero-current check's margin is ZERO_MARGIN_K plus ZERO_MARGIN_FRACTION of the sensor's move
-    over the hold; the sensor-order check reads correlations, not levels).  Only the holds at zero current
+    zero-current check's margin is ZERO_MARGIN_K plus what the hold leaves of a relaxation at the
+    slowest time constant, :func:`_unrelaxed_per_move`, times the sensor's move over the hold; the
+    sensor-order check reads correlations, not levels).  Only the holds at zero current
     (``zero=True``) or only the others.
     """
     bounds = [(0, steps[0].index if steps else exp.n)] + [(s.hold_start, s.hold_end) for s in steps]
@@ -589,15 +594,22 @@ def _out_of_order(exp, holds, path, levels, first, second, layout):
     ]
 
 
+def _unrelaxed_per_move(hold_s, tau_s):
+    """Kelvin still to go per kelvin moved at the end of a hold, for a relaxation with time constant ``tau_s``."""
+    r = math.exp(-hold_s / tau_s)
+    return max(ZERO_MARGIN_FRACTION, ZERO_MARGIN_SAFETY * r / (1.0 - r))
+
+
 def _zero_current_range(exp, steps, settle, layout):
     for a, b in _settled_holds(exp, steps, settle, layout, zero=True):
         tail = _tail(a, b)
         bounds = np.median(exp.boundaries[:, tail], axis=1)
         lo, hi = float(bounds.min()), float(bounds.max())
+        fraction = _unrelaxed_per_move(float(exp.time[b - 1] - exp.time[a]), layout.slowest_tau_s)
         for j, c in enumerate(exp.sensor_names):
             x = exp.sensors[j]
             level = float(np.median(x[tail]))
-            margin = ZERO_MARGIN_K + ZERO_MARGIN_FRACTION * abs(level - float(x[a]))
+            margin = ZERO_MARGIN_K + fraction * abs(level - float(x[a]))
             if not lo - margin <= level <= hi + margin:
                 return [
                     _finding(
