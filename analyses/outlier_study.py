@@ -388,8 +388,9 @@ def which_one_test(rows, key, reference):
         for d in SHIFTS[1:]:
             hit = _named(rows, key, n, d)
             k, N, ref = int(hit.sum()), len(hit), reference[f"{n}x{d}"]["which_one"]
-            if N == 0 or ref == 0:  # no batch of the cell fitted, or a reference that never names the unit
-                out[f"{n}x{d}"] = {"k": k, "N": N, "reference": ref, "ratio": None, "p": None, "verdict": "no data"}
+            if N == 0 or ref == 0:  # no batch of the cell fitted; a reference that never names the unit is met
+                verdict = "no data" if N == 0 else "met"
+                out[f"{n}x{d}"] = {"k": k, "N": N, "reference": ref, "ratio": None, "p": None, "verdict": verdict}
                 continue
             p = float(binom.cdf(k, N, 0.95 * ref))
             verdict = "met" if k >= 0.95 * ref * N else ("short" if p < 0.05 else "unresolved")

@@ -557,7 +557,7 @@ def _cmd_design(args):
     _write_result(args, "design.json", design_json(d, designer), files)
     best, ref = d.best, d.reference
     print(
-        f"design: {len(best.protocol.levels)} levels, step {best.step_A * datasheet.imax / 6.4:.3g} A, "
+        f"design: {len(best.protocol.levels)} levels, step {best.step_for(datasheet.imax):.3g} A, "
         f"hold {best.hold_s:g} s: {best.duration_s / 3600:.2f} h against the reference's {ref.duration_s / 3600:.2f} h"
     )
     for k, v in best.sd_rel().items():
@@ -1197,7 +1197,8 @@ def _add_design(sub):
     p = sub.add_parser(
         "design",
         help="the shortest identification staircase that reaches target posterior widths",
-        description="Search current staircases (step size and hold; both step directions at every level, as the "
+        description="Search current staircases (step size and hold; every level inside the span stepped to from both "
+        "sides, as the "
         "hysteresis check needs) for the shortest that reaches the target posterior sds of the laws, and write "
         "protocol.csv (the current program), design.json (its duration and expected widths, and the reference "
         "staircase's) and design.png.",

@@ -299,7 +299,7 @@ def test_three_modules_name_the_one_that_breaks_the_symmetry():
     # a module whose reweighting is unreliable is left out by a refit, and only such a module
     k_hat = r.diagnostics["deviation_k_hat"]
     assert r.diagnostics["deviation_refit"] == [m for m in r.module_ids if k_hat[m] > 0.7]
-    assert r.diagnostics["deviation_refit_unconverged"] == []
+    assert r.diagnostics["deviation_refit"] and r.diagnostics["deviation_refit_unconverged"] == []
 
 
 def test_a_refit_past_the_fits_time_budget_stops_and_says_it_did_not_converge():
@@ -345,13 +345,19 @@ def test_a_module_the_reweighting_cannot_leave_out_is_refitted():
     moved = pop.mu_mean + 0.01
     called = []
 
-    def refit(i):
-        called.append(i)
-        return draws(moved, 2 * tau), False
+    def refitter(converged):
+        def refit(i):
+            called.append(i)
+            return draws(moved, 2 * tau), converged
 
-    dev = loo_deviation(pop, mean, cov, draws(pop.mu_mean, tau), log_like, refit)
+        return refit
+
+    dev = loo_deviation(pop, mean, cov, draws(pop.mu_mean, tau), log_like, refitter(True))
     assert called == [0] and dev.refit.tolist() == [True, False, False] and dev.k_hat[0] > 0.7 > dev.k_hat[1:].max()
-    assert not dev.refit_converged.any()  # the refit said it did not converge
+    # the refit's own word on its convergence, for the refitted module only
+    assert dev.refit_converged.tolist() == [True, False, False]
+    unconverged = loo_deviation(pop, mean, cov, draws(pop.mu_mean, tau), log_like, refitter(False))
+    assert not unconverged.refit_converged.any()
     np.testing.assert_allclose(dev.spreads[0], (mean[0] - moved) / (2 * tau))
     np.testing.assert_allclose(dev.spreads[1:], (mean[1:] - pop.mu_mean) / tau)
     np.testing.assert_allclose(dev.rel[0, [0, 2, 4]], np.expm1(mean[0] - moved)[[0, 2, 4]])

@@ -38,10 +38,12 @@ def test_a_protocol_file_reads_back_as_written(tmp_path):
     ("text", "where", "what"),
     [
         ("time,current_A\n0,0\n60,0\n", "line 1", "header"),
+        ("time_s, current_A\n0,0\n60,x\n90,0\n", "line 3, column 'current_A'", "'x' is not a number"),
         ("time_s,current_A\n0,0\n", "protocol.csv", "1 data rows"),
         ("time_s,current_A\n0,0\n60,x\n120,0\n", "line 3, column 'current_A'", "'x' is not a number"),
         ("time_s,current_A\n5,0\n60,0\n", "line 2, column 'time_s'", "first time is 5"),
         ("time_s,current_A\n0,0\n60,1\n65,0\n", "line 4, column 'time_s'", "a hold of 5 s"),
+        ("time_s,current_A\n0,0\n60,1\n80,0\n", "line 4, column 'time_s'", "a hold of 20 s"),
         ("time_s,current_A\n0,0\n60,7.5\n120,0\n", "line 3, column 'current_A'", "exceeds the module type's Imax"),
     ],
 )
@@ -105,6 +107,11 @@ def test_expected_widths_fall_with_more_samples_as_white_noise_information_does(
     full = w[1.25].sd["R0_ohm"] / w[5.0].sd["R0_ohm"]
     assert 1.0 <= full < ratio
     assert all(w[5.0].sd[k] > w[5.0].sd_laplace[k] for k in MODULE_PARAMETERS)
+    # without the robust discrepancy nothing is carried over from the held rig parameters
+    from tembayes.calibrate import CalibrationOptions
+
+    bare = expected_widths(exp, TEC1_12706, start=start, max_nfev=3, options=CalibrationOptions(discrepancy="none"))
+    assert bare.sd == bare.sd_laplace
 
 
 def test_the_search_picks_the_shortest_candidate_that_meets_the_targets_and_refuses_the_unreachable(designer):
@@ -115,6 +122,11 @@ def test_the_search_picks_the_shortest_candidate_that_meets_the_targets_and_refu
     assert d.best is meeting[0]
     with pytest.raises(ModelError, match=r"no staircase within 0.5 h reaches R0_ohm=1e-06%.*reaches R0_ohm"):
         design(designer, (Target("R0_ohm", 1e-8, True),), max_hours=0.5)
+    # a target the reference (4.2 h) reaches and nothing within 0.5 h does
+    target = 0.99 * min(e.sd_rel()["R0_ohm"] for e in d.evaluated if e.duration_s <= 1800)
+    assert d.reference.sd_rel()["R0_ohm"] < target
+    with pytest.raises(ModelError, match="within 0.5 h"):
+        design(designer, (Target("R0_ohm", target, True),), max_hours=0.5)
 
 
 def test_design_writes_the_program_the_widths_and_the_figure(tmp_path, monkeypatch):
@@ -137,9 +149,18 @@ def test_design_writes_the_program_the_widths_and_the_figure(tmp_path, monkeypat
     assert not (tmp_path / "e").exists()
 
 
-def test_a_rig_whose_plates_hold_both_faces_is_refused():
+def test_the_designer_simulates_the_rig_it_is_given_and_refuses_plates_that_hold_both_faces(tmp_path):
+    import tembayes
+
+    shipped = Path(tembayes.__file__).parent / "rigs" / "heatsink-al.toml"
+    for config in ({"preset": "heatsink-al"}, {"file": str(shipped)}):
+        assert Designer(TEC1_12706, config, n_draws=1, jobs=1).setup.run["rig"].name.startswith("heatsink-al")
+    assert Designer(TEC1_12706, {"preset": "reference"}, n_draws=1, jobs=1).setup.run["rig"].name.startswith("bench")
     with pytest.raises(ModelError, match="plate staircase"):
         Designer(TEC1_12706, {"preset": "liquid-plates"}, n_draws=1, jobs=1)
+    with pytest.raises(ModelError, match="without --protocol"):
+        simulate_batch(tmp_path / "lp", BenchConfig(n_modules=1, rig={"preset": "liquid-plates"}, protocol=SHORT))
+    assert not (tmp_path / "lp").exists()
 
 
 def test_a_short_hold_staircase_passes_the_data_checks_and_an_offset_sensor_still_fails(tmp_path):
@@ -162,5 +183,5 @@ def test_a_short_hold_staircase_passes_the_data_checks_and_an_offset_sensor_stil
     for r in rows:
         r[col] = f"{float(r[col]) + 15.0:.4f}"
     f.write_text("\n".join([lines[0], *(",".join(r) for r in rows)]) + "\n")
-    with pytest.raises(DataError, match="T3_C"):
+    with pytest.raises(DataError, match="at zero current T3_C"):
         load_batch(tmp_path / "b")

@@ -493,7 +493,12 @@ def simulate_batch(
     truth, eff_flat, run, rig = bench.truth, bench.effects, bench.run, bench.run["rig"]
     ds = config.datasheet
     high = config.fidelity == "high"
-    identification = config.protocol or identification_run(rig, ds.imax, config.hold)
+    if config.protocol is not None and rig.layout.faces_held:
+        raise ModelError(
+            "the rig's plates hold both module faces: its identification steps the plate temperatures too, which a "
+            "protocol.csv (current only) cannot give; simulate it without --protocol"
+        )
+    identification = config.protocol if config.protocol is not None else identification_run(rig, ds.imax, config.hold)
     what = f"{len(identification.levels)} levels, {identification.duration / 3600:.2f} h"
     with atomic_directory(out, overwrite=overwrite, kind="simulate") as tmp:
         write_batch_toml(tmp / "batch.toml", ds, _batch_rig(config.rig, tmp))

@@ -175,6 +175,15 @@ class HeldSpread:
         }
 
 
+def held_parameters(rig, space: ParameterSpace) -> dict:
+    """The rig parameters ``space`` holds at nominal though their documented range is not a point: name -> RigParameter."""
+    return {
+        q: rig.parameter(q)
+        for q in space.fixed
+        if q in rig.parameter_names and rig.parameter(q).high > rig.parameter(q).low
+    }
+
+
 def held_nuisance_spread(
     model: StepResponseModel,
     space: ParameterSpace,

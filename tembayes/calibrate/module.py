@@ -44,7 +44,7 @@ from threadpoolctl import threadpool_limits
 from tembayes.calibrate import sampler as smp
 from tembayes.calibrate.adequacy import adequacy_numbers, assess
 from tembayes.calibrate.diagnostics import PSIS_K_MAX, ModuleDiagnostics, PsisCheck
-from tembayes.calibrate.discrepancy import held_nuisance_spread, window_sandwich
+from tembayes.calibrate.discrepancy import held_nuisance_spread, held_parameters, window_sandwich
 from tembayes.calibrate.likelihood import OFFSET_SD, LevelErrors, StepLikelihood, noise_priors
 from tembayes.calibrate.model import SHIFT, LinearisedModel, StepResponseModel
 from tembayes.calibrate.modelform import DEFAULT_FORM, get_form
@@ -416,6 +416,21 @@ def fit_map(
     )
     cov = design_covariance(sol.jac)
     return sol.x, cov, sol
+
+
+def laplace_covariance(jac: np.ndarray, space: ParameterSpace) -> np.ndarray:
+    """The Laplace covariance at a mode of :func:`fit_map` from its whitened Jacobian (data and prior rows).
+
+    The Gauss-Newton Hessian of the data and prior terms; a uniform prior
+    counts with its own variance, so a coordinate the data leave open has
+    its prior's width instead of an infinite one.
+    """
+    H = jac.T @ jac
+    for j, p in enumerate(space.priors):
+        if p.kind == "uniform":
+            H[j, j] += 3.0 / p.scale**2
+    cov = np.linalg.inv(H)
+    return 0.5 * (cov + cov.T)
 
 
 def start_point(space: ParameterSpace, start: Mapping[str, float] | None = None) -> np.ndarray:
@@ -919,16 +934,11 @@ def _posterior(prob, st, levels) -> _Posterior:
         discrepancy = {**scatter.to_json(MODULE_PARAMETERS), "method": opt.discrepancy}
     if opt.discrepancy == "robust":
         law_sd = flat[:, laws].std(axis=0)
-        rig = prob.rig
-        held = {
-            q: rig.parameter(q)
-            for q in prob.model_space.fixed
-            if q in rig.parameter_names and rig.parameter(q).high > rig.parameter(q).low
-        }
+        held = held_parameters(prob.rig, prob.model_space)
         spread = held_nuisance_spread(
             prob.model, prob.model_space, flat[:, :p].mean(axis=0), st.lin.J, prob.data.noise, held
         )
-        flat = spread.apply(flat, st.rng, relative=positive_coordinates(space, rig))
+        flat = spread.apply(flat, st.rng, relative=positive_coordinates(space, prob.rig))
         discrepancy["held_sd_over_posterior_sd"] = spread.to_json(space.names, laws, law_sd)
         if spread.not_carried:
             discrepancy["held_not_carried"] = list(spread.not_carried)

@@ -221,6 +221,7 @@ def check_experiment(
     for check in (_zero_current_range, _sensor_order, _polarity):
         if not any(f.severity == ERROR for f in found):
             found += check(exp, steps, settle, layout)
+    found += _unsettled(exp, steps, settle, layout)
     if identification:
         found += _identifiability(exp, steps, settle, layout.face)
     return sorted(found, key=lambda f: f.severity != ERROR)
@@ -598,6 +599,24 @@ def _unrelaxed_per_move(hold_s, tau_s):
     """Kelvin still to go per kelvin moved at the end of a hold, for a relaxation with time constant ``tau_s``."""
     r = math.exp(-hold_s / tau_s)
     return max(ZERO_MARGIN_FRACTION, ZERO_MARGIN_SAFETY * r / (1.0 - r))
+
+
+def _unsettled(exp, steps, settle, layout):
+    """A warning when no hold is long enough for the checks that read settled holds."""
+    if not steps or not math.isfinite(settle):
+        return []
+    if _settled_holds(exp, steps, settle, layout, zero=True) or _settled_holds(exp, steps, settle, layout, zero=False):
+        return []
+    return [
+        _finding(
+            WARNING,
+            exp,
+            f"no hold lasts the rig's slowest time constant ({layout.slowest_tau_s:.0f} s) and "
+            f"{ZERO_HOLD_SETTLINGS:g} settling times: the zero-current and sensor-order checks cannot read this run, "
+            "so an offset sensor or swapped columns would go unnoticed here",
+            "Check the columns against the rig file by eye, or add one long hold at 0 A",
+        )
+    ]
 
 
 def _zero_current_range(exp, steps, settle, layout):

@@ -18,8 +18,8 @@ from tembayes.data.write import atomic_write_text
 from tembayes.errors import DataError
 
 COLUMNS = ("time_s", "current_A")
-#: The shortest hold a protocol may ask for [s]: the bench and the step windows need a few samples.
-MIN_HOLD_S = 10.0
+#: The shortest hold a protocol may ask for [s], as ``simulate --hold``: a step window needs its samples.
+MIN_HOLD_S = 30.0
 
 
 def _rows(path):
@@ -39,6 +39,7 @@ def _rows(path):
             "The header must be exactly: time_s,current_A",
             line=1,
         )
+    reader.fieldnames = list(header)  # "time_s, current_A" reads as the columns it names
     return [(k + 2, row) for k, row in enumerate(reader)]
 
 

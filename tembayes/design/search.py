@@ -2,8 +2,8 @@
 
 A candidate is the reference staircase's shape -- 0 up to +0.8 A, down to
 -1.6 A and back to 0 (reference module's levels, scaled by the type's Imax),
-every level reached by an up- and a down-step so the hysteresis check keeps
-both directions -- with a coarser step and shorter holds.  Its expected
+every level inside the span reached from below and from above (the turning
+levels from one side) so the hysteresis check keeps both directions -- with a coarser step and shorter holds.  Its expected
 widths (:mod:`.widths`) are averaged over modules the standard bench draws
 from the type (the rig's nominal spread of values, the type's unit spread),
 each run simulated on the bench (the same noise stream for every candidate)
@@ -24,11 +24,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tembayes.bench.protocols import Protocol, identification_staircase
+from tembayes.bench.protocols import REFERENCE_IMAX, Protocol, identification_staircase
 from tembayes.constants import MODULE_PARAMETERS
 from tembayes.errors import ModelError
 
-#: Step sizes of the candidates, for the reference module (6.4 A Imax) [A].
+#: Step sizes of the candidates, for the reference module (Imax REFERENCE_IMAX) [A].
 STEPS_A = (0.2, 0.4, 0.8)
 #: Hold lengths of the candidates [s].
 HOLDS_S = (120.0, 240.0, 420.0, 600.0, 900.0)
@@ -107,9 +107,14 @@ class Evaluated:
         """The program's duration [s]."""
         return self.protocol.duration
 
-    def sd_rel(self) -> dict:
-        """Law name -> expected sd relative to the modules' mean value."""
-        return {k: self.sd[k] / abs(self.mean[k]) for k in MODULE_PARAMETERS}
+    def sd_rel(self, data_only: bool = False) -> dict:
+        """Law name -> expected sd (``data_only``: :attr:`sd_laplace`) relative to the modules' mean value."""
+        sd = self.sd_laplace if data_only else self.sd
+        return {k: sd[k] / abs(self.mean[k]) for k in MODULE_PARAMETERS}
+
+    def step_for(self, imax: float) -> float:
+        """The step [A] of a module type of Imax ``imax`` [A]."""
+        return self.step_A * imax / REFERENCE_IMAX
 
     def meets(self, targets) -> bool:
         """Whether every target is reached."""
@@ -130,9 +135,9 @@ def _one_width(args):
     from tembayes.bench.bench import run_experiment
     from tembayes.design.widths import expected_widths
 
-    protocol, k, seed = args
+    protocol, m, seed = args
     setup, datasheet, rig_config = _ACTIVE.setup, _ACTIVE.datasheet, _ACTIVE.rig_config
-    module = list(setup.truth["modules"].values())[k]
+    module = list(setup.truth["modules"].values())[m]
     exp = run_experiment(protocol, module, setup.effects, np.random.default_rng(seed), rate=RATE_HZ, **setup.run)
     # the truth of every coordinate the calibration samples that the bench knows (the step phase does not matter)
     start = {**setup.effects, **module.get("rig", {}), **{k: module[k] for k in MODULE_PARAMETERS}}
@@ -160,7 +165,7 @@ class Designer:
     def __init__(self, datasheet, rig_config=None, *, seed=0, n_draws=N_DRAWS, jobs=2, say=None):
         from tembayes.bench.bench import BenchConfig, bench_setup
 
-        rig = None if not rig_config or rig_config.get("preset", "reference") == "reference" else dict(rig_config)
+        rig = dict(rig_config) if rig_config else None  # BenchConfig takes the reference preset as None
         config = BenchConfig(n_modules=n_draws, seed=seed, datasheet=datasheet, n_validations=0, rig=rig)
         self.setup = bench_setup(config)
         if self.setup.run["rig"].layout.faces_held:
@@ -174,6 +179,7 @@ class Designer:
         self.say = say or (lambda msg: None)
         self.cache: dict = {}
         self.seed = seed
+        self.n_modules = n_draws
 
     def protocol(self, step: float, hold: float) -> Protocol:
         """The candidate staircase of step ``step`` (reference module's A) and hold ``hold`` [s] for this type."""
@@ -185,23 +191,23 @@ class Designer:
         jobs = []
         for step, hold in todo:
             proto = self.protocol(step, hold)
-            for k in range(len(self.setup.module_rngs)):
-                jobs.append((proto, k, [self.seed, k]))  # common random numbers across the candidates
+            for m in range(self.n_modules):
+                jobs.append((proto, m, [self.seed, m]))  # common random numbers across the candidates
         if jobs:
             global _ACTIVE
             _ACTIVE = self
-            self.say(f"design: {len(todo)} staircases x {len(self.setup.module_rngs)} modules")
+            self.say(f"design: {len(todo)} staircases x {self.n_modules} modules")
             if self.jobs > 1:
                 ctx = multiprocessing.get_context("fork")
                 with ProcessPoolExecutor(max_workers=self.jobs, mp_context=ctx) as ex:
                     out = list(ex.map(_one_width, jobs))
             else:
                 out = [_one_width(j) for j in jobs]
-            n = len(self.setup.module_rngs)
-            for i, (step, hold) in enumerate(todo):
-                part = out[i * n : (i + 1) * n]
+            n = self.n_modules
+            for c, (step, hold) in enumerate(todo):
+                part = out[c * n : (c + 1) * n]  # (sd, mode, sd_laplace) of each drawn module
                 sd, mean, lap = (
-                    {k: float(np.mean([r[i][k] for r in part])) for k in MODULE_PARAMETERS} for i in range(3)
+                    {k: float(np.mean([r[q][k] for r in part])) for k in MODULE_PARAMETERS} for q in range(3)
                 )
                 self.cache[(step, hold)] = Evaluated(step, hold, self.protocol(step, hold), sd, mean, lap)
         return [self.cache[p] for p in pairs]
@@ -228,6 +234,12 @@ class Design:
     evaluated: tuple
 
 
+def _miss(e: Evaluated, t: Target) -> float:
+    """How many times its target a candidate's sd is (1: just met)."""
+    sd = e.sd_rel()[t.parameter] if t.rel else e.sd[t.parameter]
+    return sd / t.value
+
+
 def reference_targets(reference: Evaluated, names=("R0_ohm", "S0_V_per_K", "K_W_per_K")) -> tuple:
     """Targets equal to the reference staircase's relative widths on ``names``."""
     rel = reference.sd_rel()
@@ -246,7 +258,7 @@ def design(
     ------
     ModelError
         No candidate within ``max_hours`` meets the targets; the message says
-        what the longest allowed candidate reaches.
+        what the closest one (the smallest largest miss) reaches.
     """
     max_s = 3600.0 * max_hours
     grid = [(s, h) for s in STEPS_A for h in HOLDS_S if designer.protocol(s, h).duration <= max_s]
@@ -255,8 +267,13 @@ def design(
     evaluated = tuple(sorted(designer.cache.values(), key=lambda e: e.duration_s))
     found = [e for e in evaluated if e.duration_s <= max_s and e.meets(targets)]
     if not found:
-        allowed = [e for e in evaluated if e.duration_s <= max_s] or list(evaluated)
-        best = min(allowed, key=lambda e: sum(e.sd_rel()[t.parameter] for t in targets))
+        allowed = [e for e in evaluated if e.duration_s <= max_s]
+        if not allowed:
+            raise ModelError(
+                f"no staircase fits in {max_hours:g} h: the shortest candidate takes "
+                f"{evaluated[0].duration_s / 3600:.2f} h. Allow more time (--max-hours)"
+            )
+        best = min(allowed, key=lambda e: max(_miss(e, t) for t in targets))
         reach = ", ".join(
             f"{t.parameter} {100 * best.sd_rel()[t.parameter]:.2g} %"
             if t.rel
@@ -264,7 +281,7 @@ def design(
             for t in targets
         )
         raise ModelError(
-            f"no staircase within {max_hours:g} h reaches {', '.join(map(str, targets))}: the best evaluated "
+            f"no staircase within {max_hours:g} h reaches {', '.join(map(str, targets))}: the closest "
             f"({best.duration_s / 3600:.2f} h, step {best.step_A:g} A, hold {best.hold_s:g} s) reaches {reach}. "
             "Loosen the targets or allow more time (--max-hours)"
         )
@@ -276,13 +293,12 @@ def design_json(d: Design, designer: Designer) -> dict:
     """``design.json`` (contract keys first, then what the design rests on)."""
 
     def cand(e):
-        lap = {k: e.sd_laplace[k] / abs(e.mean[k]) for k in MODULE_PARAMETERS}
         return {
             "step_A": e.step_A,
             "hold_s": e.hold_s,
             "duration_s": e.duration_s,
             "predicted": e.predicted(),
-            "sd_rel_data_only": lap,
+            "sd_rel_data_only": e.sd_rel(data_only=True),
         }
 
     return {
@@ -291,7 +307,7 @@ def design_json(d: Design, designer: Designer) -> dict:
         "reference": {"duration_s": d.reference.duration_s, "predicted": d.reference.predicted()},
         "targets": {t.parameter: {"value": t.value, "relative": t.rel} for t in d.targets},
         "staircase": {
-            "step_A": d.best.step_A * designer.datasheet.imax / 6.4,
+            "step_A": d.best.step_for(designer.datasheet.imax),
             "step_A_reference_module": d.best.step_A,
             "hold_s": d.best.hold_s,
             "levels": len(d.best.protocol.levels),
@@ -300,7 +316,7 @@ def design_json(d: Design, designer: Designer) -> dict:
         "method": {
             "widths": "Laplace at the drawn modules' truths plus the held rig parameters' carry-over "
             "(the window sandwich left at 1)",
-            "modules_drawn": len(designer.setup.module_rngs),
+            "modules_drawn": designer.n_modules,
             "seed": designer.seed,
         },
         "evaluated": [cand(e) for e in d.evaluated],

@@ -19,7 +19,6 @@ realised posteriors on both benches.
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,24 +38,15 @@ class Widths:
         Law name -> the posterior mode the sds were taken at [SI].
     sd_laplace : dict
         Law name -> the Laplace sd alone, without the held rig parameters [SI].
-    nfev : int
-        Model evaluations of the mode search.
-    seconds : float
     """
 
     sd: dict
     mode: dict
     sd_laplace: dict
-    nfev: int
-    seconds: float
-
-    def relative(self) -> dict:
-        """Law name -> sd relative to the mode's magnitude."""
-        return {k: self.sd[k] / abs(self.mode[k]) for k in MODULE_PARAMETERS}
 
 
-def _law_jacobian(space, x):
-    """``d law_SI / d x`` (5,) of each law's own coordinate at ``x`` (the law coordinates are one-dimensional maps)."""
+def _law_slopes(space, x):
+    """Law name -> (its coordinate's index, ``d law_SI / d coordinate``, the law's value [SI]) at ``x``."""
     out = {}
     for k in MODULE_PARAMETERS:
         j = space.index(k)
@@ -67,15 +57,6 @@ def _law_jacobian(space, x):
         v = space.values(X)[k]
         out[k] = (j, float((v[0] - v[1]) / (2 * h)), float(space.values(x[None])[k][0]))
     return out
-
-
-def _held(rig, model_space):
-    """The rig parameters the calibration holds at nominal though their range is not a point."""
-    return {
-        q: rig.parameter(q)
-        for q in model_space.fixed
-        if q in rig.parameter_names and rig.parameter(q).high > rig.parameter(q).low
-    }
 
 
 def expected_widths(experiment, datasheet, *, rig_config=None, options=None, start=None, max_nfev=30) -> Widths:
@@ -89,7 +70,8 @@ def expected_widths(experiment, datasheet, *, rig_config=None, options=None, sta
     rig_config : dict, optional
         The batch's ``[rig]`` table.
     options : CalibrationOptions, optional
-        The calibration's model form and resolution.
+        The calibration's model form, resolution and discrepancy method (the
+        held rig parameters are carried over with ``"robust"``, the default).
     start : dict, optional
         ``name -> value`` (SI) where the mode search starts, e.g. the
         bench's truth; default the prior centres.
@@ -102,12 +84,18 @@ def expected_widths(experiment, datasheet, *, rig_config=None, options=None, sta
     """
     from threadpoolctl import threadpool_limits
 
-    from tembayes.calibrate.discrepancy import held_nuisance_spread
+    from tembayes.calibrate.discrepancy import held_nuisance_spread, held_parameters
     from tembayes.calibrate.model import StepResponseModel
-    from tembayes.calibrate.module import CalibrationOptions, calibration_rig, fit_map, parameter_space, start_point
+    from tembayes.calibrate.module import (
+        CalibrationOptions,
+        calibration_rig,
+        fit_map,
+        laplace_covariance,
+        parameter_space,
+        start_point,
+    )
     from tembayes.calibrate.stepdata import step_data
 
-    t0 = time.perf_counter()
     opt = options or CalibrationOptions()
     rig = calibration_rig(rig_config, opt)
     data = step_data(experiment, face=rig.layout.face)
@@ -115,27 +103,18 @@ def expected_widths(experiment, datasheet, *, rig_config=None, options=None, sta
     space, _ = parameter_space(rig, datasheet, data, model.shift_bound, opt.effects, opt.model)
     with threadpool_limits(limits=1, user_api="blas"):
         x, _, sol = fit_map(model, space, data, start_point(space, start), max_nfev=max_nfev)
-    Jr = sol.jac  # standardised residuals (data rows, then prior rows) per coordinate
-    H = Jr.T @ Jr
-    for j, p in enumerate(space.priors):
-        if p.kind == "uniform":  # a coordinate the data leave open keeps its prior's width
-            H[j, j] += 3.0 / p.scale**2
-    cov = np.linalg.inv(H)
-    nc, n = data.obs.shape
-    # the prediction's slopes (p, nc, n): residual = (obs - f) / noise
-    J = -(Jr[: nc * n].T.reshape(len(x), nc, n)) * data.noise[None, :, None]
-    held = _held(rig, space)
-    cov_total = cov
-    if held:
+    cov = laplace_covariance(sol.jac, space)
+    total = cov
+    held = held_parameters(rig, space)
+    if held and opt.discrepancy == "robust":
+        nc, n = data.obs.shape
+        # the prediction's slopes (p, nc, n) from the whitened residuals' (obs - f) / noise
+        J = -(sol.jac[: nc * n].T.reshape(len(x), nc, n)) * data.noise[None, :, None]
         spread = held_nuisance_spread(model, space, x, J, data.noise, held)
-        cov_total = cov + (spread.shift * spread.log_sd**2) @ spread.shift.T
-    laws = _law_jacobian(space, x)
-    sd = {k: abs(d) * float(np.sqrt(cov_total[j, j])) for k, (j, d, _) in laws.items()}
-    sd0 = {k: abs(d) * float(np.sqrt(cov[j, j])) for k, (j, d, _) in laws.items()}
+        total = cov + (spread.shift * spread.log_sd**2) @ spread.shift.T
+    laws = _law_slopes(space, x)
     return Widths(
-        sd=sd,
+        sd={k: abs(d) * float(np.sqrt(total[j, j])) for k, (j, d, _) in laws.items()},
         mode={k: v for k, (_, _, v) in laws.items()},
-        sd_laplace=sd0,
-        nfev=int(sol.nfev),
-        seconds=time.perf_counter() - t0,
+        sd_laplace={k: abs(d) * float(np.sqrt(cov[j, j])) for k, (j, d, _) in laws.items()},
     )

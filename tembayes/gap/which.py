@@ -198,6 +198,7 @@ def refit(module, datasheet, effect=None, *, rig_config=None, start=None, option
         CalibrationOptions,
         calibration_rig,
         fit_map,
+        laplace_covariance,
         parameter_space,
         start_point,
     )
@@ -215,16 +216,8 @@ def refit(module, datasheet, effect=None, *, rig_config=None, start=None, option
     with threadpool_limits(limits=1, user_api="blas"):
         x, _, sol = fit_map(model, space, data, x0, max_nfev=max_nfev)
         r = (data.obs - model.predict(space.params(x[None]), strict=False)[0]) / data.noise[:, None]
-    # Gauss-Newton Hessian of the data and prior terms; a uniform prior
-    # counts with its own variance, so a coordinate the data leave open has
-    # its prior's width instead of an infinite one
     J = sol.jac
-    H = J.T @ J
-    for j, p in enumerate(space.priors):
-        if p.kind == "uniform":
-            H[j, j] += 3.0 / p.scale**2
-    cov = np.linalg.inv(H)
-    cov = 0.5 * (cov + cov.T)
+    cov = laplace_covariance(J, space)
     data_cost = 0.5 * float(np.sum(r * r))
     _, logdet = np.linalg.slogdet(cov)
     log_evidence = -data_cost + float(space.log_prior(x[None])[0]) + 0.5 * (len(x) * np.log(2 * np.pi) + logdet)

@@ -13,6 +13,7 @@ from matplotlib.figure import Figure
 
 from tembayes.constants import MODULE_PARAMETERS
 from tembayes.data.write import atomic_write_bytes
+from tembayes.report.outliers import short
 
 if TYPE_CHECKING:
     from pathlib import Path
@@ -22,7 +23,6 @@ if TYPE_CHECKING:
 __all__ = ["plot_design", "save_design_figure"]
 
 DPI = 120
-SHORT = {"R0_ohm": "R0", "R1_ohm_per_K": "R1", "S0_V_per_K": "S0", "S1_V_per_K2": "S1", "K_W_per_K": "K"}
 
 
 def _program(ax, protocol, **kw):
@@ -42,7 +42,7 @@ def plot_design(design: Design) -> Figure:
     targets = {t.parameter: t for t in design.targets}
     for k, p in enumerate(MODULE_PARAMETERS):
         rel = np.array([100 * e.sd_rel()[p] for e in design.evaluated])
-        b.plot(hours, rel, "o", ms=4, color=f"C{k}", alpha=0.7, label=SHORT[p])
+        b.plot(hours, rel, "o", ms=4, color=f"C{k}", alpha=0.7, label=short(p))
         t = targets.get(p)
         if t is not None and t.rel:
             b.axhline(100 * t.value, color=f"C{k}", ls="--", lw=1)
