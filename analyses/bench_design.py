@@ -37,7 +37,7 @@ def main():
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     design = json.loads((out / "design.json").read_text())
     res = {
-        "command": " ".join(cmd[1:]),
+        "command": "tembayes design data/example --out TMP",
         "wall_s": wall,
         "cpu_s": cpu,
         "budget_s": BUDGET_S,

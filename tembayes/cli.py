@@ -1213,7 +1213,7 @@ def _add_design(sub):
         default=[],
         metavar="PARAM=SD",
         help="a posterior sd to reach, e.g. R0_ohm=0.3%% (repeatable; default: the reference staircase's R0, S0 "
-        "and K widths)",
+        "and K widths, within 5 %%)",
     )
     p.add_argument("--rig", metavar="RIG", help="a shipped rig or a rig file (default: the batch's [rig])")
     p.add_argument("--max-hours", type=float, default=8.0, metavar="H", help="longest test allowed (default 8 h)")

@@ -36,6 +36,10 @@ HOLDS_S = (120.0, 240.0, 420.0, 600.0, 900.0)
 REFERENCE = (0.2, 600.0)
 #: Modules drawn per candidate: enough for the mean width to ~10 %, few enough for 2 minutes.
 N_DRAWS = 2
+#: The default targets' slack over the reference's widths: how far the predicted ratio of two
+#: staircases' widths missed the realised one on the same out-of-model modules (3-6 %,
+#: analyses/design_check.py), so that "as narrow as the reference" is not decided by the predictor's error.
+REFERENCE_SLACK = 0.05
 #: Sampling rate of the simulated runs [Hz] (the reference rig's).
 RATE_HZ = 5.0
 
@@ -241,9 +245,9 @@ def _miss(e: Evaluated, t: Target) -> float:
 
 
 def reference_targets(reference: Evaluated, names=("R0_ohm", "S0_V_per_K", "K_W_per_K")) -> tuple:
-    """Targets equal to the reference staircase's relative widths on ``names``."""
+    """The reference staircase's relative widths on ``names``, within :data:`REFERENCE_SLACK`."""
     rel = reference.sd_rel()
-    return tuple(Target(k, rel[k], True) for k in names)
+    return tuple(Target(k, rel[k] * (1.0 + REFERENCE_SLACK), True) for k in names)
 
 
 def design(
