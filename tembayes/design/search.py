@@ -135,7 +135,7 @@ _ACTIVE = None
 
 
 def _one_width(args):
-    """Expected widths of drawn module ``k`` on one protocol (a worker's job)."""
+    """Expected widths of drawn module ``m`` on one protocol (a worker's job)."""
     from tembayes.bench.bench import run_experiment
     from tembayes.design.widths import expected_widths
 
@@ -192,21 +192,11 @@ class Designer:
     def evaluate(self, pairs) -> list[Evaluated]:
         """The :class:`Evaluated` of every ``(step_A, hold_s)``, the same modules for each."""
         todo = [p for p in dict.fromkeys(pairs) if p not in self.cache]
-        jobs = []
-        for step, hold in todo:
-            proto = self.protocol(step, hold)
-            for m in range(self.n_modules):
-                jobs.append((proto, m, [self.seed, m]))  # common random numbers across the candidates
-        if jobs:
-            global _ACTIVE
-            _ACTIVE = self
+        if todo:
             self.say(f"design: {len(todo)} staircases x {self.n_modules} modules")
-            if self.jobs > 1:
-                ctx = multiprocessing.get_context("fork")
-                with ProcessPoolExecutor(max_workers=self.jobs, mp_context=ctx) as ex:
-                    out = list(ex.map(_one_width, jobs))
-            else:
-                out = [_one_width(j) for j in jobs]
+            # common random numbers: module m runs on the same noise stream under every candidate
+            jobs = [(self.protocol(s, h), m, [self.seed, m]) for s, h in todo for m in range(self.n_modules)]
+            out = self._run(jobs)
             n = self.n_modules
             for c, (step, hold) in enumerate(todo):
                 part = out[c * n : (c + 1) * n]  # (sd, mode, sd_laplace) of each drawn module
@@ -215,6 +205,15 @@ class Designer:
                 )
                 self.cache[(step, hold)] = Evaluated(step, hold, self.protocol(step, hold), sd, mean, lap)
         return [self.cache[p] for p in pairs]
+
+    def _run(self, jobs):
+        """:func:`_one_width` of every job, in ``self.jobs`` forked workers (they inherit this designer)."""
+        global _ACTIVE
+        _ACTIVE = self
+        if self.jobs <= 1:
+            return [_one_width(j) for j in jobs]
+        with ProcessPoolExecutor(max_workers=self.jobs, mp_context=multiprocessing.get_context("fork")) as ex:
+            return list(ex.map(_one_width, jobs))
 
 
 @dataclass(frozen=True)
