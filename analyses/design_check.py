@@ -14,7 +14,7 @@ coverage of the truth.
     python analyses/design_check.py --batches 5 --modules 4                 (~1 h a design on 1 core)
     python analyses/design_check.py --batches 5 --modules 4 --summarise
 
-Writes analyses/results/design_check_<fidelity>.{json,md}.
+Writes analyses/results/design_check_<fidelity>[_<type>].{json,md} (no suffix for TEC1-12706).
 """
 
 from __future__ import annotations
@@ -133,7 +133,7 @@ def markdown(res, args):
         f"# Design check: predicted against realised posterior sds ({args.fidelity} bench)",
         "",
         f"`python analyses/design_check.py --batches {args.batches} --modules {args.modules} "
-        f"--fidelity {args.fidelity} --designs {' '.join(args.designs)}` (type {args.type}; the prediction "
+        f"--fidelity {args.fidelity} --type {args.type} --designs {' '.join(args.designs)}` (the prediction "
         f"from {args.draws} modules the standard bench draws, seed 0).",
         "",
         "| design | h | modules | law | predicted sd % | realised / predicted (median) | 10-90 % | band | coverage 90 % "
@@ -177,9 +177,10 @@ def main(argv=None):
     res = {"type": args.type, "fidelity": args.fidelity, "designs": summarise(per, pred)}
     from tembayes.data.write import write_json
 
-    write_json(RESULTS / f"design_check_{args.fidelity}.json", res)
+    stem = f"design_check_{args.fidelity}" + ("" if args.type == "TEC1-12706" else f"_{args.type}")
+    write_json(RESULTS / f"{stem}.json", res)
     text = markdown(res, args)
-    (RESULTS / f"design_check_{args.fidelity}.md").write_text(text)
+    (RESULTS / f"{stem}.md").write_text(text)
     print(text)
 
 
