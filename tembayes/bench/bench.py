@@ -538,7 +538,7 @@ def simulate_batch(
                 "seed": config.seed,
                 "rate_Hz": config.rate,
                 "validation_rate_Hz": config.validation_rate or config.rate,
-                "hold_s": None if config.protocol else config.hold,
+                "hold_s": None if config.protocol is not None else config.hold,
                 "protocol": None
                 if config.protocol is None
                 else {"levels_A": config.protocol.levels, "durations_s": config.protocol.durations},
