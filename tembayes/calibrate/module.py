@@ -418,6 +418,61 @@ def fit_map(
     return sol.x, cov, sol
 
 
+@dataclass(frozen=True)
+class LaplaceFit:
+    """A run's posterior mode and Laplace covariance (:func:`laplace_fit`), with the problem it was found on.
+
+    Attributes
+    ----------
+    data : StepData
+    model : StepResponseModel
+    space : ParameterSpace
+        The sampled coordinates without the noise.
+    x : ndarray, shape (p,)
+        The mode.
+    cov : ndarray, shape (p, p)
+        Its :func:`laplace_covariance`.
+    jac : ndarray
+        The whitened residuals' Jacobian at the mode (data rows, then prior rows).
+    residuals : ndarray, shape (nc, n)
+        The whitened data residuals at the mode.
+    nfev : int
+    converged : bool
+        The mode search stopped on a tolerance, not on its budget.
+    """
+
+    data: object
+    model: StepResponseModel
+    space: ParameterSpace
+    x: np.ndarray
+    cov: np.ndarray
+    jac: np.ndarray
+    residuals: np.ndarray
+    nfev: int
+    converged: bool
+
+
+def laplace_fit(experiment, datasheet, *, rig_config=None, options=None, effects=(), start=None, max_nfev=60):
+    """The calibration's problem on ``experiment``, its mode from ``start`` (:func:`start_point`), and the Laplace covariance.
+
+    ``effects`` are catalogue effects added to the model form (and ``options.effects``).
+    """
+    from threadpoolctl import threadpool_limits
+
+    opt = options or CalibrationOptions()
+    rig = calibration_rig(rig_config, opt)
+    data = step_data(experiment, face=rig.layout.face)
+    model = StepResponseModel(data, rig)
+    named = tuple(dict.fromkeys((*effects, *opt.effects)))
+    space, _ = parameter_space(rig, datasheet, data, model.shift_bound, named, opt.model)
+    with threadpool_limits(limits=1, user_api="blas"):
+        x, _, sol = fit_map(model, space, data, start_point(space, start), max_nfev=max_nfev)
+        r = (data.obs - model.predict(space.params(x[None]), strict=False)[0]) / data.noise[:, None]
+    return LaplaceFit(
+        data, model, space, x, laplace_covariance(sol.jac, space), sol.jac, r, int(sol.nfev), bool(sol.status > 0)
+    )
+
+
 def laplace_covariance(jac: np.ndarray, space: ParameterSpace) -> np.ndarray:
     """The Laplace covariance at a mode of :func:`fit_map` from its whitened Jacobian (data and prior rows).
 

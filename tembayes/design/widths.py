@@ -82,35 +82,19 @@ def expected_widths(experiment, datasheet, *, rig_config=None, options=None, sta
     -------
     Widths
     """
-    from threadpoolctl import threadpool_limits
-
     from tembayes.calibrate.discrepancy import held_nuisance_spread, held_parameters
-    from tembayes.calibrate.model import StepResponseModel
-    from tembayes.calibrate.module import (
-        CalibrationOptions,
-        calibration_rig,
-        fit_map,
-        laplace_covariance,
-        parameter_space,
-        start_point,
-    )
-    from tembayes.calibrate.stepdata import step_data
+    from tembayes.calibrate.module import CalibrationOptions, laplace_fit
 
     opt = options or CalibrationOptions()
-    rig = calibration_rig(rig_config, opt)
-    data = step_data(experiment, face=rig.layout.face)
-    model = StepResponseModel(data, rig)
-    space, _ = parameter_space(rig, datasheet, data, model.shift_bound, opt.effects, opt.model)
-    with threadpool_limits(limits=1, user_api="blas"):
-        x, _, sol = fit_map(model, space, data, start_point(space, start), max_nfev=max_nfev)
-    cov = laplace_covariance(sol.jac, space)
+    fit = laplace_fit(experiment, datasheet, rig_config=rig_config, options=opt, start=start, max_nfev=max_nfev)
+    space, x, cov, data = fit.space, fit.x, fit.cov, fit.data
     total = cov
-    held = held_parameters(rig, space)
+    held = held_parameters(fit.model.rig, space)
     if held and opt.discrepancy == "robust":
         nc, n = data.obs.shape
         # the prediction's slopes (p, nc, n) from the whitened residuals' (obs - f) / noise
-        J = -(sol.jac[: nc * n].T.reshape(len(x), nc, n)) * data.noise[None, :, None]
-        spread = held_nuisance_spread(model, space, x, J, data.noise, held)
+        J = -(fit.jac[: nc * n].T.reshape(len(x), nc, n)) * data.noise[None, :, None]
+        spread = held_nuisance_spread(fit.model, space, x, J, data.noise, held)
         total = cov + (spread.shift * spread.log_sd**2) @ spread.shift.T
     laws = _law_slopes(space, x)
     return Widths(

@@ -46,9 +46,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tembayes.calibrate.model import StepResponseModel
 from tembayes.calibrate.stepdata import CHANNELS as STEP_CHANNELS
-from tembayes.calibrate.stepdata import step_data
 from tembayes.constants import KELVIN
 from tembayes.physics import effects as E
 
@@ -192,32 +190,20 @@ def refit(module, datasheet, effect=None, *, rig_config=None, start=None, option
     -------
     Refit
     """
-    from threadpoolctl import threadpool_limits
-
-    from tembayes.calibrate.module import (
-        CalibrationOptions,
-        calibration_rig,
-        fit_map,
-        laplace_covariance,
-        parameter_space,
-        start_point,
-    )
+    from tembayes.calibrate.module import laplace_fit
 
     t0 = time.perf_counter()
-    opt = options or CalibrationOptions()
-    rig = calibration_rig(rig_config, opt)
-    data = step_data(module.identification, face=rig.layout.face)
-    model = StepResponseModel(data, rig)
     effects = () if effect is None else (E.get(effect).name,)
-    space, _ = parameter_space(
-        rig, datasheet, data, model.shift_bound, tuple(dict.fromkeys((*effects, *opt.effects))), opt.model
+    fit = laplace_fit(
+        module.identification,
+        datasheet,
+        rig_config=rig_config,
+        options=options,
+        effects=effects,
+        start=start,
+        max_nfev=max_nfev,
     )
-    x0 = start_point(space, start)
-    with threadpool_limits(limits=1, user_api="blas"):
-        x, _, sol = fit_map(model, space, data, x0, max_nfev=max_nfev)
-        r = (data.obs - model.predict(space.params(x[None]), strict=False)[0]) / data.noise[:, None]
-    J = sol.jac
-    cov = laplace_covariance(J, space)
+    data, space, x, cov, J, r = fit.data, fit.space, fit.x, fit.cov, fit.jac, fit.residuals
     data_cost = 0.5 * float(np.sum(r * r))
     _, logdet = np.linalg.slogdet(cov)
     log_evidence = -data_cost + float(space.log_prior(x[None])[0]) + 0.5 * (len(x) * np.log(2 * np.pi) + logdet)
@@ -244,8 +230,8 @@ def refit(module, datasheet, effect=None, *, rig_config=None, start=None, option
         cv_lpd=cv_lpd,
         cv_z=cv_z,
         windows=windows,
-        nfev=int(sol.nfev),
-        converged=bool(sol.status > 0),
+        nfev=fit.nfev,
+        converged=fit.converged,
         seconds=time.perf_counter() - t0,
     )
 
