@@ -185,3 +185,22 @@ def test_a_short_hold_staircase_passes_the_data_checks_and_an_offset_sensor_stil
     f.write_text("\n".join([lines[0], *(",".join(r) for r in rows)]) + "\n")
     with pytest.raises(DataError, match="at zero current T3_C"):
         load_batch(tmp_path / "b")
+
+
+def test_a_short_hold_staircase_of_a_slower_module_type_passes_the_data_checks(tmp_path):
+    """A 3 ohm, 3.9 A module relaxes slower than the rig's nominal 165 s: the hold's own rate sets the margin.
+
+    This batch was refused with the rig's nominal time constant alone (T3 11 K above
+    the boundaries at the end of a 240 s hold at 0 A, still relaxing).
+    """
+    from tembayes.bench.protocols import identification_staircase
+    from tembayes.data import load_batch_toml
+
+    (tmp_path / "ds.toml").write_text(
+        '[module_type]\nname = "3ohm-3.9A"\nth_C = 25.0\nimax_A = 3.9\nvmax_V = 15.4\ndtmax_K = 68.0\nqmax_W = 34.0\n'
+    )
+    ds, _ = load_batch_toml(tmp_path / "ds.toml")
+    proto = identification_staircase(ds.imax, hold=240.0, step=0.8)
+    config = BenchConfig(n_modules=2, n_validations=0, seed=2000, datasheet=ds, protocol=proto)
+    simulate_batch(tmp_path / "b", config, progress=lambda msg: None)
+    assert set(load_batch(tmp_path / "b").modules) == {"TEM1", "TEM2"}

@@ -619,16 +619,34 @@ def _unsettled(exp, steps, settle, layout):
     ]
 
 
+def _hold_tau(x, hold_s):
+    """The time constant [s] of a hold's late relaxation, from three equally spaced windows of its second half.
+
+    Of an exponential approach, successive differences shrink by ``exp(-spacing / tau)``; 0
+    when the hold does not relax that way (flat, noisy or turning).
+    """
+    n = len(x)
+    if n < 40:
+        return 0.0
+    m = [float(np.median(x[int((f - 0.05) * n) : int((f + 0.05) * n)])) for f in (0.5, 0.725, 0.95)]
+    d1, d2 = m[1] - m[0], m[2] - m[1]
+    if d1 == 0.0 or not 0.0 < d2 / d1 < 1.0:
+        return 0.0
+    return -0.225 * hold_s / math.log(d2 / d1)
+
+
 def _zero_current_range(exp, steps, settle, layout):
     for a, b in _settled_holds(exp, steps, settle, layout, zero=True):
         tail = _tail(a, b)
         bounds = np.median(exp.boundaries[:, tail], axis=1)
         lo, hi = float(bounds.min()), float(bounds.max())
-        fraction = _unrelaxed_per_move(float(exp.time[b - 1] - exp.time[a]), layout.slowest_tau_s)
+        hold = float(exp.time[b - 1] - exp.time[a])
         for j, c in enumerate(exp.sensor_names):
             x = exp.sensors[j]
             level = float(np.median(x[tail]))
-            margin = ZERO_MARGIN_K + fraction * abs(level - float(x[a]))
+            # a module type slower than the rig's nominal one relaxes slower: the hold's own rate counts
+            tau = max(layout.slowest_tau_s, _hold_tau(x[a:b], hold))
+            margin = ZERO_MARGIN_K + _unrelaxed_per_move(hold, tau) * abs(level - float(x[a]))
             if not lo - margin <= level <= hi + margin:
                 return [
                     _finding(
