@@ -619,20 +619,27 @@ def _unsettled(exp, steps, settle, layout):
     ]
 
 
-def _hold_tau(x, hold_s):
+#: A hold's own relaxation counts when its late moves exceed this [K] (far above sensor noise) ...
+HOLD_TAU_MIN_MOVE_K = 0.1
+#: ... and its time constant up to this many times the rig's slowest.
+HOLD_TAU_MAX_FACTOR = 3.0
+
+
+def _hold_tau(x, hold_s, rig_tau_s):
     """The time constant [s] of a hold's late relaxation, from three equally spaced windows of its second half.
 
-    Of an exponential approach, successive differences shrink by ``exp(-spacing / tau)``; 0
-    when the hold does not relax that way (flat, noisy or turning).
+    Of an exponential approach, successive differences shrink by ``exp(-spacing / tau)``.  0
+    when the hold does not visibly relax that way (settled, flat, noisy or turning), so a
+    settled hold keeps the rig's margin; at most :data:`HOLD_TAU_MAX_FACTOR` times ``rig_tau_s``.
     """
     n = len(x)
     if n < 40:
         return 0.0
     m = [float(np.median(x[int((f - 0.05) * n) : int((f + 0.05) * n)])) for f in (0.5, 0.725, 0.95)]
     d1, d2 = m[1] - m[0], m[2] - m[1]
-    if d1 == 0.0 or not 0.0 < d2 / d1 < 1.0:
+    if abs(d1) < HOLD_TAU_MIN_MOVE_K or not 0.0 < d2 / d1 < 1.0:
         return 0.0
-    return -0.225 * hold_s / math.log(d2 / d1)
+    return min(-0.225 * hold_s / math.log(d2 / d1), HOLD_TAU_MAX_FACTOR * rig_tau_s)
 
 
 def _zero_current_range(exp, steps, settle, layout):
@@ -645,7 +652,7 @@ def _zero_current_range(exp, steps, settle, layout):
             x = exp.sensors[j]
             level = float(np.median(x[tail]))
             # a module type slower than the rig's nominal one relaxes slower: the hold's own rate counts
-            tau = max(layout.slowest_tau_s, _hold_tau(x[a:b], hold))
+            tau = max(layout.slowest_tau_s, _hold_tau(x[a:b], hold, layout.slowest_tau_s))
             margin = ZERO_MARGIN_K + _unrelaxed_per_move(hold, tau) * abs(level - float(x[a]))
             if not lo - margin <= level <= hi + margin:
                 return [
