@@ -317,11 +317,11 @@ def test_a_refit_past_the_fits_time_budget_stops_and_says_it_did_not_converge():
     summ = module_summaries(ids, [draws[m] for m in ids], pop, law_log_prior(TEC1_12706))
     budget = Budget(40000, 600.0, False, POPULATION_TARGETS)
     kw = dict(seed=1, nwalkers=32, budget=budget)
-    late = _refitter(pop, summ, ids, "gaussian", 256, 400, deadline=time.perf_counter() - 1.0, **kw)
+    late = _refitter(pop, summ, ids, "gaussian", 256, 400, started=time.perf_counter() - 601.0, **kw)
     with pytest.warns(PopulationConvergenceWarning):
         hyper, converged = late(0)
     assert not converged and hyper.shape == (400, 11)
-    _, converged = _refitter(pop, summ, ids, "gaussian", 256, 400, deadline=None, **kw)(0)
+    _, converged = _refitter(pop, summ, ids, "gaussian", 256, 400, started=time.perf_counter(), **kw)(0)
     assert converged
 
 

@@ -51,11 +51,8 @@ def _law_slopes(space, x):
     for k in MODULE_PARAMETERS:
         j = space.index(k)
         h = 1e-6 * max(1.0, abs(x[j]))
-        X = np.repeat(x[None], 2, axis=0)
-        X[0, j] += h
-        X[1, j] -= h
-        v = space.values(X)[k]
-        out[k] = (j, float((v[0] - v[1]) / (2 * h)), float(space.values(x[None])[k][0]))
+        up, down, here = space.priors[j].from_unconstrained(np.array([x[j] + h, x[j] - h, x[j]]))
+        out[k] = (j, float((up - down) / (2 * h)), float(here))
     return out
 
 

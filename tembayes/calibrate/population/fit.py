@@ -83,13 +83,13 @@ def _sample(pop, summ, method, max_draws_per_module, run):
     return with_importance(check)
 
 
-def _refitter(pop, summ, ids, terms_name, max_draws_per_module, n_draws, *, seed, nwalkers, budget, deadline):
+def _refitter(pop, summ, ids, terms_name, max_draws_per_module, n_draws, *, seed, nwalkers, budget, started):
     """``refit(i)`` of :func:`.deviation.loo_deviation`: about ``n_draws`` natural hyper draws without module ``i``.
 
     The same kind of terms as the batch's run, each refit on its own
     stream, so that the rest of the result stays that of a run without
     refits, and within what is left of the fit's wall-clock budget
-    (``deadline``, :func:`time.perf_counter` seconds; None: no limit).
+    (``budget.max_seconds`` from ``started``, :func:`time.perf_counter` seconds).
     None below three modules: one module left is no population.
     """
     if len(ids) < 3:
@@ -104,7 +104,9 @@ def _refitter(pop, summ, ids, terms_name, max_draws_per_module, n_draws, *, seed
         )
         rng = np.random.default_rng([seed, i])
         label = f"population without {ids[i]}"
-        left = budget if deadline is None else replace(budget, max_seconds=max(0.0, deadline - time.perf_counter()))
+        left = budget
+        if budget.max_seconds is not None:
+            left = replace(budget, max_seconds=max(0.0, started + budget.max_seconds - time.perf_counter()))
         kept, diag = sample_hyper(pop, terms, rest.mean, rest.cov, rng, nwalkers, left, label=label)
         flat = kept.reshape(-1, N_HYPER)
         return flat[even_indices(len(flat), n_draws)], bool(diag["converged"])
@@ -240,7 +242,7 @@ def fit_population(
         seed=seed,
         nwalkers=nwalkers,
         budget=budget,
-        deadline=None if max_seconds is None else t0 + max_seconds,
+        started=t0,
     )
     deviation = loo_deviation(pop, summ.mean, summ.cov, members.hyper, members.log_like, refit)
     i, j = driver(members.odd_one_prob, deviation.p_loo)
