@@ -11,10 +11,18 @@ median of realised / predicted sd (target 0.75-1.33 for R0, S0, K and
 0.67-1.5 for R1, S1), its 10-90 % range over modules, and the laws' 90 %
 coverage of the truth.
 
+With ``--population RUN`` (an earlier run of the type) the prediction and
+every calibration take RUN's population as the units' prior on the laws
+(``design --population``, ``calibrate --unit-prior``); the same batches are
+calibrated, and each law's sd is compared with the same module's without
+that prior where that run exists.  Both tables give the share of units whose
+R0 and S0 reach 0.5 % (sd), the issue's target for a new unit of a known type.
+
     python analyses/design_check.py --batches 5 --modules 4                 (~1 h a design on 1 core)
     python analyses/design_check.py --batches 5 --modules 4 --summarise
+    python analyses/design_check.py --batches 5 --modules 4 --designs 0.8:240 0.8:120 --population RUN
 
-Writes analyses/results/design_check_<fidelity>[_<type>].{json,md} (no suffix for TEC1-12706).
+Writes analyses/results/design_check_<fidelity>[_<type>][_unit-prior].{json,md} (no type suffix for TEC1-12706).
 """
 
 from __future__ import annotations
@@ -50,11 +58,13 @@ def _datasheet(work, t):
     return f, load_batch_toml(f)[0]
 
 
-def predicted(designs, ds, n_draws):
+def predicted(designs, ds, n_draws, population=None):
     """``{design name: Evaluated}`` of the designer (the standard bench's drawn modules, seed 0)."""
+    from tembayes.calibrate.earlier import unit_prior_of_run
     from tembayes.design.search import Designer
 
-    d = Designer(ds, None, seed=0, n_draws=n_draws, jobs=1, say=print)
+    law_prior = None if population is None else unit_prior_of_run(population, ds.name)
+    d = Designer(ds, None, seed=0, n_draws=n_draws, jobs=1, say=print, law_prior=law_prior)
     return {_name(s, h): e for (s, h), e in zip(designs, d.evaluate(designs))}, d
 
 
@@ -71,17 +81,25 @@ def one(work, args, t, dsfile, designer, step, hold, b):
         seed = 1000 * (list(TYPES).index(t) + 1) + b
         run(["simulate", bdir, "--modules", args.modules, "--fidelity", args.fidelity, "--datasheet", dsfile,
              "--seed", seed, "--validations", 0, "--protocol", proto, "--overwrite"])  # fmt: skip
-    rdir = work / "runs" / args.fidelity / name / f"{t}-b{b}"
+    rdir = work / "runs" / args.fidelity / (name + _tag(args)) / f"{t}-b{b}"
+    prior = [] if args.population is None else ["--unit-prior", args.population]
     if not (rdir / "summary.json").exists():
         run(["calibrate", bdir, "--out", rdir, "--seed", 0, "--quiet", "--no-figures", "--workers", 1,
-             "--overwrite"])  # fmt: skip
+             "--overwrite", *prior])  # fmt: skip
     return bdir, rdir
 
 
-def rows(work, args, t, name):
+def _tag(args):
+    """The run folders' and result files' suffix: calibrated under an earlier run's population, or not."""
+    return "" if args.population is None else "_unit-prior"
+
+
+def rows(work, args, t, name, tag=None):
+    """Per module of every calibrated batch: each law's sd, mean and whether its 90 % interval holds the truth."""
     out = []
+    tag = _tag(args) if tag is None else tag
     for bdir in sorted((work / "batches" / args.fidelity / name).glob(f"{t}-b*")):
-        rdir = work / "runs" / args.fidelity / name / bdir.name
+        rdir = work / "runs" / args.fidelity / (name + tag) / bdir.name
         if not (rdir / "summary.json").exists():
             continue
         s = json.loads((rdir / "summary.json").read_text())
@@ -105,13 +123,26 @@ def _paired(rs, ref_rows, p):
     return float(np.median(r)) if r else None
 
 
-def summarise(per, pred):
-    """Per design and law: realised / predicted sd, coverage, and the realised sd against the first design's."""
+#: The issue's target for a new unit of a known type: R0 and S0 to this relative sd.
+UNIT_TARGET = 0.005
+
+
+def _reach(rs):
+    """Share of the modules whose R0 and S0 both reach :data:`UNIT_TARGET`, and the largest of their relative sds."""
+    rel = [max(x[p]["sd"] / abs(x[p]["mean"]) for p in ("R0_ohm", "S0_V_per_K")) for x in rs]
+    return {"share": float(np.mean(np.array(rel) <= UNIT_TARGET)), "largest": float(max(rel))} if rel else None
+
+
+def summarise(per, pred, without=None):
+    """Per design and law: realised / predicted sd, coverage, the realised sd against the first design's
+    (and against the same modules without the unit prior, ``without``)."""
     out = {}
     first = next(iter(per.values()))
     for name, rs in per.items():
         e = pred[name]
-        cell = {"modules": len(rs), "duration_h": e.duration_s / 3600, "laws": {}}
+        cell = {"modules": len(rs), "duration_h": e.duration_s / 3600, "laws": {}, "R0_S0_reach_0.5%": _reach(rs)}
+        if without is not None:
+            cell["without_unit_prior"] = {"R0_S0_reach_0.5%": _reach(without[name]), "modules": len(without[name])}
         for p in PARAMS:
             r = np.array([x[p]["sd"] for x in rs]) / e.sd[p]
             lo, hi = BANDS.get(p, (0.67, 1.5))
@@ -124,32 +155,52 @@ def summarise(per, pred):
                 "coverage90": float(np.mean([x[p]["inside"] for x in rs])) if rs else None,
                 "realised_over_first_design": _paired(rs, first, p),
             }
+            if without is not None:
+                cell["laws"][p]["realised_over_without_unit_prior"] = _paired(rs, without[name], p)
         out[name] = cell
     return out
 
 
 def markdown(res, args):
+    prior = args.population is not None
+    pop = f" --population {args.population}" if prior else ""
     lines = [
-        f"# Design check: predicted against realised posterior sds ({args.fidelity} bench)",
+        f"# Design check: predicted against realised posterior sds ({args.fidelity} bench"
+        + (", units under an earlier run's population)" if prior else ")"),
         "",
         f"`python analyses/design_check.py --batches {args.batches} --modules {args.modules} "
-        f"--fidelity {args.fidelity} --type {args.type} --designs {' '.join(args.designs)}` (the prediction "
+        f"--fidelity {args.fidelity} --type {args.type} --designs {' '.join(args.designs)}{pop}` (the prediction "
         f"from {args.draws} modules the standard bench draws, seed 0).",
         "",
         "| design | h | modules | law | predicted sd % | realised / predicted (median) | 10-90 % | band | coverage 90 % "
-        "| realised sd / the first design's (same modules, median) |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| realised sd / the first design's (same modules, median) |"
+        + (" with / without the unit prior |" if prior else ""),
+        "|---|---|---|---|---|---|---|---|---|---|" + ("---|" if prior else ""),
     ]
+
+    def num(v, f="{:.2f}"):
+        return "–" if v is None else f.format(v)
+
     for name, c in res["designs"].items():
         for p, v in c["laws"].items():
-            med = "–" if v["ratio_median"] is None else f"{v['ratio_median']:.2f}"
             rng = "–" if v["ratio_p10"] is None else f"{v['ratio_p10']:.2f}–{v['ratio_p90']:.2f}"
-            cov = "–" if v["coverage90"] is None else f"{v['coverage90']:.2f}"
-            pair = "–" if v["realised_over_first_design"] is None else f"{v['realised_over_first_design']:.2f}"
             lines.append(
                 f"| {name} | {c['duration_h']:.2f} | {c['modules']} | {p} | {100 * v['predicted_sd_rel']:.3f} "
-                f"| {med} | {rng} | {v['band'][0]}–{v['band'][1]} | {cov} | {pair} |"
+                f"| {num(v['ratio_median'])} | {rng} | {v['band'][0]}–{v['band'][1]} | {num(v['coverage90'])} "
+                f"| {num(v['realised_over_first_design'])} |"
+                + (f" {num(v.get('realised_over_without_unit_prior'))} |" if prior else "")
             )
+    lines += ["", f"Units whose R0 and S0 both reach {100 * UNIT_TARGET:g} % (sd):", ""]
+    for name, c in res["designs"].items():
+        r = c["R0_S0_reach_0.5%"]
+        text = "no runs" if r is None else f"{r['share']:.2f} of {c['modules']} (largest {100 * r['largest']:.2f} %)"
+        if prior:
+            w = c["without_unit_prior"]["R0_S0_reach_0.5%"]
+            n = c["without_unit_prior"]["modules"]
+            text += "; without the unit prior " + (
+                "not run" if w is None else f"{w['share']:.2f} of {n} (largest {100 * w['largest']:.2f} %)"
+            )
+        lines.append(f"- {name} ({c['duration_h']:.2f} h): {text}")
     return "\n".join(lines) + "\n"
 
 
@@ -162,22 +213,28 @@ def main(argv=None):
     ap.add_argument("--fidelity", default="high", choices=("standard", "high"))
     ap.add_argument("--draws", type=int, default=4, help="modules the prediction averages over")
     ap.add_argument("--work", type=Path, default=ROOT / "runs" / "design_check")
+    ap.add_argument(
+        "--population", type=Path, metavar="RUN", help="an earlier run of the type: its population as the units' prior"
+    )
     ap.add_argument("--summarise", action="store_true")
     args = ap.parse_args(argv)
     args.work.mkdir(parents=True, exist_ok=True)
     designs = _designs(args.designs)
     dsfile, ds = _datasheet(args.work, args.type)
-    pred, designer = predicted(designs, ds, args.draws)
+    pred, designer = predicted(designs, ds, args.draws, args.population)
     if not args.summarise:
         for b in range(args.batches):
             for step, hold in designs:
                 one(args.work, args, args.type, dsfile, designer, step, hold, b)
                 print(f"{_name(step, hold)} b{b} done", flush=True)
     per = {_name(s, h): rows(args.work, args, args.type, _name(s, h)) for s, h in designs}
-    res = {"type": args.type, "fidelity": args.fidelity, "designs": summarise(per, pred)}
+    without = None if args.population is None else {n: rows(args.work, args, args.type, n, tag="") for n in per}
+    res = {"type": args.type, "fidelity": args.fidelity, "designs": summarise(per, pred, without)}
+    if args.population is not None:
+        res["unit_prior"] = designer.options.law_prior.to_json()
     from tembayes.data.write import write_json
 
-    stem = f"design_check_{args.fidelity}" + ("" if args.type == "TEC1-12706" else f"_{args.type}")
+    stem = f"design_check_{args.fidelity}" + ("" if args.type == "TEC1-12706" else f"_{args.type}") + _tag(args)
     write_json(RESULTS / f"{stem}.json", res)
     text = markdown(res, args)
     (RESULTS / f"{stem}.md").write_text(text)

@@ -8,6 +8,7 @@ one-line ``tembayes: error: ...`` and exit status 2; nothing is written.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -55,6 +56,7 @@ examples:
   tembayes calibrate factory/lot42 --out runs/lot42 --scheduler tcp://10.0.0.5:8786   # a running Dask cluster
   tembayes calibrate factory/lot42 --out runs/lot42 --scheduler tcp://10.0.0.5:8786 --resume   # only missing modules
   tembayes calibrate factory/lot43 --out runs/lot43 --population-prior runs/lot42   # the spreads lot 42 learned
+  tembayes calibrate spares/unit7 --out runs/unit7 --unit-prior runs/lot42   # a new unit, lot 42's population as its prior
 
 writes RUN/summary.json (per module R0, R1, S0, S1 and K with mean, sd and
 90 % interval, outlier_prob, odd_one_prob, deviation, convergence
@@ -68,7 +70,9 @@ reused, a running one continues from its sampler checkpoint).  Known
 unit-to-unit spreads of the type go in batch.toml's optional [population]
 table (docs/data-format.md, '[population]'); summary.json's
 population_spreads gives them for the next batch (--population-prior RUN
-reads them from there).  The console and the report end with the outlier
+reads them from there); --unit-prior RUN instead makes an earlier run's
+population each module's prior on the laws (a new unit of a known type
+after a short test, docs/design.md).  The console and the report end with the outlier
 answer in words: the likeliest odd one, how far it sits from the others,
 and, for a small batch, what the type's spread would have to be to call it
 an outlier.  Every output key:
@@ -349,9 +353,13 @@ def _cmd_calibrate(args):
     _say_findings(batch.findings)
     earlier = None
     if args.population_prior is not None:
-        from tembayes.calibrate.batch import population_prior_of_run
+        from tembayes.calibrate.earlier import population_prior_of_run
 
         earlier = population_prior_of_run(args.population_prior, batch.datasheet.name)
+    if args.unit_prior is not None:
+        from tembayes.calibrate.earlier import unit_prior_of_run
+
+        opt = dataclasses.replace(opt, law_prior=unit_prior_of_run(args.unit_prior, batch.datasheet.name))
     summ = calibrate_batch(
         batch,
         args.out,
@@ -544,7 +552,14 @@ def _cmd_design(args):
     if args.rig:
         rig_config = rig_source(args.rig)
     check_output(args.out, kind="design", inputs=[(args.batch_or_toml, "batch or datasheet")], overwrite=args.overwrite)
-    designer = Designer(datasheet, rig_config, seed=args.seed, n_draws=args.draws, jobs=args.jobs, say=_progress)
+    law_prior = None
+    if args.population is not None:
+        from tembayes.calibrate.earlier import unit_prior_of_run
+
+        law_prior = unit_prior_of_run(args.population, datasheet.name)
+    designer = Designer(
+        datasheet, rig_config, seed=args.seed, n_draws=args.draws, jobs=args.jobs, say=_progress, law_prior=law_prior
+    )
     d = design(designer, targets or None, max_hours=args.max_hours)
 
     def files(tmp):
@@ -564,6 +579,10 @@ def _cmd_design(args):
         print(f"  {k:<14s} expected sd {100 * v:.3f} %  (reference {100 * ref.sd_rel()[k]:.3f} %)")
     print(f"wrote {args.out / 'protocol.csv'}, design.json and design.png; try it: tembayes simulate OUT --protocol "
           f"{args.out / 'protocol.csv'}")  # fmt: skip
+    if law_prior is not None:
+        print(
+            f"the widths assume {law_prior.source} as the unit's prior: calibrate with --unit-prior {args.population}"
+        )
     return 0
 
 
@@ -969,6 +988,14 @@ def _add_calibrate(sub):
         "(its summary.json's population_spreads), combined with batch.toml's [population]; chained "
         "over batches, the spreads sharpen",
     )
+    p.add_argument(
+        "--unit-prior",
+        type=Path,
+        metavar="EARLIER_RUN",
+        help="each module's prior on the laws is the population of an earlier run of the same module "
+        "type (its predictive for a new unit) instead of the datasheet's: for a new unit of a known "
+        "type after a short test (tembayes design --population)",
+    )
     p.set_defaults(func=_cmd_calibrate)
 
 
@@ -1185,6 +1212,8 @@ examples:
   tembayes design data/example --out runs/design                       # the reference's R0, S0, K widths
   tembayes design data/example --out runs/design --target R0_ohm=0.3% --target K_W_per_K=0.5% --max-hours 2
   tembayes simulate runs/short --protocol runs/design/protocol.csv --fidelity high   # then try it
+  tembayes design data/example --out runs/unit-design --population runs/lot42 --target R0_ohm=0.5% --target S0_V_per_K=0.5% --max-hours 0.75
+  tembayes calibrate spares/unit7 --out runs/unit7 --unit-prior runs/lot42   # that unit, under lot 42's population
 
 Targets are posterior sds, relative (PARAM=SD%) or absolute in SI (PARAM=SD).  The expected widths
 come from modules the bench draws from the type, each run simulated and linearised as the calibration
@@ -1216,6 +1245,13 @@ def _add_design(sub):
         "and K widths, within 5 %%)",
     )
     p.add_argument("--rig", metavar="RIG", help="a shipped rig or a rig file (default: the batch's [rig])")
+    p.add_argument(
+        "--population",
+        type=Path,
+        metavar="RUN",
+        help="an earlier calibration run of the type: its population is the new unit's prior on the laws "
+        "(calibrate the unit with --unit-prior RUN)",
+    )
     p.add_argument("--max-hours", type=float, default=8.0, metavar="H", help="longest test allowed (default 8 h)")
     p.add_argument("--draws", type=int, default=2, metavar="N", help="bench modules each width averages (default 2)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the drawn modules (default 0)")

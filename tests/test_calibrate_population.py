@@ -35,7 +35,7 @@ from tembayes.calibrate.population.hyper import HyperPosterior
 from tembayes.calibrate.population.membership import odd_one
 from tembayes.calibrate.population.model import TAU_NAMES, Population
 from tembayes.calibrate.population.terms import GaussianTerms, ImportanceTerms, module_summaries
-from tembayes.calibrate.priors import LEVEL_LOG_SD, SLOPE_REL_SD, law_log_prior
+from tembayes.calibrate.priors import LEVEL_LOG_SD, SLOPE_REL_SD, law_log_prior, law_priors
 from tembayes.calibrate.sampler import Targets
 from tembayes.constants import MODULE_PARAMETERS
 from tembayes.errors import ModelError
@@ -163,7 +163,7 @@ def test_compiled_prior_matches_reference():
     """The sampler's compiled prior + Jacobian equals the numpy reference."""
     draws, _, _ = make_batch(1, 4)
     pop = Population(DS)
-    summ = module_summaries(tuple(draws), list(draws.values()), pop, law_log_prior(DS))
+    summ = module_summaries(tuple(draws), list(draws.values()), pop, law_log_prior(law_priors(DS)))
     post = HyperPosterior(pop, GaussianTerms(summ.mean, summ.cov), summ.mean, summ.cov)
     u = np.random.default_rng(0).normal(0, 1, (20, 11)) + np.r_[np.zeros(5), pop.logtau_mean, -2.0]
     want = post.log_natural(post.natural(u)) + np.log(post.scale(u[:, 5:10])).sum(axis=1)
@@ -309,12 +309,12 @@ def test_a_refit_past_the_fits_time_budget_stops_and_says_it_did_not_converge():
     from tembayes.calibrate.population.fit import _refitter
     from tembayes.calibrate.population.sampling import POPULATION_TARGETS, Budget
     from tembayes.calibrate.population.terms import module_summaries
-    from tembayes.calibrate.priors import law_log_prior
+    from tembayes.calibrate.priors import law_log_prior, law_priors
 
     draws, _, _ = make_batch(7, 3, outlier=0, shift=0.10, at_centre=True, clip=1.0)
     pop = Population(TEC1_12706)
     ids = tuple(draws)
-    summ = module_summaries(ids, [draws[m] for m in ids], pop, law_log_prior(TEC1_12706))
+    summ = module_summaries(ids, [draws[m] for m in ids], pop, law_log_prior(law_priors(TEC1_12706)))
     budget = Budget(40000, 600.0, False, POPULATION_TARGETS)
     kw = dict(seed=1, nwalkers=32, budget=budget)
     late = _refitter(pop, summ, ids, "gaussian", 256, 400, started=time.perf_counter() - 601.0, **kw)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from tembayes.bench.bench import TEC1_12706
-from tembayes.calibrate.batch import population_prior_of_run
+from tembayes.calibrate.earlier import population_prior_of_run
 from tembayes.calibrate.population.detectable import smallest_flagged
 from tembayes.calibrate.population.model import Population
 from tembayes.calibrate.runsummary import RunSummary

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import glob
 import json
-import math
 import os
 import shlex
 import time
@@ -38,12 +37,11 @@ import numpy as np
 from tembayes.calibrate import results as res
 from tembayes.calibrate.module import CalibrationOptions, module_seed
 from tembayes.calibrate.moduledigest import read_digest, write_digest
-from tembayes.calibrate.priors import law_priors
+from tembayes.calibrate.priors import law_log_prior, module_law_priors
 from tembayes.calibrate.runfolder import RunFolder, module_usable
 from tembayes.calibrate.runsummary import RunSummary
 from tembayes.common.provenance import versions
 from tembayes.common.seeds import spawned
-from tembayes.data.batch import POPULATION_SPREAD_KEYS
 from tembayes.data.digest import batch_inputs
 from tembayes.data.write import write_json
 from tembayes.errors import DataError, ModelError
@@ -54,13 +52,14 @@ if TYPE_CHECKING:
 
     from distributed import Client
 
-    from tembayes.data import Batch, Datasheet
+    from tembayes.calibrate.priors import ParameterPrior
+    from tembayes.data import Batch
 
 
-def prior_draws(datasheet: Datasheet, seed: int, n: int = 4000) -> dict[str, np.ndarray]:
-    """Draws of the module parameters from the datasheet prior (negative control, plots)."""
+def prior_draws(priors: Sequence[ParameterPrior], seed: int, n: int = 4000) -> dict[str, np.ndarray]:
+    """Draws of the module parameters from their prior (:func:`~tembayes.calibrate.priors.module_law_priors`; plots)."""
     rng = np.random.default_rng(spawned(seed, 0x5052))
-    return {p.name: p.sample(rng, n) for p in law_priors(datasheet)}
+    return {p.name: p.sample(rng, n) for p in priors}
 
 
 def spread_prior(population_table: Mapping[str, float]) -> dict[str, float] | None:
@@ -69,59 +68,6 @@ def spread_prior(population_table: Mapping[str, float]) -> dict[str, float] | No
     ``spread_S0_rel`` becomes ``tau_S0_rel``; None if none are stated.
     """
     return {"tau" + k[len("spread") :]: v for k, v in population_table.items()} or None
-
-
-def population_prior_of_run(run: Path | str, module_type: str) -> dict[str, tuple[float, float]]:
-    """The unit-to-unit spreads an earlier run learned, as ``[population]`` entries ``spread_... -> (median, log_sd)``.
-
-    Raises
-    ------
-    DataError
-        No ``summary.json``, no population fit in it, or another module type.
-    """
-    f = Path(run) / "summary.json"
-    if not f.is_file():
-        raise DataError(f, "is not there", "Give the --out folder of an earlier `tembayes calibrate` run.")
-    doc = json.loads(f.read_text())
-    spreads = doc.get("population_spreads")
-    if not spreads:
-        raise DataError(
-            f,
-            "has no population_spreads: that run fitted no population (fewer than 2 modules converged)",
-            "Give a run of at least 2 converged modules of the type.",
-            column="population_spreads",
-        )
-    earlier = (doc.get("batch") or {}).get("module_type")
-    if earlier is not None and earlier != module_type:
-        raise DataError(
-            f,
-            f"learned the spreads of module type {earlier!r}, not {module_type!r}",
-            "Give a run of the same module type ([module_type] name in batch.toml).",
-            column="batch.module_type",
-        )
-    if not (doc.get("population_diagnostics") or {}).get("converged", False):
-        raise DataError(
-            f,
-            "its population fit did not converge, so the spreads it learned are not reliable",
-            "Give a run whose population converged (summary.json: population_diagnostics.converged).",
-            column="population_diagnostics.converged",
-        )
-    out = {}
-    for k, v in spreads.items():
-        try:
-            median, log_sd = float(v["median"]), float(v["log_sd"])
-        except (KeyError, TypeError, ValueError):
-            median = log_sd = float("nan")
-        if k not in POPULATION_SPREAD_KEYS or not (median > 0 and log_sd > 0 and math.isfinite(median * log_sd)):
-            raise DataError(
-                f,
-                f"population_spreads.{k} is {v!r}: not one of {', '.join(POPULATION_SPREAD_KEYS)} with a "
-                "positive median and log_sd",
-                "Give the summary.json a calibration run wrote, unedited.",
-                column=f"population_spreads.{k}",
-            )
-        out[k] = (median, log_sd)
-    return out
 
 
 def population_table(spreads: Mapping[str, tuple[float, float]]) -> str:
@@ -217,7 +163,7 @@ def calibrate_batch(
         Let modules that did not converge into the population stage.
     population_prior : mapping, optional
         ``spread_... -> (median, log_sd)``: spreads learned by an earlier run of
-        the type (:func:`population_prior_of_run`), combined with ``[population]``.
+        the type (:func:`~tembayes.calibrate.earlier.population_prior_of_run`), combined with ``[population]``.
 
     Returns
     -------
@@ -426,6 +372,7 @@ def finish_run(
     for mid, why in failed.items():
         excluded[mid] = f"calibration failed: {why}"
     spreads = _merged_spreads(batch, population_prior)
+    laws_prior = module_law_priors(batch.datasheet, opt.law_prior)
     pop = None
     if population and len(law) >= 2:
         from tembayes.calibrate.population import fit_population
@@ -442,7 +389,13 @@ def finish_run(
             + ")"
         )
         _, rng = module_seed(seed, "__population__")
-        pop = fit_population(law, batch.datasheet, rng=rng, spread_prior=spread_prior(spreads))
+        pop = fit_population(
+            law,
+            batch.datasheet,
+            rng=rng,
+            spread_prior=spread_prior(spreads),
+            log_interim_prior=law_log_prior(laws_prior),  # the prior the modules were sampled under
+        )
     elif population:
         say(f"population: skipped ({len(law)} module(s) to fit it on; it needs 2)")
     del law
@@ -467,7 +420,8 @@ def finish_run(
         "calibration": {
             "seed": int(seed),
             "rig": rig,
-            "options": dict(opt.__dict__),
+            "options": opt.to_json(),
+            "law_prior": "datasheet" if opt.law_prior is None else opt.law_prior.source,
             "versions": versions(),
             "model": opt.model,
             "discrepancy": opt.discrepancy,
@@ -488,7 +442,7 @@ def finish_run(
         out / "posterior.nc",
         files,
         population=pop,
-        prior_draws=prior_draws(batch.datasheet, seed),
+        prior_draws=prior_draws(laws_prior, seed),
         attrs={
             "tembayes_seed": int(seed),
             "tembayes_versions": versions(),

@@ -30,6 +30,7 @@ on the order they run in.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import time
@@ -49,7 +50,7 @@ from tembayes.calibrate.likelihood import OFFSET_SD, LevelErrors, StepLikelihood
 from tembayes.calibrate.model import SHIFT, LinearisedModel, StepResponseModel
 from tembayes.calibrate.modelform import DEFAULT_FORM, get_form
 from tembayes.calibrate.parameters import ParameterSpace
-from tembayes.calibrate.priors import ParameterPrior, effect_priors, law_priors, rig_prior
+from tembayes.calibrate.priors import LawPrior, ParameterPrior, effect_priors, module_law_priors, rig_prior
 from tembayes.calibrate.stepdata import step_data
 from tembayes.common.arvizlib import az
 from tembayes.common.draws import even_indices
@@ -146,6 +147,10 @@ class CalibrationOptions:
         the scatter of the step windows' scores; ``"robust"``: that, and the
         uncertainty of the rig parameters held fixed carried over
         (:mod:`tembayes.calibrate.discrepancy`).
+    law_prior : LawPrior or None
+        The laws' prior: None, the datasheet's; a known type's population
+        for a new unit of it (``tembayes calibrate --unit-prior RUN``,
+        :func:`tembayes.calibrate.earlier.unit_prior_of_run`).
     stage_steps : int
         Budget of a sampling run whose expansion may still be rebuilt (the
         run is cut there and the expansion rebuilt from its walkers).
@@ -172,6 +177,20 @@ class CalibrationOptions:
     effects: tuple = ()
     effect_values: dict = field(default_factory=dict)
     discrepancy: str = "robust"
+    law_prior: LawPrior | None = None
+
+    def to_json(self) -> dict:
+        """The options as ``summary.json`` and the module files record them."""
+        return {**self.__dict__, "law_prior": None if self.law_prior is None else self.law_prior.to_json()}
+
+    @classmethod
+    def from_json(cls, doc: Mapping) -> CalibrationOptions:
+        """The options a run recorded (:meth:`to_json`); keys this version does not know are ignored."""
+        known = {f.name for f in dataclasses.fields(cls)}
+        kw = {k: v for k, v in doc.items() if k in known}
+        if kw.get("law_prior") is not None:
+            kw["law_prior"] = LawPrior.from_json(kw["law_prior"])
+        return cls(**kw)
 
     def __post_init__(self):
         if self.discrepancy not in DISCREPANCIES:
@@ -285,12 +304,13 @@ def parameter_space(
     shift_bound: float,
     effects: Sequence[str] = (),
     form: str = DEFAULT_FORM,
+    law_prior: LawPrior | None = None,
 ) -> tuple[ParameterSpace, ParameterSpace]:
     """The sampled coordinates of a module.
 
-    Laws and K, rig nuisances, the model form's sampled physics, the
-    parameters of ``effects`` (catalogue names added to the model), step
-    shift, noise.
+    Laws and K (under ``law_prior``, default the datasheet's), rig
+    nuisances, the model form's sampled physics, the parameters of
+    ``effects`` (catalogue names added to the model), step shift, noise.
 
     Raises
     ------
@@ -306,7 +326,7 @@ def parameter_space(
     nuis = [p for p in rig.parameters if p.high / p.low > form.min_range and not p.held]
     fixed = {p.name: p.nominal for p in rig.parameters if p not in nuis}
     pri = (
-        list(law_priors(datasheet))
+        list(module_law_priors(datasheet, law_prior))
         + [rig_prior(p, linear=p.name in rig.lead_parameters) for p in nuis]
         + list(form.priors)
         + list(effect_priors(effects))
@@ -464,7 +484,7 @@ def laplace_fit(experiment, datasheet, *, rig_config=None, options=None, effects
     data = step_data(experiment, face=rig.layout.face)
     model = StepResponseModel(data, rig)
     named = tuple(dict.fromkeys((*effects, *opt.effects)))
-    space, _ = parameter_space(rig, datasheet, data, model.shift_bound, named, opt.model)
+    space, _ = parameter_space(rig, datasheet, data, model.shift_bound, named, opt.model, opt.law_prior)
     with threadpool_limits(limits=1, user_api="blas"):
         x, _, sol = fit_map(model, space, data, start_point(space, start), max_nfev=max_nfev)
         r = (data.obs - model.predict(space.params(x[None]), strict=False)[0]) / data.noise[:, None]
@@ -670,7 +690,7 @@ def _problem(module, datasheet, rig_config, opt, effects, seed) -> _Problem:
     data = step_data(experiment, face=rig.layout.face)
     model = StepResponseModel(data, rig)
     effects = tuple(dict.fromkeys((*effects, *opt.effects)))  # the run's own and the gap's candidate
-    model_space, space = parameter_space(rig, datasheet, data, model.shift_bound, effects, opt.model)
+    model_space, space = parameter_space(rig, datasheet, data, model.shift_bound, effects, opt.model, opt.law_prior)
     nwalkers = 2 * space.ndim + 2 if opt.nwalkers is None else int(opt.nwalkers)
     if nwalkers < 2 * space.ndim:
         raise ModelError(f"nwalkers must be at least 2 x {space.ndim} parameters, got {nwalkers}")
@@ -951,7 +971,7 @@ def _calibrate_module(
         ),
         seed={"run": int(seed), "emcee": prob.emcee_seed},
         rig=prob.rig.name,
-        options=dict(opt.__dict__),
+        options=opt.to_json(),
     )
 
 
@@ -1084,7 +1104,7 @@ def sample_prior_only(
     rig = calibration_rig(rig_config, opt)
     data = step_data(module.identification, face=rig.layout.face)
     model = StepResponseModel(data, rig)
-    _, space = parameter_space(rig, datasheet, data, model.shift_bound, form=opt.model)
+    _, space = parameter_space(rig, datasheet, data, model.shift_bound, form=opt.model, law_prior=opt.law_prior)
     nwalkers = 2 * space.ndim + 2 if opt.nwalkers is None else int(opt.nwalkers)
     p0 = space.sample_prior(rng, nwalkers)
     run = smp.sample(

@@ -33,7 +33,7 @@ import numpy as np
 from tembayes.constants import MODULE_PARAMETERS
 
 if TYPE_CHECKING:
-    from collections.abc import Callable, Sequence
+    from collections.abc import Callable, Mapping, Sequence
 
     from numpy.typing import ArrayLike
 
@@ -44,6 +44,8 @@ if TYPE_CHECKING:
 LEVEL_LOG_SD = 0.3
 #: Sd of the slope priors relative to the datasheet level [1/K].
 SLOPE_REL_SD = 0.01
+#: The kind of each law's prior (MODULE_PARAMETERS order): the sampler's coordinates are their logs for the levels.
+LAW_KINDS = ("lognormal", "normal", "lognormal", "normal", "lognormal")
 
 
 def logit(x: ArrayLike) -> np.ndarray:
@@ -187,22 +189,58 @@ def law_priors(datasheet: Datasheet) -> tuple[ParameterPrior, ...]:
     tuple of ParameterPrior
     """
     R, S, K = datasheet.resistance(), datasheet.seebeck(), datasheet.conductance()
-    return (
-        ParameterPrior("R0_ohm", "lognormal", R, LEVEL_LOG_SD),
-        ParameterPrior("R1_ohm_per_K", "normal", 0.0, SLOPE_REL_SD * R),
-        ParameterPrior("S0_V_per_K", "lognormal", S, LEVEL_LOG_SD),
-        ParameterPrior("S1_V_per_K2", "normal", 0.0, SLOPE_REL_SD * S),
-        ParameterPrior("K_W_per_K", "lognormal", K, LEVEL_LOG_SD),
-    )
+    centres = (R, 0.0, S, 0.0, K)
+    scales = (LEVEL_LOG_SD, SLOPE_REL_SD * R, LEVEL_LOG_SD, SLOPE_REL_SD * S, LEVEL_LOG_SD)
+    return tuple(ParameterPrior(*a) for a in zip(MODULE_PARAMETERS, LAW_KINDS, centres, scales))
 
 
-def law_log_prior(datasheet: Datasheet) -> Callable[[ArrayLike], np.ndarray]:
-    """Callable ``f(theta) -> log prior`` of the law parameters from a datasheet.
+@dataclass(frozen=True)
+class LawPrior:
+    """The laws' prior of a module when it is not the datasheet's: a known type's population.
+
+    Attributes
+    ----------
+    priors : tuple of ParameterPrior
+        ``R0, R1, S0, S1, K`` (contract order), each of the kind the
+        datasheet prior gives it (log-normal levels, normal slopes), so the
+        sampler's coordinates do not change.
+    source : str
+        Where it came from, as ``summary.json`` records it (e.g. ``"population of runs/lot42"``).
+    """
+
+    priors: tuple
+    source: str
+
+    def __post_init__(self):
+        expected = tuple(zip(MODULE_PARAMETERS, LAW_KINDS))
+        got = tuple((p.name, p.kind) for p in self.priors)
+        if got != expected:
+            raise ValueError(f"a law prior gives {got}; expected {expected}")
+
+    def to_json(self) -> dict:
+        """``{"source", "priors": {name: {"kind", "center", "scale"}}}``."""
+        return {"source": self.source, "priors": {p.name: p.to_dict() for p in self.priors}}
+
+    @classmethod
+    def from_json(cls, doc: Mapping) -> LawPrior:
+        """The inverse of :meth:`to_json`."""
+        priors = tuple(
+            ParameterPrior(k, v["kind"], float(v["center"]), float(v["scale"])) for k, v in doc["priors"].items()
+        )
+        return cls(priors, str(doc["source"]))
+
+
+def module_law_priors(datasheet: Datasheet, law_prior: LawPrior | None) -> tuple[ParameterPrior, ...]:
+    """The laws' prior a calibration uses: ``law_prior``'s, else the datasheet's (:func:`law_priors`)."""
+    return law_priors(datasheet) if law_prior is None else law_prior.priors
+
+
+def law_log_prior(priors: Sequence[ParameterPrior]) -> Callable[[ArrayLike], np.ndarray]:
+    """Callable ``f(theta) -> log prior`` of the law parameters under ``priors`` (:func:`module_law_priors`).
 
     ``theta`` has shape ``(n, 5)``, in
     :data:`~tembayes.constants.MODULE_PARAMETERS` order (SI).
     """
-    priors = law_priors(datasheet)
     assert tuple(p.name for p in priors) == MODULE_PARAMETERS
 
     def log_prior(theta):

@@ -131,12 +131,9 @@ class CalibrationRun:
 
     def calibration_options(self) -> CalibrationOptions:
         """The run's :class:`~tembayes.calibrate.module.CalibrationOptions` (options it does not know at their defaults)."""
-        import dataclasses
-
         from tembayes.calibrate.module import CalibrationOptions
 
-        known = {f.name for f in dataclasses.fields(CalibrationOptions)}
-        return CalibrationOptions(**{k: v for k, v in self.options().items() if k in known})
+        return CalibrationOptions.from_json(self.options())
 
     def priors(self, module_id: str) -> dict:
         """``name -> {"kind", "center", "scale"}`` of the module's priors (from ``posterior.nc``)."""

@@ -150,7 +150,7 @@ def _one_width(args):
     exp = run_experiment(protocol, module, setup.effects, np.random.default_rng(seed), rate=RATE_HZ, **setup.run)
     # the truth of every coordinate the calibration samples that the bench knows (the step phase does not matter)
     start = {**setup.effects, **module.get("rig", {}), **{k: module[k] for k in MODULE_PARAMETERS}}
-    w = expected_widths(exp, datasheet, rig_config=rig_config, start=start, max_nfev=3)
+    w = expected_widths(exp, datasheet, rig_config=rig_config, options=_ACTIVE.options, start=start, max_nfev=3)
     return w.sd, w.mode, w.sd_laplace
 
 
@@ -169,10 +169,15 @@ class Designer:
         Worker processes.
     say : callable, optional
         Progress lines.
+    law_prior : LawPrior, optional
+        The laws' prior of the calibration to come: a known type's population
+        (``--population RUN``, :func:`~tembayes.calibrate.earlier.unit_prior_of_run`);
+        default the datasheet's.
     """
 
-    def __init__(self, datasheet, rig_config=None, *, seed=0, n_draws=N_DRAWS, jobs=2, say=None):
+    def __init__(self, datasheet, rig_config=None, *, seed=0, n_draws=N_DRAWS, jobs=2, say=None, law_prior=None):
         from tembayes.bench.bench import BenchConfig, bench_setup
+        from tembayes.calibrate.module import CalibrationOptions
 
         rig = dict(rig_config) if rig_config else None  # BenchConfig takes the reference preset as None
         config = BenchConfig(n_modules=n_draws, seed=seed, datasheet=datasheet, n_validations=0, rig=rig)
@@ -189,6 +194,7 @@ class Designer:
         self.cache: dict = {}
         self.seed = seed
         self.n_modules = n_draws
+        self.options = CalibrationOptions(law_prior=law_prior)
 
     def protocol(self, step: float, hold: float) -> Protocol:
         """The candidate staircase of step ``step`` (reference module's A) and hold ``hold`` [s] for this type."""
@@ -316,6 +322,7 @@ def design_json(d: Design, designer: Designer) -> dict:
             "(the window sandwich left at 1)",
             "modules_drawn": designer.n_modules,
             "seed": designer.seed,
+            "law_prior": "datasheet" if designer.options.law_prior is None else designer.options.law_prior.to_json(),
         },
         "evaluated": [cand(e) for e in d.evaluated],
     }

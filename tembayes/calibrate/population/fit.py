@@ -19,7 +19,7 @@ from tembayes.calibrate.population.result import assemble
 from tembayes.calibrate.population.sampling import POPULATION_TARGETS, Budget
 from tembayes.calibrate.population.sensitivity import driver, spread_sensitivity
 from tembayes.calibrate.population.terms import GaussianTerms, module_summaries
-from tembayes.calibrate.priors import law_log_prior
+from tembayes.calibrate.priors import law_log_prior, law_priors
 from tembayes.common.draws import even_indices
 from tembayes.common.provenance import versions
 from tembayes.errors import ModelError
@@ -223,7 +223,7 @@ def fit_population(
     pop = Population(
         datasheet, spread_prior=spread_prior, outlier_fraction_prior=outlier_fraction_prior, outlier_scale=outlier_scale
     )
-    interim = law_log_prior(datasheet) if log_interim_prior is None else log_interim_prior
+    interim = law_log_prior(law_priors(datasheet)) if log_interim_prior is None else log_interim_prior
     summ = module_summaries(ids, arrays, pop, interim)
 
     def run(terms, label):
