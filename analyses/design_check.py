@@ -8,8 +8,9 @@ with that staircase (``simulate --protocol``): the out-of-model bench
 (``--fidelity high``) by default.  The same batch seeds for every design, so
 each module is calibrated under every protocol.  Per design and law: the
 median of realised / predicted sd (target 0.75-1.33 for R0, S0, K and
-0.67-1.5 for R1, S1), its 10-90 % range over modules, and the laws' 90 %
-coverage of the truth.
+0.67-1.5 for R1, S1), its 10-90 % range over modules, the laws' 90 %
+coverage of the truth, and the mean of (posterior mean - truth) / sd over the
+modules (a bias in sds; near 0 for an honest calibration).
 
 With ``--population RUN`` (an earlier run of the type) the prediction and
 every calibration take RUN's population as the units' prior on the laws
@@ -108,7 +109,12 @@ def rows(work, args, t, name, tag=None):
             row = {"batch": bdir.name, "module": mid, "converged": bool(m["diagnostics"]["converged"])}
             for p in PARAMS:
                 tv, e = truth["modules"][mid][p], m[p]
-                row[p] = {"sd": e["sd"], "inside": e["q05"] <= tv <= e["q95"], "mean": e["mean"]}
+                row[p] = {
+                    "sd": e["sd"],
+                    "inside": e["q05"] <= tv <= e["q95"],
+                    "mean": e["mean"],
+                    "z": (e["mean"] - tv) / e["sd"],
+                }
             out.append(row)
     return out
 
@@ -153,6 +159,8 @@ def summarise(per, pred, without=None):
                 "ratio_p90": float(np.quantile(r, 0.9)) if len(r) else None,
                 "band": [lo, hi],
                 "coverage90": float(np.mean([x[p]["inside"] for x in rs])) if rs else None,
+                # a bias of the posterior means, in their sds (0 for an honest calibration)
+                "z_mean": float(np.mean([x[p]["z"] for x in rs])) if rs else None,
                 "realised_over_first_design": _paired(rs, first, p),
             }
             if without is not None:
@@ -173,9 +181,9 @@ def markdown(res, args):
         f"from {args.draws} modules the standard bench draws, seed 0).",
         "",
         "| design | h | modules | law | predicted sd % | realised / predicted (median) | 10-90 % | band | coverage 90 % "
-        "| realised sd / the first design's (same modules, median) |"
+        "| mean z | realised sd / the first design's (same modules, median) |"
         + (" with / without the unit prior |" if prior else ""),
-        "|---|---|---|---|---|---|---|---|---|---|" + ("---|" if prior else ""),
+        "|---|---|---|---|---|---|---|---|---|---|---|" + ("---|" if prior else ""),
     ]
 
     def num(v, f="{:.2f}"):
@@ -187,6 +195,7 @@ def markdown(res, args):
             lines.append(
                 f"| {name} | {c['duration_h']:.2f} | {c['modules']} | {p} | {100 * v['predicted_sd_rel']:.3f} "
                 f"| {num(v['ratio_median'])} | {rng} | {v['band'][0]}–{v['band'][1]} | {num(v['coverage90'])} "
+                f"| {num(v['z_mean'], '{:+.2f}')} "
                 f"| {num(v['realised_over_first_design'])} |"
                 + (f" {num(v.get('realised_over_without_unit_prior'))} |" if prior else "")
             )

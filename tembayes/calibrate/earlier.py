@@ -104,7 +104,7 @@ def unit_prior_of_run(run: Path | str, module_type: str) -> LawPrior:
     """
     from tembayes.calibrate.run import load_run
 
-    f, _ = _earlier_summary(run, module_type)
+    _earlier_summary(run, module_type)
     draws = load_run(run).population_draws()
     if draws is None or len(draws) < 100:
         raise DataError(
