@@ -139,6 +139,20 @@ def _reach(rs):
     return {"share": float(np.mean(np.array(rel) <= UNIT_TARGET)), "largest": float(max(rel))} if rel else None
 
 
+def _z_shift(rs, first_rows, p):
+    """Mean over the modules run under both of z minus the first design's z, and its se with the batches as clusters.
+
+    The batches are the independent units: a batch's modules share its rig draw, whose error they share.
+    """
+    ref = {(r["batch"], r["module"]): r[p]["z"] for r in first_rows}
+    d = [(x["batch"], x[p]["z"] - ref[(x["batch"], x["module"])]) for x in rs if (x["batch"], x["module"]) in ref]
+    if not d:
+        return None, None
+    means = [np.mean([v for b, v in d if b == u]) for u in sorted({b for b, _ in d})]
+    se = float(np.std(means, ddof=1) / np.sqrt(len(means))) if len(means) > 1 else None
+    return float(np.mean([v for _, v in d])), se
+
+
 def summarise(per, pred, without=None):
     """Per design and law: realised / predicted sd, coverage, the realised sd against the first design's
     (and against the same modules without the unit prior, ``without``)."""
@@ -163,6 +177,8 @@ def summarise(per, pred, without=None):
                 "z_mean": float(np.mean([x[p]["z"] for x in rs])) if rs else None,
                 "realised_over_first_design": _paired(rs, first, p),
             }
+            shift, se = _z_shift(rs, first, p)
+            cell["laws"][p].update(z_shift_from_first_design=shift, z_shift_se=se)
             if without is not None:
                 cell["laws"][p]["realised_over_without_unit_prior"] = _paired(rs, without[name], p)
         out[name] = cell
@@ -181,9 +197,9 @@ def markdown(res, args):
         f"from {args.draws} modules the standard bench draws, seed 0).",
         "",
         "| design | h | modules | law | predicted sd % | realised / predicted (median) | 10-90 % | band | coverage 90 % "
-        "| mean z | realised sd / the first design's (same modules, median) |"
+        "| mean z | z − the first design's (se, batches as clusters) | realised sd / the first design's (same modules, median) |"
         + (" with / without the unit prior |" if prior else ""),
-        "|---|---|---|---|---|---|---|---|---|---|---|" + ("---|" if prior else ""),
+        "|---|---|---|---|---|---|---|---|---|---|---|---|" + ("---|" if prior else ""),
     ]
 
     def num(v, f="{:.2f}"):
@@ -196,6 +212,7 @@ def markdown(res, args):
                 f"| {name} | {c['duration_h']:.2f} | {c['modules']} | {p} | {100 * v['predicted_sd_rel']:.3f} "
                 f"| {num(v['ratio_median'])} | {rng} | {v['band'][0]}–{v['band'][1]} | {num(v['coverage90'])} "
                 f"| {num(v['z_mean'], '{:+.2f}')} "
+                f"| {num(v['z_shift_from_first_design'], '{:+.2f}')} ({num(v['z_shift_se'])}) "
                 f"| {num(v['realised_over_first_design'])} |"
                 + (f" {num(v.get('realised_over_without_unit_prior'))} |" if prior else "")
             )
