@@ -122,18 +122,21 @@ def test_the_search_picks_the_shortest_candidate_that_meets_the_targets_and_refu
     assert d.best is meeting[0]
     with pytest.raises(ModelError, match=r"no staircase within 1 h reaches R0_ohm=1e-06%.*reaches R0_ohm"):
         design(designer, (Target("R0_ohm", 1e-8, True),), max_hours=1.0)
-    # a target a longer staircase reaches and nothing within 1 h does, on the law a long run narrows most
-    (short,) = [e for e in d.evaluated if e.duration_s <= 3600]
-    longer = [e for e in design(designer, loose, max_hours=8.0).evaluated if e.duration_s > 3600]
-    law, best = min(
-        ((k, e) for k in MODULE_PARAMETERS for e in longer),
-        key=lambda ke: ke[1].sd_rel()[ke[0]] / short.sd_rel()[ke[0]],
-    )
-    target = 0.99 * short.sd_rel()[law]
-    assert best.sd_rel()[law] < target
-    with pytest.raises(ModelError, match="within 1 h"):
-        design(designer, (Target(law, target, True),), max_hours=1.0)
-    assert design(designer, (Target(law, target, True),), max_hours=8.0).best.duration_s > 3600
+    # a target some staircase reaches and no shorter one does: refused below its duration, chosen above
+    ranked = design(designer, loose, max_hours=8.0).evaluated  # shortest first
+    found = [
+        (k, e, min(x.sd_rel()[k] for x in ranked[:i]), ranked[i - 1].duration_s)
+        for k in MODULE_PARAMETERS
+        for i, e in enumerate(ranked[1:], 1)
+        if e.sd_rel()[k] < 0.99 * min(x.sd_rel()[k] for x in ranked[:i])
+    ]
+    assert found
+    law, best, shorter, before = found[0]
+    target = (Target(law, 0.99 * shorter, True),)
+    cut = 0.5 * (before + best.duration_s) / 3600
+    with pytest.raises(ModelError, match="no staircase within"):
+        design(designer, target, max_hours=cut)
+    assert design(designer, target, max_hours=8.0).best is best
     with pytest.raises(ModelError, match="no staircase fits in 0.5 h"):
         design(designer, loose, max_hours=0.5)
 
