@@ -16,8 +16,8 @@ would differ (R0 by ~4 %, the slopes by 10-15 %): ``design_check.py
 --population`` on batches of other seeds is the negative control, a prior
 taken from another lot.
 
-    python analyses/unit_prior_check.py --design 0.4:120        (~1 h on 1 core)
-    python analyses/unit_prior_check.py --design 0.4:120 --summarise
+    python analyses/unit_prior_check.py --design 0.2:100        (~1 h on 1 core)
+    python analyses/unit_prior_check.py --design 0.2:100 --summarise
 
 Writes analyses/results/unit_prior_check_s<STEP>-h<HOLD>.{json,md}.
 """
@@ -185,7 +185,7 @@ def main(argv=None):
     ap.add_argument("--earlier", type=int, default=8, help="units of the earlier batch")
     ap.add_argument("--new", type=int, default=20, help="new units of the same lot")
     ap.add_argument("--per-batch", type=int, default=4)
-    ap.add_argument("--design", default="0.4:120", metavar="STEP:HOLD", help="the new units' staircase")
+    ap.add_argument("--design", default="0.2:100", metavar="STEP:HOLD", help="the new units' staircase")
     ap.add_argument("--seed", type=int, default=1900, help="the lot (type centre, rig, units)")
     ap.add_argument("--type", default="TEC1-12706", choices=list(TYPES))
     ap.add_argument("--draws", type=int, default=4, help="modules the prediction averages over")

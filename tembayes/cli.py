@@ -1226,7 +1226,7 @@ def _add_design(sub):
     p = sub.add_parser(
         "design",
         help="the shortest identification staircase that reaches target posterior widths",
-        description="Search current staircases (step size and hold; every level inside the span stepped to from both "
+        description="Search current staircases (the hold at the reference's step; every level inside the span stepped to from both "
         "sides, as the "
         "hysteresis check needs) for the shortest that reaches the target posterior sds of the laws, and write "
         "protocol.csv (the current program), design.json (its duration and expected widths, and the reference "

@@ -168,6 +168,7 @@ def test_no_population_no_answer():
 def _earlier(tmp_path, **change):
     doc = {
         "batch": {"module_type": "TEC1-12706"},
+        "population": {"S0_V_per_K": {"mean": 0.05, "sd": 0.0006, "q05": 0.049, "q95": 0.051}},
         "population_spreads": {"spread_S0_rel": {"median": 0.011, "log_sd": 0.25}},
         "population_diagnostics": {"converged": True},
     }
@@ -186,6 +187,8 @@ def test_an_earlier_runs_spreads_and_its_refusals(tmp_path):
         population_prior_of_run(_earlier(tmp_path, population_spreads=None), "TEC1-12706")
     with pytest.raises(DataError, match="is not there"):
         population_prior_of_run(tmp_path / "nowhere", "TEC1-12706")
+    with pytest.raises(DataError, match="has no population: that run fitted none"):
+        population_prior_of_run(_earlier(tmp_path, population=None), "TEC1-12706")
     with pytest.raises(DataError, match="did not converge"):
         population_prior_of_run(_earlier(tmp_path, population_diagnostics={"converged": False}), "TEC1-12706")
     bad = {"spread_S0_rel": {"median": -0.01, "log_sd": 0.25}}

@@ -92,9 +92,11 @@ def test_a_unit_prior_is_the_calibrations_prior_on_the_laws():
 
 
 def test_a_run_under_a_unit_prior_records_it_and_its_population_divides_it_out(run3, batch3, tmp_path, monkeypatch):
-    """summary.json names the prior, the run gives it back, the prior group draws from it, the population divides it."""
+    """summary.json names the prior, the run gives it back, the prior group draws from it, the population divides it;
+    a resume under another prior than the modules were sampled under is refused."""
     from tembayes.calibrate import calibrate_batch
     from tembayes.calibrate import population as P
+    from tembayes.calibrate.batch import finish_run
     from tembayes.calibrate.run import load_run
 
     out, summ, _ = run3
@@ -107,10 +109,14 @@ def test_a_run_under_a_unit_prior_records_it_and_its_population_divides_it_out(r
         return fit(*args, **kw)
 
     monkeypatch.setattr(P, "fit_population", spy)
+    opt = CalibrationOptions(model="paper", discrepancy="none", law_prior=lp)
+    earlier = tmp_path / "earlier"
+    shutil.copytree(out, earlier)
+    with pytest.raises(DataError, match="the datasheet's, not population of .*--unit-prior"):
+        calibrate_batch(load_batch(batch3), earlier, seed=0, resume=True, options=opt)
     run = tmp_path / "run"
     shutil.copytree(out / "modules", run / "modules")
-    opt = CalibrationOptions(model="paper", discrepancy="none", law_prior=lp)
-    again = calibrate_batch(load_batch(batch3), run, seed=0, resume=True, options=opt)
+    again = finish_run(load_batch(batch3), run, seed=0, options=opt)
     assert again.calibration["law_prior"] == lp.source
     back = load_run(run)
     assert back.calibration_options().law_prior == lp

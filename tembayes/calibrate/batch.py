@@ -173,14 +173,25 @@ def calibrate_batch(
     say = progress or (lambda msg: None)
     workers = int(workers)
     _merged_spreads(batch, population_prior)  # a conflict is refused before anything is written
-    folder = RunFolder(out, batch=batch, seed=seed, resume=resume, overwrite=overwrite, workers=workers, progress=say)
+    opt = options or CalibrationOptions()
+    law_prior = None if opt.law_prior is None else opt.law_prior.to_json()
+    folder = RunFolder(
+        out,
+        batch=batch,
+        seed=seed,
+        resume=resume,
+        overwrite=overwrite,
+        workers=workers,
+        progress=say,
+        law_prior=law_prior,
+    )
     with folder as work:
         summ = _calibrate_in(
             batch,
             work,
             folder.record(),
             seed=seed,
-            options=options or CalibrationOptions(),
+            options=opt,
             resume=resume,
             population=population,
             say=say,

@@ -36,6 +36,13 @@ def _earlier_summary(run, module_type):
     if not f.is_file():
         raise DataError(f, "is not there", "Give the --out folder of an earlier `tembayes calibrate` run.")
     doc = json.loads(f.read_text())
+    if doc.get("population") is None:
+        raise DataError(
+            f,
+            "has no population: that run fitted none (fewer than 2 modules converged)",
+            "Give a run of at least 2 converged modules of the type.",
+            column="population",
+        )
     earlier = (doc.get("batch") or {}).get("module_type")
     if earlier is not None and earlier != module_type:
         raise DataError(
@@ -106,7 +113,7 @@ def unit_prior_of_run(run: Path | str, module_type: str) -> LawPrior:
 
     _earlier_summary(run, module_type)
     draws = load_run(run).population_draws()
-    if draws is None or len(draws) < 100:
+    if draws is None:
         raise DataError(
             Path(run) / "posterior.nc",
             "has no population-predictive draws (group 'population'): that run fitted no population",

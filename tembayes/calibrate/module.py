@@ -190,6 +190,8 @@ class CalibrationOptions:
         kw = {k: v for k, v in doc.items() if k in known}
         if kw.get("law_prior") is not None:
             kw["law_prior"] = LawPrior.from_json(kw["law_prior"])
+        if "effects" in kw:
+            kw["effects"] = tuple(kw["effects"])  # JSON made it a list
         return cls(**kw)
 
     def __post_init__(self):

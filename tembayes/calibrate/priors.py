@@ -223,9 +223,10 @@ class LawPrior:
 
     @classmethod
     def from_json(cls, doc: Mapping) -> LawPrior:
-        """The inverse of :meth:`to_json`."""
+        """The inverse of :meth:`to_json` (the laws in contract order, whatever the file's key order)."""
+        v = doc["priors"]
         priors = tuple(
-            ParameterPrior(k, v["kind"], float(v["center"]), float(v["scale"])) for k, v in doc["priors"].items()
+            ParameterPrior(k, v[k]["kind"], float(v[k]["center"]), float(v[k]["scale"])) for k in MODULE_PARAMETERS
         )
         return cls(priors, str(doc["source"]))
 

@@ -63,7 +63,12 @@ def _state(folder) -> dict:
             return m
     with contextlib.suppress(OSError, ValueError):
         s = json.loads((folder / "summary.json").read_text())
-        return {"seed": (s.get("calibration") or {}).get("seed"), "batch": s.get("batch") or {}}
+        cal = s.get("calibration") or {}
+        return {
+            "seed": cal.get("seed"),
+            "batch": s.get("batch") or {},
+            "law_prior": (cal.get("options") or {}).get("law_prior"),
+        }
     return {}
 
 
@@ -96,6 +101,7 @@ class RunFolder:
     overwrite: bool = False
     workers: int = 1
     progress: object = None
+    law_prior: dict | None = None
 
     def __post_init__(self):
         self.run = Path(self.run)
@@ -157,6 +163,16 @@ class RunFolder:
                 f"the run was started with --seed {state['seed']}, not {self.seed}",
                 f"Resume it with --seed {state['seed']}, or start afresh with --overwrite",
             )
+        if state.get("law_prior") != self.law_prior:
+            # the reused modules were sampled under the recorded prior; the population divides out the new one
+            was, now = (
+                ("the datasheet's" if x is None else x["source"]) for x in (state.get("law_prior"), self.law_prior)
+            )
+            raise DataError(
+                folder,
+                f"the run's laws were calibrated under the prior of {was}, not {now}",
+                "Resume it with the same --unit-prior (or none), or start afresh with --overwrite",
+            )
         recorded = (state.get("batch") or {}).get("inputs")
         if recorded is None:
             say(
@@ -183,7 +199,8 @@ class RunFolder:
 
     def _write_marker(self, *, complete):
         atomic_write_text(
-            self.partial / MARKER, marker("calibrate", complete=complete, seed=int(self.seed), batch=self.record())
+            self.partial / MARKER,
+            marker("calibrate", complete=complete, seed=int(self.seed), batch=self.record(), law_prior=self.law_prior),
         )
 
     def commit(self) -> None:

@@ -3,7 +3,7 @@
 A candidate is the reference staircase's shape -- 0 up to +0.8 A, down to
 -1.6 A and back to 0 (reference module's levels, scaled by the type's Imax),
 every level inside the span reached from below and from above (the turning
-levels from one side) so the hysteresis check keeps both directions -- with shorter holds
+levels from one side) so the hysteresis check keeps both directions -- with holds of 100-900 s
 (coarser steps were measured biased out-of-model, :data:`STEPS_A`).  Its expected
 widths (:mod:`.widths`) are averaged over modules the standard bench draws
 from the type (the rig's nominal spread of values, the type's unit spread),
@@ -179,7 +179,8 @@ class Designer:
     law_prior : LawPrior, optional
         The laws' prior of the calibration to come: a known type's population
         (``--population RUN``, :func:`~tembayes.calibrate.earlier.unit_prior_of_run`);
-        default the datasheet's.
+        default the datasheet's.  The drawn modules still come from the bench's own type draw,
+        not from that population: the prior changes the widths by a few %, the modules' place little.
     """
 
     def __init__(self, datasheet, rig_config=None, *, seed=0, n_draws=N_DRAWS, jobs=2, say=None, law_prior=None):
