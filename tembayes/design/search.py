@@ -37,7 +37,8 @@ from tembayes.errors import ModelError
 #: covered 0.80-1.00 on two module types (analyses/design_check.py).
 STEPS_A = (0.2,)
 #: Hold lengths of the candidates [s].  The shortest, 100 s, is the shortest shown honest on the
-#: out-of-model bench (0.69 h: R0, S0, K coverage 0.85-0.90 on 20 TEC1-12706 modules, analyses/design_check.py).
+#: out-of-model bench (0.69 h: R0, S0, K coverage 0.85-0.90 on 20 TEC1-12706 modules and 0.95-1.00 on
+#: 20 of a 3 ohm, 3.9 A type; analyses/design_check.py).
 HOLDS_S = (100.0, 120.0, 240.0, 420.0, 600.0, 900.0)
 #: The reference protocol: the rig's identification staircase.
 REFERENCE = (0.2, 600.0)
