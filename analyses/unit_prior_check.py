@@ -33,13 +33,12 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from design_check import _reach  # noqa: E402
 from law_coverage import PARAMS, TYPES, run  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "analyses" / "results"
 EARLIER_PROTOCOL = (0.2, 120.0)
-#: The issue's target for a new unit of a known type: R0 and S0 to this relative sd.
-UNIT_TARGET = 0.005
 
 
 def _protocol(work, designer, step, hold):
@@ -110,11 +109,6 @@ def rows(batch, rdir):
             }
         out.append(row)
     return out
-
-
-def _reach(rs):
-    rel = [max(x[p]["sd"] / abs(x[p]["mean"]) for p in ("R0_ohm", "S0_V_per_K")) for x in rs]
-    return {"share": float(np.mean(np.array(rel) <= UNIT_TARGET)), "largest": float(max(rel))} if rel else None
 
 
 def summarise(with_prior, without, predicted, prior_json):

@@ -383,7 +383,7 @@ def finish_run(
     for mid, why in failed.items():
         excluded[mid] = f"calibration failed: {why}"
     spreads = _merged_spreads(batch, population_prior)
-    laws_prior = module_law_priors(batch.datasheet, opt.law_prior)
+    module_priors = module_law_priors(batch.datasheet, opt.law_prior)
     pop = None
     if population and len(law) >= 2:
         from tembayes.calibrate.population import fit_population
@@ -405,7 +405,7 @@ def finish_run(
             batch.datasheet,
             rng=rng,
             spread_prior=spread_prior(spreads),
-            log_interim_prior=law_log_prior(laws_prior),  # the prior the modules were sampled under
+            log_interim_prior=law_log_prior(module_priors),  # the prior the modules were sampled under
         )
     elif population:
         say(f"population: skipped ({len(law)} module(s) to fit it on; it needs 2)")
@@ -453,7 +453,7 @@ def finish_run(
         out / "posterior.nc",
         files,
         population=pop,
-        prior_draws=prior_draws(laws_prior, seed),
+        prior_draws=prior_draws(module_priors, seed),
         attrs={
             "tembayes_seed": int(seed),
             "tembayes_versions": versions(),
