@@ -158,6 +158,7 @@ def test_report_is_one_self_contained_file_with_every_section(report):
         assert f"<section id='{sid}'>" in html
     # which model the laws rest on, and whether it fits each module's run
     assert 'calibration model</td><td class="l">paper (Evers' in html and "discrepancy: none" in html
+    assert 'prior on the laws</td><td class="l">the datasheet&#x27;s</td>' in html
     adequacy = html.split("<section id='adequacy'>")[1].split("</section>")[0]
     assert adequacy.count('<td class="pass">fits</td>') == len(doc["modules"]) == 3, adequacy
     # nothing outside the file: no external source, link, script or stylesheet

@@ -292,6 +292,8 @@ def _overview(run, batch):
         "model": cal.get("model", "paper"),
         "effects": cal.get("effects", []),
         "discrepancy": cal.get("discrepancy", "none"),
+        # runs before --unit-prior were all calibrated under the datasheet's prior
+        "law_prior": cal.get("law_prior", "datasheet"),
         "data_files_dated": _dates(
             [e.path for m in batch.modules.values() for e in (m.identification, *m.validations)]
         ),

@@ -146,6 +146,10 @@ def _overview(rep):
             + (f"; with {_e(', '.join(o['effects']))}" if o.get("effects") else "")
             + f"; discrepancy: {_e(o.get('discrepancy', 'none'))}",
         ],
+        [
+            "prior on the laws",
+            _e("the datasheet's" if o.get("law_prior", "datasheet") == "datasheet" else o["law_prior"]),
+        ],
         ["law reference temperature", f"{o['tref_C']:g} °C"],
         ["data files dated", _e(o.get("data_files_dated") or "–")],
         ["run files dated", _e(o.get("run_files_dated") or "–")],
