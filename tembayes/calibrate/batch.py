@@ -174,7 +174,7 @@ def calibrate_batch(
     workers = int(workers)
     _merged_spreads(batch, population_prior)  # a conflict is refused before anything is written
     opt = options or CalibrationOptions()
-    law_prior = None if opt.law_prior is None else opt.law_prior.to_json()
+    law_prior = opt.to_json()["law_prior"]
     folder = RunFolder(
         out,
         batch=batch,

@@ -474,19 +474,26 @@ class LaplaceFit:
     converged: bool
 
 
+def calibration_problem(experiment, datasheet, rig_config, opt, effects=()):
+    """``(rig, step data, model, model space, space)`` of a calibration of ``experiment``.
+
+    ``effects`` are catalogue effects added to the model form, besides ``opt.effects``.
+    """
+    rig = calibration_rig(rig_config, opt)
+    data = step_data(experiment, face=rig.layout.face)
+    model = StepResponseModel(data, rig)
+    named = tuple(dict.fromkeys((*effects, *opt.effects)))  # the run's own and the gap's candidate
+    model_space, space = parameter_space(rig, datasheet, data, model.shift_bound, named, opt.model, opt.law_prior)
+    return rig, data, model, model_space, space
+
+
 def laplace_fit(experiment, datasheet, *, rig_config=None, options=None, effects=(), start=None, max_nfev=60):
     """The calibration's problem on ``experiment``, its mode from ``start`` (:func:`start_point`), and the Laplace covariance.
 
     ``effects`` are catalogue effects added to the model form (and ``options.effects``).
     """
-    from threadpoolctl import threadpool_limits
-
     opt = options or CalibrationOptions()
-    rig = calibration_rig(rig_config, opt)
-    data = step_data(experiment, face=rig.layout.face)
-    model = StepResponseModel(data, rig)
-    named = tuple(dict.fromkeys((*effects, *opt.effects)))
-    space, _ = parameter_space(rig, datasheet, data, model.shift_bound, named, opt.model, opt.law_prior)
+    _, data, model, space, _ = calibration_problem(experiment, datasheet, rig_config, opt, effects)
     with threadpool_limits(limits=1, user_api="blas"):
         x, _, sol = fit_map(model, space, data, start_point(space, start), max_nfev=max_nfev)
         r = (data.obs - model.predict(space.params(x[None]), strict=False)[0]) / data.noise[:, None]
@@ -688,11 +695,7 @@ class _Problem:
 def _problem(module, datasheet, rig_config, opt, effects, seed) -> _Problem:
     emcee_seed, rng = module_seed(seed, module.id)
     experiment = module.identification
-    rig = calibration_rig(rig_config, opt)
-    data = step_data(experiment, face=rig.layout.face)
-    model = StepResponseModel(data, rig)
-    effects = tuple(dict.fromkeys((*effects, *opt.effects)))  # the run's own and the gap's candidate
-    model_space, space = parameter_space(rig, datasheet, data, model.shift_bound, effects, opt.model, opt.law_prior)
+    rig, data, model, model_space, space = calibration_problem(experiment, datasheet, rig_config, opt, effects)
     nwalkers = 2 * space.ndim + 2 if opt.nwalkers is None else int(opt.nwalkers)
     if nwalkers < 2 * space.ndim:
         raise ModelError(f"nwalkers must be at least 2 x {space.ndim} parameters, got {nwalkers}")
