@@ -23,7 +23,11 @@ R0 and S0 reach 0.5 % (sd), the issue's target for a new unit of a known type.
     python analyses/design_check.py --batches 5 --modules 4 --summarise
     python analyses/design_check.py --batches 5 --modules 4 --designs 0.8:240 0.8:120 --population RUN
 
-Writes analyses/results/design_check_<fidelity>[_<type>][_unit-prior].{json,md} (no type suffix for TEC1-12706).
+    python analyses/design_check.py --rig heatsink-al --designs 0.2:600 0.2:240 0.2:100
+    python analyses/design_check.py --designs 0.2:600 0.2:240:2 0.2:240:1   (STEP:HOLD:RATE, RATE in Hz; default 5)
+
+Writes analyses/results/design_check_<fidelity>[_<rig>][_<type>][_unit-prior].{json,md} (no rig suffix for
+the reference rig, no type suffix for TEC1-12706).
 """
 
 from __future__ import annotations
@@ -44,11 +48,16 @@ DEFAULT_DESIGNS = ("0.2:600", "0.2:120", "0.8:240")
 
 
 def _designs(texts):
-    return [tuple(float(v) for v in t.split(":")) for t in texts]
+    """``STEP:HOLD[:RATE]`` -> ``(step, hold, rate)``, the rate [Hz] the reference rig's unless given."""
+    from tembayes.design.search import RATE_HZ
+
+    return [(*(float(v) for v in t.split(":")), RATE_HZ)[:3] for t in texts]
 
 
-def _name(step, hold):
-    return f"s{step:g}-h{hold:g}"
+def _name(step, hold, rate):
+    from tembayes.design.search import RATE_HZ
+
+    return f"s{step:g}-h{hold:g}" + ("" if rate == RATE_HZ else f"-r{rate:g}")
 
 
 def _datasheet(work, t):
@@ -59,35 +68,48 @@ def _datasheet(work, t):
     return f, load_batch_toml(f)[0]
 
 
-def predicted(designs, ds, n_draws, population=None):
+def _rig_config(rig):
+    """The ``[rig]`` table of ``--rig`` (None for the reference rig, as the designer takes it)."""
+    from tembayes.physics.rigread import rig_source
+
+    return None if rig == "reference" else rig_source(rig)
+
+
+def predicted(designs, ds, n_draws, population=None, rig="reference"):
     """``{design name: Evaluated}`` of the designer (the standard bench's drawn modules, seed 0)."""
     from tembayes.calibrate.earlier import unit_prior_of_run
     from tembayes.design.search import Designer
 
     law_prior = None if population is None else unit_prior_of_run(population, ds.name)
-    d = Designer(ds, None, seed=0, n_draws=n_draws, jobs=1, say=print, law_prior=law_prior)
-    return {_name(s, h): e for (s, h), e in zip(designs, d.evaluate(designs))}, d
+    d = Designer(ds, _rig_config(rig), seed=0, n_draws=n_draws, jobs=1, say=print, law_prior=law_prior)
+    return {_name(*c): e for c, e in zip(designs, d.evaluate(designs))}, d
 
 
-def one(work, args, t, dsfile, designer, step, hold, b):
-    """Simulate and calibrate batch ``b`` of type ``t`` under one staircase; the run folder."""
+def one(work, args, t, dsfile, designer, step, hold, rate, b):
+    """Simulate and calibrate batch ``b`` of type ``t`` under one staircase sampled at ``rate`` [Hz]; the run folder."""
     from tembayes.design.protocol import write_protocol
 
-    name = _name(step, hold)
-    proto = work / f"{t}-{name}.csv"
+    name = _name(step, hold, rate)
+    proto = work / f"{t}-{name}.csv" if args.rig == "reference" else work / f"{t}-{name}-{_bench(args)}.csv"
     if not proto.exists():
         write_protocol(proto, designer.protocol(step, hold))
-    bdir = work / "batches" / args.fidelity / name / f"{t}-b{b}"
+    bdir = work / "batches" / _bench(args) / name / f"{t}-b{b}"
     if not (bdir / "truth.json").exists():
         seed = 1000 * (list(TYPES).index(t) + 1) + b
         run(["simulate", bdir, "--modules", args.modules, "--fidelity", args.fidelity, "--datasheet", dsfile,
-             "--seed", seed, "--validations", 0, "--protocol", proto, "--overwrite"])  # fmt: skip
-    rdir = work / "runs" / args.fidelity / (name + _tag(args)) / f"{t}-b{b}"
+             "--seed", seed, "--validations", 0, "--protocol", proto, "--rig", args.rig, "--rate", rate,
+             "--overwrite"])  # fmt: skip
+    rdir = work / "runs" / _bench(args) / (name + _tag(args)) / f"{t}-b{b}"
     prior = [] if args.population is None else ["--unit-prior", args.population]
     if not (rdir / "summary.json").exists():
         run(["calibrate", bdir, "--out", rdir, "--seed", 0, "--quiet", "--no-figures", "--workers", 1,
              "--overwrite", *prior])  # fmt: skip
     return bdir, rdir
+
+
+def _bench(args):
+    """The batches' and runs' folder of the bench: its fidelity, and the rig unless the reference."""
+    return args.fidelity if args.rig == "reference" else f"{Path(args.rig).stem}-{args.fidelity}"
 
 
 def _tag(args):
@@ -99,8 +121,8 @@ def rows(work, args, t, name, tag=None):
     """Per module of every calibrated batch: each law's sd, mean and whether its 90 % interval holds the truth."""
     out = []
     tag = _tag(args) if tag is None else tag
-    for bdir in sorted((work / "batches" / args.fidelity / name).glob(f"{t}-b*")):
-        rdir = work / "runs" / args.fidelity / (name + tag) / bdir.name
+    for bdir in sorted((work / "batches" / _bench(args) / name).glob(f"{t}-b*")):
+        rdir = work / "runs" / _bench(args) / (name + tag) / bdir.name
         if not (rdir / "summary.json").exists():
             continue
         s = json.loads((rdir / "summary.json").read_text())
@@ -193,7 +215,7 @@ def markdown(res, args):
         + (", units under an earlier run's population)" if prior else ")"),
         "",
         f"`python analyses/design_check.py --batches {args.batches} --modules {args.modules} "
-        f"--fidelity {args.fidelity} --type {args.type} --designs {' '.join(args.designs)}{pop}` (the prediction "
+        f"--fidelity {args.fidelity} --rig {args.rig} --type {args.type} --designs {' '.join(args.designs)}{pop}` (the prediction "
         f"from {args.draws} modules the standard bench draws, seed 0).",
         "",
         "| design | h | modules | law | predicted sd % | realised / predicted (median) | 10-90 % | band | coverage 90 % "
@@ -237,6 +259,7 @@ def main(argv=None):
     ap.add_argument("--modules", type=int, default=4)
     ap.add_argument("--type", default="TEC1-12706", choices=list(TYPES))
     ap.add_argument("--fidelity", default="high", choices=("standard", "high"))
+    ap.add_argument("--rig", default="reference", help="a shipped rig with a free face, or a rig file")
     ap.add_argument("--draws", type=int, default=4, help="modules the prediction averages over")
     ap.add_argument("--work", type=Path, default=ROOT / "runs" / "design_check")
     ap.add_argument(
@@ -247,20 +270,21 @@ def main(argv=None):
     args.work.mkdir(parents=True, exist_ok=True)
     designs = _designs(args.designs)
     dsfile, ds = _datasheet(args.work, args.type)
-    pred, designer = predicted(designs, ds, args.draws, args.population)
+    pred, designer = predicted(designs, ds, args.draws, args.population, args.rig)
     if not args.summarise:
         for b in range(args.batches):
-            for step, hold in designs:
-                one(args.work, args, args.type, dsfile, designer, step, hold, b)
-                print(f"{_name(step, hold)} b{b} done", flush=True)
-    per = {_name(s, h): rows(args.work, args, args.type, _name(s, h)) for s, h in designs}
+            for c in designs:
+                one(args.work, args, args.type, dsfile, designer, *c, b)
+                print(f"{_name(*c)} b{b} done", flush=True)
+    per = {_name(*c): rows(args.work, args, args.type, _name(*c)) for c in designs}
     without = None if args.population is None else {n: rows(args.work, args, args.type, n, tag="") for n in per}
-    res = {"type": args.type, "fidelity": args.fidelity, "designs": summarise(per, pred, without)}
+    res = {"type": args.type, "fidelity": args.fidelity, "rig": args.rig, "designs": summarise(per, pred, without)}
     if args.population is not None:
         res["unit_prior"] = designer.options.law_prior.to_json()
     from tembayes.data.write import write_json
 
-    stem = f"design_check_{args.fidelity}" + ("" if args.type == "TEC1-12706" else f"_{args.type}") + _tag(args)
+    rig = "" if args.rig == "reference" else f"_{Path(args.rig).stem}"
+    stem = f"design_check_{args.fidelity}{rig}" + ("" if args.type == "TEC1-12706" else f"_{args.type}") + _tag(args)
     write_json(RESULTS / f"{stem}.json", res)
     text = markdown(res, args)
     (RESULTS / f"{stem}.md").write_text(text)

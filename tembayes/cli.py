@@ -26,7 +26,7 @@ examples:
   tembayes simulate runs/real --fidelity high --validation-start rest --modules 8   # out-of-model bench
   tembayes simulate runs/sink --rig heatsink-al --modules 4    # another shipped rig
   tembayes simulate runs/mine --rig my_rig.toml                # your rig file (copied into the batch)
-  tembayes simulate runs/short --protocol runs/design/protocol.csv --fidelity high   # try a design
+  tembayes simulate runs/short --protocol runs/design/protocol.csv --rate 2 --fidelity high   # try a design
 
 effects (NAME or NAME=VALUE; VALUE sets the first parameter, others scale along):
 {effects}
@@ -558,7 +558,14 @@ def _cmd_design(args):
 
         law_prior = unit_prior_of_run(args.population, datasheet.name)
     designer = Designer(
-        datasheet, rig_config, seed=args.seed, n_draws=args.draws, jobs=args.jobs, say=_progress, law_prior=law_prior
+        datasheet,
+        rig_config,
+        seed=args.seed,
+        n_draws=args.draws,
+        jobs=args.jobs,
+        say=_progress,
+        law_prior=law_prior,
+        rate_hz=args.rate,
     )
     d = design(designer, targets or None, max_hours=args.max_hours)
 
@@ -573,12 +580,13 @@ def _cmd_design(args):
     best, ref = d.best, d.reference
     print(
         f"design: {len(best.protocol.levels)} levels, step {best.step_for(datasheet.imax):.3g} A, "
-        f"hold {best.hold_s:g} s: {best.duration_s / 3600:.2f} h against the reference's {ref.duration_s / 3600:.2f} h"
+        f"hold {best.hold_s:g} s, sampled at {best.rate_Hz:g} Hz: {best.duration_s / 3600:.2f} h against the "
+        f"reference's {ref.duration_s / 3600:.2f} h at {ref.rate_Hz:g} Hz"
     )
     for k, v in best.sd_rel().items():
         print(f"  {k:<14s} expected sd {100 * v:.3f} %  (reference {100 * ref.sd_rel()[k]:.3f} %)")
     print(f"wrote {args.out / 'protocol.csv'}, design.json and design.png; try it: tembayes simulate OUT --protocol "
-          f"{args.out / 'protocol.csv'}")  # fmt: skip
+          f"{args.out / 'protocol.csv'} --rate {best.rate_Hz:g}")  # fmt: skip
     if law_prior is not None:
         print(
             f"the widths assume {law_prior.source} as the unit's prior: calibrate with --unit-prior {args.population}"
@@ -1211,13 +1219,15 @@ _EPILOG_DESIGN = """\
 examples:
   tembayes design data/example --out runs/design                       # the reference's R0, S0, K widths
   tembayes design data/example --out runs/design --target R0_ohm=0.3% --target K_W_per_K=0.5% --max-hours 2
-  tembayes simulate runs/short --protocol runs/design/protocol.csv --fidelity high   # then try it
+  tembayes simulate runs/short --protocol runs/design/protocol.csv --rate 2 --fidelity high   # then try it (its rate)
+  tembayes design data/example --out runs/slow-logger --rate 1       # a rig logged at 1 Hz
   tembayes design data/example --out runs/unit-design --population runs/lot42 --target R0_ohm=0.5% --target S0_V_per_K=0.5% --max-hours 0.75
   tembayes calibrate spares/unit7 --out runs/unit7 --unit-prior runs/lot42   # that unit, under lot 42's population
 
 Targets are posterior sds, relative (PARAM=SD%) or absolute in SI (PARAM=SD).  The expected widths
 come from modules the bench draws from the type, each run simulated and linearised as the calibration
-would (Laplace, plus the rig parameters the calibration holds fixed); docs/design.md.
+would (Laplace, plus the rig parameters the calibration holds fixed).  The shortest staircase found
+is sampled as slowly as the targets allow (design.json: staircase.sampling_rate_Hz); docs/design.md.
 """
 
 
@@ -1253,6 +1263,14 @@ def _add_design(sub):
         "(calibrate the unit with --unit-prior RUN)",
     )
     p.add_argument("--max-hours", type=float, default=8.0, metavar="H", help="longest test allowed (default 8 h)")
+    p.add_argument(
+        "--rate",
+        type=float,
+        default=5.0,
+        metavar="HZ",
+        help="the rig's sampling rate (default 5 Hz, the reference rig's); the design samples as slowly as the "
+        "targets allow, down to 0.5 Hz",
+    )
     p.add_argument("--draws", type=int, default=2, metavar="N", help="bench modules each width averages (default 2)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the drawn modules (default 0)")
     p.add_argument("--jobs", type=int, default=2, metavar="N", help="worker processes (default 2)")

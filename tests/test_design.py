@@ -114,7 +114,12 @@ def test_expected_widths_fall_with_more_samples_as_white_noise_information_does(
     assert bare.sd == bare.sd_laplace
 
 
-def test_the_search_picks_the_shortest_candidate_that_meets_the_targets_and_refuses_the_unreachable(designer):
+def test_the_search_picks_the_shortest_candidate_that_meets_the_targets_and_refuses_the_unreachable(
+    designer, monkeypatch
+):
+    from tembayes.design import search
+
+    monkeypatch.setattr(search, "RATES_HZ", ())  # the holds alone; the rates are the next test's
     loose = (Target("R0_ohm", 0.05, True),)
     d = design(designer, loose, max_hours=1.0)
     assert d.best.duration_s == min(e.duration_s for e in d.evaluated)
@@ -141,6 +146,30 @@ def test_the_search_picks_the_shortest_candidate_that_meets_the_targets_and_refu
         design(designer, loose, max_hours=0.5)
 
 
+def _rates_at_the_best_hold(d):
+    return sorted((e for e in d.evaluated if e.hold_s == d.best.hold_s), key=lambda e: e.rate_Hz)
+
+
+def test_the_design_samples_its_staircase_as_slowly_as_the_targets_allow(designer, monkeypatch):
+    """The shortest staircase at the rig's rate, then the slowest rate at which it and every faster one still
+    meet the targets: a loose target goes down to the slowest rate; one between the 5 Hz and the 2 Hz widths
+    of some law keeps 5 Hz."""
+    from tembayes.design import search
+
+    monkeypatch.setattr(search, "RATES_HZ", (1.0, 2.0))
+    loose = design(designer, (Target("R0_ohm", 0.05, True),), max_hours=1.0)
+    at = {e.rate_Hz: e for e in _rates_at_the_best_hold(loose)}
+    assert set(at) == {1.0, 2.0, 5.0} and loose.best is at[1.0]
+    assert loose.best.hold_s == min(e.hold_s for e in loose.evaluated)
+    # fewer samples leave the data's part of every level's width wider
+    for k in ("R0_ohm", "S0_V_per_K", "K_W_per_K"):
+        assert at[1.0].sd_laplace[k] > at[5.0].sd_laplace[k], k
+    k = max(MODULE_PARAMETERS, key=lambda p: at[2.0].sd_rel()[p] / at[5.0].sd_rel()[p])
+    assert at[2.0].sd_rel()[k] > at[5.0].sd_rel()[k]
+    tight = design(designer, (Target(k, 0.5 * (at[2.0].sd_rel()[k] + at[5.0].sd_rel()[k]), True),), max_hours=1.0)
+    assert tight.best is at[5.0]
+
+
 def test_design_writes_the_program_the_widths_and_the_figure(tmp_path, monkeypatch):
     from tembayes.cli import main
     from tembayes.design import search
@@ -155,8 +184,13 @@ def test_design_writes_the_program_the_widths_and_the_figure(tmp_path, monkeypat
     assert set(doc["predicted"]) == set(MODULE_PARAMETERS) and set(doc["predicted"]["R0_ohm"]) == {"sd", "sd_rel"}
     assert doc["reference"]["duration_s"] == pytest.approx(25 * 600.0)
     assert (out / "design.png").stat().st_size > 10_000
-    # a refused target writes nothing
+    # a 5 % target: the slowest rate tried, recorded beside the rig's
+    assert doc["staircase"]["sampling_rate_Hz"] == min(search.RATES_HZ)
+    assert doc["staircase"]["rig_sampling_rate_Hz"] == 5.0
+    assert {c["sampling_rate_Hz"] for c in doc["evaluated"]} == {5.0, *search.RATES_HZ}
+    # a refused target or rate writes nothing
     assert main(["design", EXAMPLE, "--out", str(tmp_path / "e"), "--target", "R0=1%"]) != 0
+    assert main(["design", EXAMPLE, "--out", str(tmp_path / "e"), "--rate", "0"]) != 0
     assert not (tmp_path / "e").exists()
 
 

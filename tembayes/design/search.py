@@ -13,7 +13,11 @@ and its Laplace covariance taken at the mode a short search from its truth finds
 widths need not fall monotonically with the holds (on the reference rig they
 are set mostly by the rig parameters the calibration holds fixed, which a
 longer run does not remove), so no candidate is skipped on the assumption.
-The shortest candidate that meets every target wins.
+The shortest candidate that meets every target wins, sampled at the rig's
+rate; that staircase is then tried at the slower rates of :data:`RATES_HZ`,
+and the slowest that still meets every target is the design's (a slow logger
+is cheaper, and on the reference rig the widths are set mostly by the held rig
+parameters, not by the number of samples).
 """
 
 from __future__ import annotations
@@ -48,8 +52,10 @@ N_DRAWS = 2
 #: staircases' widths missed the realised one on the same out-of-model modules (3-6 %,
 #: analyses/design_check.py), so that "as narrow as the reference" is not decided by the predictor's error.
 REFERENCE_SLACK = 0.05
-#: Sampling rate of the simulated runs [Hz] (the reference rig's).
+#: The rig's sampling rate unless told [Hz] (the reference rig's).
 RATE_HZ = 5.0
+#: The slower sampling rates the shortest staircase is tried at [Hz].
+RATES_HZ = (0.5, 1.0, 2.0)
 
 
 @dataclass(frozen=True)
@@ -105,15 +111,19 @@ class Evaluated:
     step_A : float
         Step size for the reference module [A] (the program's levels scale with Imax).
     hold_s : float
+    rate_Hz : float
+        Sampling rate of the run [Hz].
     protocol : Protocol
     sd, mean : dict
         Law name -> expected posterior sd and the mean of the drawn modules' modes [SI].
     sd_laplace : dict
-        Law name -> the part of ``sd`` the run's own data leave (without the held rig parameters) [SI].
+        Law name -> the part of ``sd`` the run's data and the prior on the laws leave, before the held rig
+        parameters' carry-over [SI].
     """
 
     step_A: float
     hold_s: float
+    rate_Hz: float
     protocol: Protocol
     sd: dict
     mean: dict
@@ -124,9 +134,9 @@ class Evaluated:
         """The program's duration [s]."""
         return self.protocol.duration
 
-    def sd_rel(self, data_only: bool = False) -> dict:
-        """Law name -> expected sd (``data_only``: :attr:`sd_laplace`) relative to the modules' mean value."""
-        sd = self.sd_laplace if data_only else self.sd
+    def sd_rel(self, without_held_rig: bool = False) -> dict:
+        """Law name -> expected sd (``without_held_rig``: :attr:`sd_laplace`) relative to the modules' mean value."""
+        sd = self.sd_laplace if without_held_rig else self.sd
         return {k: sd[k] / abs(self.mean[k]) for k in MODULE_PARAMETERS}
 
     def step_for(self, imax: float) -> float:
@@ -152,10 +162,10 @@ def _one_width(args):
     from tembayes.bench.bench import run_experiment
     from tembayes.design.widths import expected_widths
 
-    protocol, m, seed = args
+    protocol, rate, m, seed = args
     setup, datasheet, rig_config = _ACTIVE.setup, _ACTIVE.datasheet, _ACTIVE.rig_config
     module = list(setup.truth["modules"].values())[m]
-    exp = run_experiment(protocol, module, setup.effects, np.random.default_rng(seed), rate=RATE_HZ, **setup.run)
+    exp = run_experiment(protocol, module, setup.effects, np.random.default_rng(seed), rate=rate, **setup.run)
     # the truth of every coordinate the calibration samples that the bench knows (the step phase does not matter)
     start = {**setup.effects, **module.get("rig", {}), **{k: module[k] for k in MODULE_PARAMETERS}}
     w = expected_widths(exp, datasheet, rig_config=rig_config, options=_ACTIVE.options, start=start, max_nfev=3)
@@ -182,9 +192,13 @@ class Designer:
         (``--population RUN``, :func:`~tembayes.calibrate.earlier.unit_prior_of_run`);
         default the datasheet's.  The drawn modules still come from the bench's own type draw,
         not from that population: the prior changes the widths by a few %, the modules' place little.
+    rate_hz : float
+        The rig's sampling rate [Hz]: the candidates' and the reference's (slower ones are tried too).
     """
 
-    def __init__(self, datasheet, rig_config=None, *, seed=0, n_draws=N_DRAWS, jobs=2, say=None, law_prior=None):
+    def __init__(
+        self, datasheet, rig_config=None, *, seed=0, n_draws=N_DRAWS, jobs=2, say=None, law_prior=None, rate_hz=RATE_HZ
+    ):
         from tembayes.bench.bench import BenchConfig, bench_setup
         from tembayes.calibrate.module import CalibrationOptions
 
@@ -203,29 +217,36 @@ class Designer:
         self.cache: dict = {}
         self.seed = seed
         self.n_modules = n_draws
+        if not rate_hz > 0:
+            raise ModelError(f"--rate {rate_hz:g}: the sampling rate must be positive")
+        self.rate_hz = float(rate_hz)
         self.options = CalibrationOptions(law_prior=law_prior)
 
     def protocol(self, step: float, hold: float) -> Protocol:
         """The candidate staircase of step ``step`` (reference module's A) and hold ``hold`` [s] for this type."""
         return identification_staircase(self.datasheet.imax, hold=hold, step=step)
 
-    def evaluate(self, pairs) -> list[Evaluated]:
-        """The :class:`Evaluated` of every ``(step_A, hold_s)``, the same modules for each."""
-        todo = [p for p in dict.fromkeys(pairs) if p not in self.cache]
+    def evaluate(self, candidates) -> list[Evaluated]:
+        """The :class:`Evaluated` of every ``(step_A, hold_s[, rate_Hz])`` (the rig's rate unless given).
+
+        The same modules and noise streams for each.
+        """
+        keys = [tuple(float(v) for v in (c if len(c) == 3 else (*c, self.rate_hz))) for c in candidates]
+        todo = [k for k in dict.fromkeys(keys) if k not in self.cache]
         if todo:
             self.say(f"design: {len(todo)} staircases x {self.n_modules} modules")
             # common random numbers: module m runs on the same noise stream under every candidate
-            protocols = {p: self.protocol(*p) for p in todo}
-            jobs = [(protocols[p], m, [self.seed, m]) for p in todo for m in range(self.n_modules)]
+            protocols = {k: self.protocol(*k[:2]) for k in todo}
+            jobs = [(protocols[k], k[2], m, [self.seed, m]) for k in todo for m in range(self.n_modules)]
             out = self._run(jobs)
             n = self.n_modules
-            for c, (step, hold) in enumerate(todo):
+            for c, k in enumerate(todo):
                 part = out[c * n : (c + 1) * n]  # (sd, mode, sd_laplace) of each drawn module
                 sd, mean, lap = (
-                    {k: float(np.mean([r[q][k] for r in part])) for k in MODULE_PARAMETERS} for q in range(3)
+                    {p: float(np.mean([r[q][p] for r in part])) for p in MODULE_PARAMETERS} for q in range(3)
                 )
-                self.cache[(step, hold)] = Evaluated(step, hold, protocols[(step, hold)], sd, mean, lap)
-        return [self.cache[p] for p in pairs]
+                self.cache[k] = Evaluated(*k, protocols[k], sd, mean, lap)
+        return [self.cache[k] for k in keys]
 
     def _run(self, jobs):
         """:func:`_one_width` of every job, in ``self.jobs`` forked workers (they inherit this designer)."""
@@ -244,12 +265,12 @@ class Design:
     Attributes
     ----------
     best : Evaluated
-        The shortest staircase found that meets the targets.
+        The shortest staircase found that meets the targets, at the slowest rate that still does.
     reference : Evaluated
         The reference staircase.
     targets : tuple of Target
     evaluated : tuple of Evaluated
-        Every candidate evaluated, shortest first.
+        Every candidate evaluated, shortest first (the fastest rate first among equals).
     """
 
     best: Evaluated
@@ -270,7 +291,9 @@ def design(
     *,
     max_hours: float = 8.0,
 ) -> Design:
-    """The shortest candidate staircase meeting ``targets`` (None: the reference's R0, S0, K widths).
+    """The shortest candidate staircase meeting ``targets``, sampled as slowly as they allow.
+
+    ``targets`` None: the reference's R0, S0 and K widths.
 
     Raises
     ------
@@ -282,7 +305,7 @@ def design(
     grid = [(s, h) for s in STEPS_A for h in HOLDS_S if designer.protocol(s, h).duration <= max_s]
     reference, *_ = designer.evaluate([REFERENCE, *grid])
     targets = tuple(targets) if targets else reference_targets(reference)
-    evaluated = tuple(sorted(designer.cache.values(), key=lambda e: e.duration_s))
+    evaluated = [e for e in _shortest_first(designer) if e.rate_Hz == designer.rate_hz]
     found = [e for e in evaluated if e.duration_s <= max_s and e.meets(targets)]
     if not found:
         allowed = [e for e in evaluated if e.duration_s <= max_s]
@@ -299,7 +322,17 @@ def design(
             "Loosen the targets or allow more time (--max-hours)"
         )
     best = found[0]
-    return Design(best=best, reference=reference, targets=targets, evaluated=evaluated)
+    slower = sorted((r for r in RATES_HZ if r < designer.rate_hz), reverse=True)
+    for e in designer.evaluate([(best.step_A, best.hold_s, r) for r in slower]):
+        if not e.meets(targets):
+            break  # a slower rate that meets them again is the predictor's noise, not information
+        best = e
+    return Design(best=best, reference=reference, targets=targets, evaluated=_shortest_first(designer))
+
+
+def _shortest_first(designer: Designer) -> tuple:
+    """Every candidate the designer evaluated, shortest first, the fastest rate first among equals."""
+    return tuple(sorted(designer.cache.values(), key=lambda e: (e.duration_s, -e.rate_Hz)))
 
 
 def design_json(d: Design, designer: Designer) -> dict:
@@ -309,9 +342,10 @@ def design_json(d: Design, designer: Designer) -> dict:
         return {
             "step_A": e.step_A,
             "hold_s": e.hold_s,
+            "sampling_rate_Hz": e.rate_Hz,
             "duration_s": e.duration_s,
             "predicted": e.predicted(),
-            "sd_rel_data_only": e.sd_rel(data_only=True),
+            "sd_rel_without_held_rig": e.sd_rel(without_held_rig=True),
         }
 
     return {
@@ -324,7 +358,8 @@ def design_json(d: Design, designer: Designer) -> dict:
             "step_A_reference_module": d.best.step_A,
             "hold_s": d.best.hold_s,
             "levels": len(d.best.protocol.levels),
-            "sampling_rate_Hz": RATE_HZ,
+            "sampling_rate_Hz": d.best.rate_Hz,
+            "rig_sampling_rate_Hz": designer.rate_hz,
         },
         "method": {
             "widths": "Laplace at the mode found from each drawn module's truth, plus the held rig parameters' carry-over "
