@@ -32,6 +32,9 @@ def test_a_protocol_file_reads_back_as_written(tmp_path):
     np.testing.assert_array_equal(back.levels, SHORT.levels)
     np.testing.assert_array_equal(back.durations, SHORT.durations)
     assert f.read_text().splitlines()[-1] == "600.000,0.000000"  # the last row ends the run
+    plates = Protocol(SHORT.levels, SHORT.durations, setpoints=np.array([288.15, 288.15, 308.15, 308.15]))
+    back = read_protocol(write_protocol(tmp_path / "plates.csv", plates))
+    np.testing.assert_allclose(back.setpoints, plates.setpoints, atol=1e-9)
 
 
 @pytest.mark.parametrize(
@@ -45,6 +48,9 @@ def test_a_protocol_file_reads_back_as_written(tmp_path):
         ("time_s,current_A\n0,0\n60,1\n65,0\n", "line 4, column 'time_s'", "a hold of 5 s"),
         ("time_s,current_A\n0,0\n60,1\n80,0\n", "line 4, column 'time_s'", "a hold of 20 s"),
         ("time_s,current_A\n0,0\n60,7.5\n120,0\n", "line 3, column 'current_A'", "exceeds the module type's Imax"),
+        ("time_s,current_A,plate\n0,0,15\n60,0,15\n", "line 1", "plate_C"),
+        ("time_s,current_A,plate_C\n0,0,15\n60,1,x\n120,0,15\n", "line 3, column 'plate_C'", "'x' is not a number"),
+        ("time_s,current_A,plate_C\n0,0,15\n60,1,-300\n120,0,15\n", "line 3, column 'plate_C'", "absolute zero"),
     ],
 )
 def test_a_bad_protocol_file_is_refused_naming_the_line_and_column(tmp_path, text, where, what):
@@ -194,18 +200,33 @@ def test_design_writes_the_program_the_widths_and_the_figure(tmp_path, monkeypat
     assert not (tmp_path / "e").exists()
 
 
-def test_the_designer_simulates_the_rig_it_is_given_and_refuses_plates_that_hold_both_faces(tmp_path):
+def test_the_designer_simulates_the_rig_it_is_given_and_steps_the_plates_that_hold_both_faces(tmp_path):
     import tembayes
+    from tembayes.bench.protocols import PLATE_SETPOINTS_C
 
     shipped = Path(tembayes.__file__).parent / "rigs" / "heatsink-al.toml"
     for config in ({"preset": "heatsink-al"}, {"file": str(shipped)}):
         assert Designer(TEC1_12706, config, n_draws=1, jobs=1).setup.run["rig"].name.startswith("heatsink-al")
     assert Designer(TEC1_12706, {"preset": "reference"}, n_draws=1, jobs=1).setup.run["rig"].name.startswith("bench")
-    with pytest.raises(ModelError, match="plate staircase"):
-        Designer(TEC1_12706, {"preset": "liquid-plates"}, n_draws=1, jobs=1)
-    with pytest.raises(ModelError, match="without --protocol"):
+    # on plates that hold both faces a candidate is the current staircase at each plate temperature
+    plates = Designer(TEC1_12706, {"preset": "liquid-plates"}, n_draws=1, jobs=1)
+    proto = plates.protocol(*plates.reference)
+    levels = len(Designer(TEC1_12706, None, n_draws=1, jobs=1).protocol(0.4, 600.0).levels)
+    assert len(proto.levels) == len(PLATE_SETPOINTS_C) * levels
+    assert proto.duration == pytest.approx(len(PLATE_SETPOINTS_C) * levels * 600.0)
+    np.testing.assert_allclose(sorted(set(proto.setpoints - 273.15)), PLATE_SETPOINTS_C)
+    # the bench runs it from its protocol.csv, and refuses a current-only program on those plates ...
+    f = write_protocol(tmp_path / "plates.csv", plates.protocol(0.4, 100.0))
+    simulate_batch(tmp_path / "ok", BenchConfig(n_modules=1, n_validations=0, rig={"preset": "liquid-plates"},
+                                                protocol=read_protocol(f)), progress=lambda msg: None)  # fmt: skip
+    gen = json.loads((tmp_path / "ok" / "truth.json").read_text())["generator"]
+    assert gen["plate_setpoints_C"] == list(PLATE_SETPOINTS_C)
+    with pytest.raises(ModelError, match="plate_C column"):
         simulate_batch(tmp_path / "lp", BenchConfig(n_modules=1, rig={"preset": "liquid-plates"}, protocol=SHORT))
-    assert not (tmp_path / "lp").exists()
+    # ... and a plate program on a rig with a free face
+    with pytest.raises(ModelError, match="drop the plate_C column"):
+        simulate_batch(tmp_path / "ref", BenchConfig(n_modules=1, protocol=read_protocol(f)))
+    assert not (tmp_path / "lp").exists() and not (tmp_path / "ref").exists()
 
 
 def test_a_short_hold_staircase_passes_the_data_checks_and_an_offset_sensor_still_fails(tmp_path):

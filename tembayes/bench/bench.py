@@ -493,10 +493,13 @@ def simulate_batch(
     truth, eff_flat, run, rig = bench.truth, bench.effects, bench.run, bench.run["rig"]
     ds = config.datasheet
     high = config.fidelity == "high"
-    if config.protocol is not None and rig.layout.faces_held:
+    if config.protocol is not None and rig.layout.faces_held != (config.protocol.setpoints is not None):
         raise ModelError(
-            "the rig's plates hold both module faces: its identification steps the plate temperatures too, which a "
-            "protocol.csv (current only) cannot give; simulate it without --protocol"
+            "the rig's plates hold both module faces: its identification steps the plate temperatures too; give the "
+            "protocol a plate_C column (tembayes design writes one) or simulate without --protocol"
+            if rig.layout.faces_held
+            else "the protocol steps plate temperatures (plate_C), but the rig's plates do not hold both module faces; "
+            "drop the plate_C column"
         )
     identification = config.protocol if config.protocol is not None else identification_run(rig, ds.imax, config.hold)
     what = f"{len(identification.levels)} levels, {identification.duration / 3600:.2f} h"

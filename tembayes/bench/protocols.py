@@ -26,6 +26,8 @@ REFERENCE_IMAX = 6.4  # [A] the module the reference levels were written for
 #: Plate temperatures of :func:`plate_staircase` [degC]: a 40 K span of the mean temperature,
 #: about the reference staircase's on the reference rig.
 PLATE_SETPOINTS_C = (15.0, 35.0, 55.0)
+#: Step of :func:`plate_staircase`'s current staircases, for the reference module [A].
+PLATE_STEP_A = 0.4
 #: Time constant of a circulator settling to a new setpoint [s] (a bath of a few litres).
 CIRCULATOR_TAU_S = 90.0
 
@@ -103,12 +105,15 @@ def identification_staircase(
 
 
 def plate_staircase(
-    imax: float = REFERENCE_IMAX, hold: float = 600.0, setpoints_C: Sequence[float] = PLATE_SETPOINTS_C
+    imax: float = REFERENCE_IMAX,
+    hold: float = 600.0,
+    setpoints_C: Sequence[float] = PLATE_SETPOINTS_C,
+    step: float = PLATE_STEP_A,
 ) -> Protocol:
     """The identification run on plates that hold both faces: a staircase at each plate temperature.
 
-    At each setpoint the current runs 0 -> +0.8 -> -1.6 -> 0 A in 0.4 A steps
-    (levels for the reference module, scaled by ``imax / 6.4``).  Each
+    At each setpoint the current runs 0 -> +0.8 -> -1.6 -> 0 A in ``step``
+    steps (levels for the reference module, scaled by ``imax / 6.4``).  Each
     staircase after the first starts with its 0 A hold at the new setpoint,
     during which the plates move there, so the rig rests for two holds
     between staircases: the previous one's last and this one's first.
@@ -121,8 +126,10 @@ def plate_staircase(
         Duration of each hold [s].
     setpoints_C : sequence of float
         Plate temperatures [degC], in the order run.
+    step : float
+        Step of the reference module's staircase [A].
     """
-    one = identification_staircase(imax, hold=hold, step=0.4)
+    one = identification_staircase(imax, hold=hold, step=step)
     levels = np.concatenate([one.levels] * len(setpoints_C))
     n = len(one.levels)
     setpoints = np.repeat(np.asarray(setpoints_C, dtype=float) + KELVIN, n)

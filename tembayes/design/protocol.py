@@ -2,7 +2,9 @@
 
 Columns ``time_s,current_A``, one row per change of level: the level of a
 row holds from its time until the next row's, and the last row ends the run
-(its current is not applied).  The first row is at 0 s.
+(its current is not applied).  The first row is at 0 s.  On a rig whose
+plates hold both module faces a third column, ``plate_C``, gives the plates'
+setpoint [degC] during each hold.
 """
 
 from __future__ import annotations
@@ -14,10 +16,13 @@ from pathlib import Path
 import numpy as np
 
 from tembayes.bench.protocols import Protocol
+from tembayes.constants import KELVIN
 from tembayes.data.write import atomic_write_text
 from tembayes.errors import DataError
 
 COLUMNS = ("time_s", "current_A")
+#: The optional third column: the setpoint of plates that hold both faces [degC].
+SETPOINT = "plate_C"
 #: The shortest hold a protocol may ask for [s], as ``simulate --hold``: a step window needs its samples.
 MIN_HOLD_S = 30.0
 
@@ -32,11 +37,12 @@ def _rows(path):
         raise DataError(path, f"cannot be read as a text CSV ({exc.__class__.__name__})", "Pass protocol.csv") from None
     reader = csv.DictReader(io.StringIO(text))
     header = tuple(h.strip() for h in (reader.fieldnames or ()))
-    if header[:2] != COLUMNS or len(header) != 2:
+    if header not in (COLUMNS, (*COLUMNS, SETPOINT)):
         raise DataError(
             path,
             f"the header is {','.join(header) or '(empty)'}",
-            "The header must be exactly: time_s,current_A",
+            f"The header must be exactly time_s,current_A (or time_s,current_A,{SETPOINT} on plates that hold "
+            "both faces)",
             line=1,
         )
     reader.fieldnames = list(header)  # "time_s, current_A" reads as the columns it names
@@ -70,7 +76,7 @@ def read_protocol(path: Path | str, *, imax: float | None = None) -> Protocol:
         Naming the file, the line and the column: a wrong header, fewer than
         two rows, a value that is not a finite number, a first time other
         than 0, times not increasing by at least :data:`MIN_HOLD_S`, a level
-        beyond ``imax``.
+        beyond ``imax``, a plate setpoint below absolute zero.
     """
     rows = _rows(path)
     if len(rows) < 2:
@@ -102,14 +108,28 @@ def read_protocol(path: Path | str, *, imax: float | None = None) -> Protocol:
                 line=rows[k][0],
                 column="current_A",
             )
-    return Protocol(levels=i[:-1], durations=np.diff(t))
+    setpoints = None
+    if SETPOINT in rows[0][1]:
+        c = np.array([_number(path, ln, SETPOINT, r[SETPOINT]) for ln, r in rows[:-1]])
+        cold = np.flatnonzero(c <= -KELVIN)
+        if len(cold):
+            raise DataError(
+                path, f"{SETPOINT} {c[cold[0]]:g} is below absolute zero", "Write the plates' setpoint in degC",
+                line=rows[int(cold[0])][0], column=SETPOINT,
+            )  # fmt: skip
+        setpoints = c + KELVIN
+    return Protocol(levels=i[:-1], durations=np.diff(t), setpoints=setpoints)
 
 
 def protocol_text(protocol: Protocol) -> str:
-    """The ``protocol.csv`` text of a protocol (times to the ms, currents to the µA)."""
+    """The ``protocol.csv`` text of a protocol (times to the ms, currents to the µA, setpoints to the mK)."""
     t = np.concatenate([[0.0], np.cumsum(protocol.durations)])
     i = np.concatenate([protocol.levels, [0.0]])
-    return "time_s,current_A\n" + "".join(f"{a:.3f},{b:.6f}\n" for a, b in zip(t, i))
+    if protocol.setpoints is None:
+        return "time_s,current_A\n" + "".join(f"{a:.3f},{b:.6f}\n" for a, b in zip(t, i))
+    c = np.asarray(protocol.setpoints) - KELVIN
+    c = np.concatenate([c, c[-1:]])  # the ending row's setpoint is not applied either
+    return f"time_s,current_A,{SETPOINT}\n" + "".join(f"{a:.3f},{b:.6f},{v:.3f}\n" for a, b, v in zip(t, i, c))
 
 
 def write_protocol(path: Path | str, protocol: Protocol) -> Path:

@@ -13,6 +13,9 @@ and its Laplace covariance taken at the mode a short search from its truth finds
 widths need not fall monotonically with the holds (on the reference rig they
 are set mostly by the rig parameters the calibration holds fixed, which a
 longer run does not remove), so no candidate is skipped on the assumption.
+On plates that hold both module faces a candidate is the rig's plate staircase
+(the current staircase at each plate temperature, :func:`~tembayes.bench.protocols.plate_staircase`)
+with its own 0.4 A step and the same holds.
 The shortest candidate that meets every target wins, sampled at the rig's
 rate; that staircase is then tried at the slower rates of :data:`RATES_HZ`,
 and the slowest that still meets every target is the design's (a slow logger
@@ -29,8 +32,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tembayes.bench.protocols import REFERENCE_IMAX, Protocol, identification_staircase
-from tembayes.constants import MODULE_PARAMETERS
+from tembayes.bench.protocols import (
+    PLATE_STEP_A,
+    REFERENCE_IMAX,
+    Protocol,
+    identification_staircase,
+    plate_staircase,
+)
+from tembayes.constants import KELVIN, MODULE_PARAMETERS
 from tembayes.errors import ModelError
 
 #: Step sizes of the candidates, for the reference module (Imax REFERENCE_IMAX) [A].  Only the
@@ -46,6 +55,9 @@ STEPS_A = (0.2,)
 HOLDS_S = (100.0, 120.0, 240.0, 420.0, 600.0, 900.0)
 #: The reference protocol: the rig's identification staircase.
 REFERENCE = (0.2, 600.0)
+#: The same on plates that hold both faces: the plate staircase's step, and its reference.
+PLATE_STEPS_A = (PLATE_STEP_A,)
+PLATE_REFERENCE = (PLATE_STEP_A, 600.0)
 #: Modules drawn per candidate: enough for the mean width to ~10 %, few enough for 2 minutes.
 N_DRAWS = 2
 #: The default targets' slack over the reference's widths: how far the predicted ratio of two
@@ -205,11 +217,8 @@ class Designer:
         rig = dict(rig_config) if rig_config else None  # BenchConfig takes the reference preset as None
         config = BenchConfig(n_modules=n_draws, seed=seed, datasheet=datasheet, n_validations=0, rig=rig)
         self.setup = bench_setup(config)
-        if self.setup.run["rig"].layout.faces_held:
-            raise ModelError(
-                "the rig's plates hold both module faces: its identification steps the plate temperatures too "
-                "(a plate staircase), which tembayes design does not search; design on a rig with a free face"
-            )
+        self.plates = self.setup.run["rig"].layout.faces_held
+        self.steps, self.reference = (PLATE_STEPS_A, PLATE_REFERENCE) if self.plates else (STEPS_A, REFERENCE)
         self.datasheet = datasheet
         self.rig_config = rig_config
         self.jobs = jobs
@@ -223,7 +232,12 @@ class Designer:
         self.options = CalibrationOptions(law_prior=law_prior)
 
     def protocol(self, step: float, hold: float) -> Protocol:
-        """The candidate staircase of step ``step`` (reference module's A) and hold ``hold`` [s] for this type."""
+        """The candidate staircase of step ``step`` (reference module's A) and hold ``hold`` [s] for this type.
+
+        On plates that hold both faces, that staircase at each plate temperature.
+        """
+        if self.plates:
+            return plate_staircase(self.datasheet.imax, hold=hold, step=step)
         return identification_staircase(self.datasheet.imax, hold=hold, step=step)
 
     def evaluate(self, candidates) -> list[Evaluated]:
@@ -302,8 +316,8 @@ def design(
         what the closest one (the smallest largest miss) reaches.
     """
     max_s = 3600.0 * max_hours
-    grid = [(s, h) for s in STEPS_A for h in HOLDS_S if designer.protocol(s, h).duration <= max_s]
-    reference, *_ = designer.evaluate([REFERENCE, *grid])
+    grid = [(s, h) for s in designer.steps for h in HOLDS_S if designer.protocol(s, h).duration <= max_s]
+    reference, *_ = designer.evaluate([designer.reference, *grid])
     targets = tuple(targets) if targets else reference_targets(reference)
     evaluated = [e for e in _shortest_first(designer) if e.rate_Hz == designer.rate_hz]
     found = [e for e in evaluated if e.duration_s <= max_s and e.meets(targets)]
@@ -360,6 +374,9 @@ def design_json(d: Design, designer: Designer) -> dict:
             "levels": len(d.best.protocol.levels),
             "sampling_rate_Hz": d.best.rate_Hz,
             "rig_sampling_rate_Hz": designer.rate_hz,
+            "plate_setpoints_C": None
+            if d.best.protocol.setpoints is None
+            else [round(float(v) - KELVIN, 3) for v in dict.fromkeys(d.best.protocol.setpoints)],
         },
         "method": {
             "widths": "Laplace at the mode found from each drawn module's truth, plus the held rig parameters' carry-over "
