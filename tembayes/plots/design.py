@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from matplotlib.figure import Figure
 
-from tembayes.constants import MODULE_PARAMETERS
+from tembayes.constants import KELVIN, MODULE_PARAMETERS
 from tembayes.data.write import atomic_write_bytes
 from tembayes.report.outliers import short
 
@@ -34,15 +34,28 @@ def plot_design(design: Design) -> Figure:
     """Left: the designed and the reference current programs; right: expected sd (%) per law against test time."""
     fig = Figure(figsize=(11, 4.2), layout="constrained")
     a, b = fig.subplots(1, 2)
-    _program(a, design.reference.protocol, color="0.6", label=f"reference ({design.reference.duration_s / 3600:.2f} h)")
-    _program(a, design.best.protocol, color="C3", lw=2, label=f"design ({design.best.duration_s / 3600:.2f} h)")
+    ref, best = design.reference, design.best
+    _program(a, ref.protocol, color="0.6", label=f"reference ({ref.duration_s / 3600:.2f} h, {ref.rate_Hz:g} Hz)")
+    _program(a, best.protocol, color="C3", lw=2, label=f"design ({best.duration_s / 3600:.2f} h, {best.rate_Hz:g} Hz)")
     a.set(xlabel="time [h]", ylabel="current [A]", title="identification program")
-    a.legend(loc="lower left", fontsize=8)
-    hours = np.array([e.duration_s for e in design.evaluated]) / 3600.0
+    a.legend(loc="lower right", fontsize=8)
+    if best.protocol.setpoints is not None:  # plates that hold both faces: their temperature is programmed too
+        c = a.twinx()
+        t = np.concatenate([[0.0], np.cumsum(best.protocol.durations)]) / 3600.0
+        c.step(t, np.concatenate([best.protocol.setpoints, best.protocol.setpoints[-1:]]) - KELVIN, where="post",
+               color="0.2", ls=":", lw=1.5)  # fmt: skip
+        c.set_ylabel("design's plate setpoint [°C] (dotted)")
+    # the rig's rate filled; the shortest staircase at the slower rates tried, hollow
+    rig = [e for e in design.evaluated if e.rate_Hz == ref.rate_Hz]
+    slower = [e for e in design.evaluated if e.rate_Hz != ref.rate_Hz]
     targets = {t.parameter: t for t in design.targets}
     for k, p in enumerate(MODULE_PARAMETERS):
-        rel = np.array([100 * e.sd_rel()[p] for e in design.evaluated])
-        b.plot(hours, rel, "o", ms=4, color=f"C{k}", alpha=0.7, label=short(p))
+        for group, face in ((rig, f"C{k}"), (slower, "none")):
+            hours = [e.duration_s / 3600 for e in group]
+            rel = [100 * e.sd_rel()[p] for e in group]
+            b.plot(
+                hours, rel, "o", ms=4, color=f"C{k}", mfc=face, alpha=0.7, label=short(p) if face != "none" else None
+            )
         t = targets.get(p)
         if t is not None and t.rel:
             b.axhline(100 * t.value, color=f"C{k}", ls="--", lw=1)
@@ -52,8 +65,9 @@ def plot_design(design: Design) -> Figure:
         xlabel="test time [h]",
         ylabel="expected posterior sd [%]",
         yscale="log",
-        title="candidates (dashed: targets; star: the design)",
+        title=f"candidates at {ref.rate_Hz:g} Hz, hollow: slower rates; star: the design",
     )
+    b.title.set_fontsize(10)
     b.legend(fontsize=8, ncol=5, loc="upper center", bbox_to_anchor=(0.5, -0.16))
     return fig
 
