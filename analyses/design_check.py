@@ -39,6 +39,8 @@ from pathlib import Path
 
 import numpy as np
 
+from tembayes.design.search import RATE_HZ
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from law_coverage import PARAMS, TYPES, run  # noqa: E402
 
@@ -49,14 +51,16 @@ DEFAULT_DESIGNS = ("0.2:600", "0.2:120", "0.8:240")
 
 def _designs(texts):
     """``STEP:HOLD[:RATE]`` -> ``(step, hold, rate)``, the rate [Hz] the reference rig's unless given."""
-    from tembayes.design.search import RATE_HZ
-
-    return [(*(float(v) for v in t.split(":")), RATE_HZ)[:3] for t in texts]
+    out = []
+    for t in texts:
+        v = t.split(":")
+        if len(v) not in (2, 3):
+            raise SystemExit(f"--designs {t}: write STEP:HOLD or STEP:HOLD:RATE, e.g. 0.2:240 or 0.2:240:2")
+        out.append((*(float(x) for x in v), RATE_HZ)[:3])
+    return out
 
 
 def _name(step, hold, rate):
-    from tembayes.design.search import RATE_HZ
-
     return f"s{step:g}-h{hold:g}" + ("" if rate == RATE_HZ else f"-r{rate:g}")
 
 
@@ -97,7 +101,7 @@ def one(work, args, t, dsfile, designer, step, hold, rate, b):
     if not (bdir / "truth.json").exists():
         seed = 1000 * (list(TYPES).index(t) + 1) + b
         run(["simulate", bdir, "--modules", args.modules, "--fidelity", args.fidelity, "--datasheet", dsfile,
-             "--seed", seed, "--validations", 0, "--protocol", proto, "--rig", args.rig, "--rate", rate,
+             "--seed", seed, "--validations", 0, "--protocol", proto, "--rate", rate, *_rig_option(args),
              "--overwrite"])  # fmt: skip
     rdir = work / "runs" / _bench(args) / (name + _tag(args)) / f"{t}-b{b}"
     prior = [] if args.population is None else ["--unit-prior", args.population]
@@ -107,9 +111,28 @@ def one(work, args, t, dsfile, designer, step, hold, rate, b):
     return bdir, rdir
 
 
+def _rig_option(args):
+    """``simulate``'s ``--rig``: none for the reference rig, whose out-of-model bench draws its sensor depths
+    (``--rig reference`` would give the rig file's generic out-of-model bench instead)."""
+    return [] if args.rig == "reference" else ["--rig", args.rig]
+
+
+def _rig_label(rig):
+    """A shipped rig's name, or a rig file's stem and the first digits of its content's hash (two files
+    of the same name never share a folder)."""
+    import hashlib
+
+    from tembayes.physics.rigread import rig_source
+
+    source = rig_source(rig)
+    if "preset" in source:
+        return source["preset"]
+    return f"{Path(rig).stem}-{hashlib.sha256(Path(rig).read_bytes()).hexdigest()[:8]}"
+
+
 def _bench(args):
     """The batches' and runs' folder of the bench: its fidelity, and the rig unless the reference."""
-    return args.fidelity if args.rig == "reference" else f"{Path(args.rig).stem}-{args.fidelity}"
+    return args.fidelity if args.rig == "reference" else f"{_rig_label(args.rig)}-{args.fidelity}"
 
 
 def _tag(args):
@@ -259,7 +282,9 @@ def main(argv=None):
     ap.add_argument("--modules", type=int, default=4)
     ap.add_argument("--type", default="TEC1-12706", choices=list(TYPES))
     ap.add_argument("--fidelity", default="high", choices=("standard", "high"))
-    ap.add_argument("--rig", default="reference", help="a shipped rig with a free face, or a rig file")
+    ap.add_argument(
+        "--rig", default="reference", help="a shipped rig or a rig file (on plates that hold both faces: 0.4 A steps)"
+    )
     ap.add_argument("--draws", type=int, default=4, help="modules the prediction averages over")
     ap.add_argument("--work", type=Path, default=ROOT / "runs" / "design_check")
     ap.add_argument(
@@ -283,7 +308,7 @@ def main(argv=None):
         res["unit_prior"] = designer.options.law_prior.to_json()
     from tembayes.data.write import write_json
 
-    rig = "" if args.rig == "reference" else f"_{Path(args.rig).stem}"
+    rig = "" if args.rig == "reference" else f"_{_rig_label(args.rig)}"
     stem = f"design_check_{args.fidelity}{rig}" + ("" if args.type == "TEC1-12706" else f"_{args.type}") + _tag(args)
     write_json(RESULTS / f"{stem}.json", res)
     text = markdown(res, args)

@@ -585,8 +585,10 @@ def _cmd_design(args):
     )
     for k, v in best.sd_rel().items():
         print(f"  {k:<14s} expected sd {100 * v:.3f} %  (reference {100 * ref.sd_rel()[k]:.3f} %)")
-    print(f"wrote {args.out / 'protocol.csv'}, design.json and design.png; try it: tembayes simulate OUT --protocol "
-          f"{args.out / 'protocol.csv'} --rate {best.rate_Hz:g}")  # fmt: skip
+    rig = (rig_config or {}).get("file") or (rig_config or {}).get("preset")
+    trial = f"--protocol {args.out / 'protocol.csv'} --rate {best.rate_Hz:g} --datasheet {args.batch_or_toml}"
+    print(f"wrote {args.out / 'protocol.csv'}, design.json and design.png; try it: tembayes simulate OUT {trial}"
+          + (f" --rig {rig}" if rig else ""))  # fmt: skip
     if law_prior is not None:
         print(
             f"the widths assume {law_prior.source} as the unit's prior: calibrate with --unit-prior {args.population}"
@@ -850,8 +852,8 @@ def _add_simulate(sub):
         "--protocol",
         type=Path,
         metavar="CSV",
-        help="the identification run's current program (time_s,current_A, e.g. tembayes design's protocol.csv) "
-        "instead of the staircase with --hold",
+        help="the identification run's current program (time_s,current_A, e.g. tembayes design's protocol.csv; "
+        "plus plate_C, the plates' setpoint, on plates that hold both faces) instead of the staircase with --hold",
     )
     p.add_argument("--validations", type=int, default=1, metavar="K", help="validation runs per module (default 1)")
     p.add_argument(

@@ -50,7 +50,11 @@ def test_a_protocol_file_reads_back_as_written(tmp_path):
         ("time_s,current_A\n0,0\n60,7.5\n120,0\n", "line 3, column 'current_A'", "exceeds the module type's Imax"),
         ("time_s,current_A,plate\n0,0,15\n60,0,15\n", "line 1", "plate_C"),
         ("time_s,current_A,plate_C\n0,0,15\n60,1,x\n120,0,15\n", "line 3, column 'plate_C'", "'x' is not a number"),
-        ("time_s,current_A,plate_C\n0,0,15\n60,1,-300\n120,0,15\n", "line 3, column 'plate_C'", "absolute zero"),
+        (
+            "time_s,current_A,plate_C\n0,0,15\n60,1,-300\n120,0,15\n",
+            "line 3, column 'plate_C'",
+            "not above absolute zero",
+        ),
     ],
 )
 def test_a_bad_protocol_file_is_refused_naming_the_line_and_column(tmp_path, text, where, what):
@@ -196,8 +200,28 @@ def test_design_writes_the_program_the_widths_and_the_figure(tmp_path, monkeypat
     assert {c["sampling_rate_Hz"] for c in doc["evaluated"]} == {5.0, *search.RATES_HZ}
     # a refused target or rate writes nothing
     assert main(["design", EXAMPLE, "--out", str(tmp_path / "e"), "--target", "R0=1%"]) != 0
-    assert main(["design", EXAMPLE, "--out", str(tmp_path / "e"), "--rate", "0"]) != 0
+    for rate in ("0", "inf"):
+        assert main(["design", EXAMPLE, "--out", str(tmp_path / "e"), "--rate", rate]) != 0
     assert not (tmp_path / "e").exists()
+
+
+def test_a_design_on_plates_that_hold_both_faces_writes_their_setpoints(tmp_path, monkeypatch):
+    from tembayes.bench.protocols import PLATE_SETPOINTS_C
+    from tembayes.cli import main
+    from tembayes.design import search
+
+    monkeypatch.setattr(search, "HOLDS_S", (100.0,))
+    monkeypatch.setattr(search, "RATES_HZ", ())
+    out = tmp_path / "d"
+    argv = ["design", EXAMPLE, "--rig", "liquid-plates", "--out", str(out), "--target", "R0_ohm=5%", "--draws", "1"]
+    assert main([*argv, "--jobs", "1"]) == 0
+    doc = json.loads((out / "design.json").read_text())
+    assert doc["staircase"]["plate_setpoints_C"] == list(PLATE_SETPOINTS_C)
+    assert doc["reference"]["duration_s"] == pytest.approx(len(PLATE_SETPOINTS_C) * 13 * 600.0)
+    lines = (out / "protocol.csv").read_text().splitlines()
+    assert lines[0] == "time_s,current_A,plate_C" and len(lines) == 1 + len(PLATE_SETPOINTS_C) * 13 + 1
+    proto = read_protocol(out / "protocol.csv")
+    np.testing.assert_allclose(proto.setpoints - 273.15, np.repeat(PLATE_SETPOINTS_C, 13))
 
 
 def test_the_designer_simulates_the_rig_it_is_given_and_steps_the_plates_that_hold_both_faces(tmp_path):
@@ -221,6 +245,7 @@ def test_the_designer_simulates_the_rig_it_is_given_and_steps_the_plates_that_ho
                                                 protocol=read_protocol(f)), progress=lambda msg: None)  # fmt: skip
     gen = json.loads((tmp_path / "ok" / "truth.json").read_text())["generator"]
     assert gen["plate_setpoints_C"] == list(PLATE_SETPOINTS_C)
+    np.testing.assert_allclose(gen["protocol"]["setpoints_C"], plates.protocol(0.4, 100.0).setpoints - 273.15)
     with pytest.raises(ModelError, match="plate_C column"):
         simulate_batch(tmp_path / "lp", BenchConfig(n_modules=1, rig={"preset": "liquid-plates"}, protocol=SHORT))
     # ... and a plate program on a rig with a free face

@@ -404,11 +404,19 @@ def identification_run(rig: RigDescription, imax: float, hold: float) -> Protoco
     return identification_staircase(imax, hold=hold)
 
 
+def _protocol_json(protocol: Protocol) -> dict:
+    """truth.json's ``generator.protocol``: levels [A], durations [s], and on plates each hold's setpoint [degC]."""
+    out = {"levels_A": protocol.levels, "durations_s": protocol.durations}
+    if protocol.setpoints is not None:
+        out["setpoints_C"] = np.asarray(protocol.setpoints) - KELVIN
+    return out
+
+
 def _setpoints_C(protocol: Protocol) -> dict:
     """``{"plate_setpoints_C": [...]}`` of a protocol that steps the controlled boundaries, else ``{}``."""
     if protocol.setpoints is None:
         return {}
-    return {"plate_setpoints_C": [round(float(v) - KELVIN, 6) for v in dict.fromkeys(protocol.setpoints)]}
+    return {"plate_setpoints_C": protocol.setpoints_C()}
 
 
 def _batch_rig(rig, folder):
@@ -542,9 +550,7 @@ def simulate_batch(
                 "rate_Hz": config.rate,
                 "validation_rate_Hz": config.validation_rate or config.rate,
                 "hold_s": None if config.protocol is not None else config.hold,
-                "protocol": None
-                if config.protocol is None
-                else {"levels_A": config.protocol.levels, "durations_s": config.protocol.durations},
+                "protocol": None if config.protocol is None else _protocol_json(config.protocol),
                 **_setpoints_C(identification),
                 "n_validations": config.n_validations,
                 "validation_duration_s": config.validation_duration,

@@ -57,6 +57,11 @@ class Protocol:
         return np.cumsum(self.durations)[:-1]
 
     @property
+    def edges(self) -> np.ndarray:
+        """Start of every hold and the end of the run [s], shape (n + 1,)."""
+        return np.concatenate([[0.0], np.cumsum(self.durations)])
+
+    @property
     def duration(self) -> float:
         """Total duration of the protocol [s]."""
         return float(np.sum(self.durations))
@@ -65,6 +70,12 @@ class Protocol:
         """True current [A] at times ``t`` [s] from the protocol start."""
         idx = np.searchsorted(self.step_times, t, side="right")
         return self.levels[np.minimum(idx, len(self.levels) - 1)]
+
+    def setpoints_C(self) -> list[float] | None:
+        """The distinct setpoints in the order run [degC] (to the µK); None without setpoints."""
+        if self.setpoints is None:
+            return None
+        return [round(float(v) - KELVIN, 6) for v in dict.fromkeys(self.setpoints)]
 
     def setpoint(self, t: np.ndarray) -> np.ndarray | None:
         """The controlled boundaries' temperature [K] at times ``t`` [s]; None without setpoints.

@@ -4,7 +4,7 @@ Columns ``time_s,current_A``, one row per change of level: the level of a
 row holds from its time until the next row's, and the last row ends the run
 (its current is not applied).  The first row is at 0 s.  On a rig whose
 plates hold both module faces a third column, ``plate_C``, gives the plates'
-setpoint [degC] during each hold.
+setpoint [degC] during each hold (the last row's, like its current, is not applied).
 """
 
 from __future__ import annotations
@@ -114,7 +114,7 @@ def read_protocol(path: Path | str, *, imax: float | None = None) -> Protocol:
         cold = np.flatnonzero(c <= -KELVIN)
         if len(cold):
             raise DataError(
-                path, f"{SETPOINT} {c[cold[0]]:g} is below absolute zero", "Write the plates' setpoint in degC",
+                path, f"{SETPOINT} {c[cold[0]]:g} is not above absolute zero", "Write the plates' setpoint in degC",
                 line=rows[int(cold[0])][0], column=SETPOINT,
             )  # fmt: skip
         setpoints = c + KELVIN
@@ -123,7 +123,7 @@ def read_protocol(path: Path | str, *, imax: float | None = None) -> Protocol:
 
 def protocol_text(protocol: Protocol) -> str:
     """The ``protocol.csv`` text of a protocol (times to the ms, currents to the µA, setpoints to the mK)."""
-    t = np.concatenate([[0.0], np.cumsum(protocol.durations)])
+    t = protocol.edges
     i = np.concatenate([protocol.levels, [0.0]])
     if protocol.setpoints is None:
         return "time_s,current_A\n" + "".join(f"{a:.3f},{b:.6f}\n" for a, b in zip(t, i))

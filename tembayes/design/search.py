@@ -39,7 +39,7 @@ from tembayes.bench.protocols import (
     identification_staircase,
     plate_staircase,
 )
-from tembayes.constants import KELVIN, MODULE_PARAMETERS
+from tembayes.constants import MODULE_PARAMETERS
 from tembayes.errors import ModelError
 
 #: Step sizes of the candidates, for the reference module (Imax REFERENCE_IMAX) [A].  Only the
@@ -214,6 +214,9 @@ class Designer:
         from tembayes.bench.bench import BenchConfig, bench_setup
         from tembayes.calibrate.module import CalibrationOptions
 
+        if not (np.isfinite(rate_hz) and rate_hz > 0):
+            raise ModelError(f"--rate {rate_hz:g}: the sampling rate must be a positive number of Hz, e.g. --rate 5")
+        self.rate_hz = float(rate_hz)
         rig = dict(rig_config) if rig_config else None  # BenchConfig takes the reference preset as None
         config = BenchConfig(n_modules=n_draws, seed=seed, datasheet=datasheet, n_validations=0, rig=rig)
         self.setup = bench_setup(config)
@@ -226,9 +229,6 @@ class Designer:
         self.cache: dict = {}
         self.seed = seed
         self.n_modules = n_draws
-        if not rate_hz > 0:
-            raise ModelError(f"--rate {rate_hz:g}: the sampling rate must be positive")
-        self.rate_hz = float(rate_hz)
         self.options = CalibrationOptions(law_prior=law_prior)
 
     def protocol(self, step: float, hold: float) -> Protocol:
@@ -316,19 +316,19 @@ def design(
         what the closest one (the smallest largest miss) reaches.
     """
     max_s = 3600.0 * max_hours
-    grid = [(s, h) for s in designer.steps for h in HOLDS_S if designer.protocol(s, h).duration <= max_s]
-    reference, *_ = designer.evaluate([designer.reference, *grid])
+    everything = [(s, h) for s in designer.steps for h in HOLDS_S]
+    grid = [c for c in everything if designer.protocol(*c).duration <= max_s]
+    if not grid:
+        shortest = min(designer.protocol(*c).duration for c in everything)
+        raise ModelError(
+            f"no staircase fits in {max_hours:g} h: the shortest candidate takes {shortest / 3600:.2f} h. "
+            "Allow more time (--max-hours)"
+        )
+    reference, *candidates = designer.evaluate([designer.reference, *grid])
     targets = tuple(targets) if targets else reference_targets(reference)
-    evaluated = [e for e in _shortest_first(designer) if e.rate_Hz == designer.rate_hz]
-    found = [e for e in evaluated if e.duration_s <= max_s and e.meets(targets)]
+    found = [e for e in _shortest_first(candidates) if e.meets(targets)]
     if not found:
-        allowed = [e for e in evaluated if e.duration_s <= max_s]
-        if not allowed:
-            raise ModelError(
-                f"no staircase fits in {max_hours:g} h: the shortest candidate takes "
-                f"{evaluated[0].duration_s / 3600:.2f} h. Allow more time (--max-hours)"
-            )
-        best = min(allowed, key=lambda e: max(t.of(e) / t.value for t in targets))  # the smallest largest miss
+        best = min(candidates, key=lambda e: max(t.of(e) / t.value for t in targets))  # the smallest largest miss
         reach = ", ".join(t.shown(best) for t in targets)
         raise ModelError(
             f"no staircase within {max_hours:g} h reaches {', '.join(map(str, targets))}: the closest "
@@ -336,17 +336,19 @@ def design(
             "Loosen the targets or allow more time (--max-hours)"
         )
     best = found[0]
-    slower = sorted((r for r in RATES_HZ if r < designer.rate_hz), reverse=True)
-    for e in designer.evaluate([(best.step_A, best.hold_s, r) for r in slower]):
+    slower = designer.evaluate([(best.step_A, best.hold_s, r) for r in sorted(RATES_HZ, reverse=True)
+                                if r < designer.rate_hz])  # fmt: skip
+    for e in slower:
         if not e.meets(targets):
             break  # a slower rate that meets them again is the predictor's noise, not information
         best = e
-    return Design(best=best, reference=reference, targets=targets, evaluated=_shortest_first(designer))
+    evaluated = _shortest_first({id(e): e for e in (reference, *candidates, *slower)}.values())
+    return Design(best=best, reference=reference, targets=targets, evaluated=evaluated)
 
 
-def _shortest_first(designer: Designer) -> tuple:
-    """Every candidate the designer evaluated, shortest first, the fastest rate first among equals."""
-    return tuple(sorted(designer.cache.values(), key=lambda e: (e.duration_s, -e.rate_Hz)))
+def _shortest_first(evaluated) -> tuple:
+    """``evaluated`` shortest first, the fastest rate first among equals."""
+    return tuple(sorted(evaluated, key=lambda e: (e.duration_s, -e.rate_Hz)))
 
 
 def design_json(d: Design, designer: Designer) -> dict:
@@ -374,9 +376,7 @@ def design_json(d: Design, designer: Designer) -> dict:
             "levels": len(d.best.protocol.levels),
             "sampling_rate_Hz": d.best.rate_Hz,
             "rig_sampling_rate_Hz": designer.rate_hz,
-            "plate_setpoints_C": None
-            if d.best.protocol.setpoints is None
-            else [round(float(v) - KELVIN, 3) for v in dict.fromkeys(d.best.protocol.setpoints)],
+            "plate_setpoints_C": d.best.protocol.setpoints_C(),
         },
         "method": {
             "widths": "Laplace at the mode found from each drawn module's truth, plus the held rig parameters' carry-over "

@@ -25,9 +25,9 @@ __all__ = ["plot_design", "save_design_figure"]
 DPI = 120
 
 
-def _program(ax, protocol, **kw):
-    t = np.concatenate([[0.0], np.cumsum(protocol.durations)]) / 3600.0
-    ax.step(t, np.concatenate([protocol.levels, [protocol.levels[-1]]]), where="post", **kw)
+def _held(ax, protocol, values, **kw):
+    """``values`` (one per hold) as steps against time [h], the last held to the end."""
+    ax.step(protocol.edges / 3600.0, np.concatenate([values, values[-1:]]), where="post", **kw)
 
 
 def plot_design(design: Design) -> Figure:
@@ -35,15 +35,26 @@ def plot_design(design: Design) -> Figure:
     fig = Figure(figsize=(11, 4.2), layout="constrained")
     a, b = fig.subplots(1, 2)
     ref, best = design.reference, design.best
-    _program(a, ref.protocol, color="0.6", label=f"reference ({ref.duration_s / 3600:.2f} h, {ref.rate_Hz:g} Hz)")
-    _program(a, best.protocol, color="C3", lw=2, label=f"design ({best.duration_s / 3600:.2f} h, {best.rate_Hz:g} Hz)")
+    _held(
+        a,
+        ref.protocol,
+        ref.protocol.levels,
+        color="0.6",
+        label=f"reference ({ref.duration_s / 3600:.2f} h, {ref.rate_Hz:g} Hz)",
+    )
+    _held(
+        a,
+        best.protocol,
+        best.protocol.levels,
+        color="C3",
+        lw=2,
+        label=f"design ({best.duration_s / 3600:.2f} h, {best.rate_Hz:g} Hz)",
+    )
     a.set(xlabel="time [h]", ylabel="current [A]", title="identification program")
     a.legend(loc="lower right", fontsize=8)
     if best.protocol.setpoints is not None:  # plates that hold both faces: their temperature is programmed too
         c = a.twinx()
-        t = np.concatenate([[0.0], np.cumsum(best.protocol.durations)]) / 3600.0
-        c.step(t, np.concatenate([best.protocol.setpoints, best.protocol.setpoints[-1:]]) - KELVIN, where="post",
-               color="0.2", ls=":", lw=1.5)  # fmt: skip
+        _held(c, best.protocol, best.protocol.setpoints - KELVIN, color="0.2", ls=":", lw=1.5)
         c.set_ylabel("design's plate setpoint [°C] (dotted)")
     # the rig's rate filled; the shortest staircase at the slower rates tried, hollow
     rig = [e for e in design.evaluated if e.rate_Hz == ref.rate_Hz]
