@@ -210,7 +210,7 @@ def test_a_design_on_plates_that_hold_both_faces_writes_their_setpoints(tmp_path
     from tembayes.cli import main
     from tembayes.design import search
 
-    monkeypatch.setattr(search, "HOLDS_S", (100.0,))
+    monkeypatch.setattr(search, "PLATE_HOLDS_S", (100.0,))
     monkeypatch.setattr(search, "RATES_HZ", ())
     out = tmp_path / "d"
     argv = ["design", EXAMPLE, "--rig", "liquid-plates", "--out", str(out), "--target", "R0_ohm=5%", "--draws", "1"]
