@@ -567,7 +567,7 @@ def _cmd_design(args):
         law_prior=law_prior,
         rate_hz=args.rate,
     )
-    d = design(designer, targets or None, max_hours=args.max_hours)
+    d = design(designer, targets or None, max_hours=args.max_hours, min_hold_s=args.min_hold)
 
     def files(tmp):
         from tembayes.design.protocol import write_protocol
@@ -1265,6 +1265,13 @@ def _add_design(sub):
         "(calibrate the unit with --unit-prior RUN)",
     )
     p.add_argument("--max-hours", type=float, default=8.0, metavar="H", help="longest test allowed (default 8 h)")
+    p.add_argument(
+        "--min-hold",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="hold every level at least S seconds (e.g. 600 where short holds bias the slopes; docs/design.md)",
+    )
     p.add_argument(
         "--rate",
         type=float,

@@ -154,6 +154,11 @@ def test_the_search_picks_the_shortest_candidate_that_meets_the_targets_and_refu
     assert design(designer, target, max_hours=8.0).best is best
     with pytest.raises(ModelError, match="no staircase fits in 0.5 h"):
         design(designer, loose, max_hours=0.5)
+    # --min-hold: the shortest candidate holding every level that long, or a refusal
+    held = design(designer, loose, max_hours=8.0, min_hold_s=420.0)
+    assert held.best.hold_s == 420.0 and all(e.hold_s >= 420.0 for e in held.evaluated if e is not held.reference)
+    with pytest.raises(ModelError, match="--min-hold 2000"):
+        design(designer, loose, min_hold_s=2000.0)
 
 
 def _rates_at_the_best_hold(d):

@@ -308,10 +308,12 @@ def design(
     targets: tuple[Target, ...] | None,
     *,
     max_hours: float = 8.0,
+    min_hold_s: float = 0.0,
 ) -> Design:
     """The shortest candidate staircase meeting ``targets``, sampled as slowly as they allow.
 
-    ``targets`` None: the reference's R0, S0 and K widths.
+    ``targets`` None: the reference's R0, S0 and K widths.  No candidate holds a level for less
+    than ``min_hold_s`` [s] (``--min-hold``: on a rig where short holds bias the slopes).
 
     Raises
     ------
@@ -320,7 +322,12 @@ def design(
         what the closest one (the smallest largest miss) reaches.
     """
     max_s = 3600.0 * max_hours
-    everything = [(s, h) for s in designer.steps for h in (PLATE_HOLDS_S if designer.plates else HOLDS_S)]
+    holds = [h for h in (PLATE_HOLDS_S if designer.plates else HOLDS_S) if h >= min_hold_s]
+    if not holds:
+        raise ModelError(
+            f"--min-hold {min_hold_s:g}: no candidate holds that long (the longest holds {max(HOLDS_S):g} s)"
+        )
+    everything = [(s, h) for s in designer.steps for h in holds]
     grid = [c for c in everything if designer.protocol(*c).duration <= max_s]
     if not grid:
         shortest = min(designer.protocol(*c).duration for c in everything)
