@@ -24,9 +24,9 @@ R0 and S0 reach 0.5 % (sd), the issue's target for a new unit of a known type.
     python analyses/design_check.py --batches 5 --modules 4 --designs 0.8:240 0.8:120 --population RUN
 
     python analyses/design_check.py --rig heatsink-al --designs 0.2:600 0.2:240 0.2:100
-    python analyses/design_check.py --designs 0.2:600 0.2:240:2 0.2:240:1   (STEP:HOLD:RATE, RATE in Hz; default 5)
+    python analyses/design_check.py --designs 0.2:240 0.2:240:2 --suffix rate   (STEP:HOLD:RATE, RATE in Hz; default 5)
 
-Writes analyses/results/design_check_<fidelity>[_<rig>][_<type>][_unit-prior].{json,md} (no rig suffix for
+Writes analyses/results/design_check_<fidelity>[_<rig>][_<type>][_unit-prior][_<suffix>].{json,md} (no rig suffix for
 the reference rig, no type suffix for TEC1-12706).
 """
 
@@ -291,6 +291,9 @@ def main(argv=None):
         "--population", type=Path, metavar="RUN", help="an earlier run of the type: its population as the units' prior"
     )
     ap.add_argument("--summarise", action="store_true")
+    ap.add_argument(
+        "--suffix", default="", help="appended to the result files' name, so that one study keeps another's record"
+    )
     args = ap.parse_args(argv)
     args.work.mkdir(parents=True, exist_ok=True)
     designs = _designs(args.designs)
@@ -309,7 +312,12 @@ def main(argv=None):
     from tembayes.data.write import write_json
 
     rig = "" if args.rig == "reference" else f"_{_rig_label(args.rig)}"
-    stem = f"design_check_{args.fidelity}{rig}" + ("" if args.type == "TEC1-12706" else f"_{args.type}") + _tag(args)
+    stem = (
+        f"design_check_{args.fidelity}{rig}"
+        + ("" if args.type == "TEC1-12706" else f"_{args.type}")
+        + _tag(args)
+        + (f"_{args.suffix}" if args.suffix else "")
+    )
     write_json(RESULTS / f"{stem}.json", res)
     text = markdown(res, args)
     (RESULTS / f"{stem}.md").write_text(text)
