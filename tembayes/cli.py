@@ -586,6 +586,7 @@ def _cmd_design(args):
     for k, v in best.sd_rel().items():
         print(f"  {k:<14s} expected sd {100 * v:.3f} %  (reference {100 * ref.sd_rel()[k]:.3f} %)")
     rig = (rig_config or {}).get("file") or (rig_config or {}).get("preset")
+    rig = None if rig == "reference" else rig  # simulate's default: the reference rig's own bench
     trial = f"--protocol {args.out / 'protocol.csv'} --rate {best.rate_Hz:g} --datasheet {args.batch_or_toml}"
     print(f"wrote {args.out / 'protocol.csv'}, design.json and design.png; try it: tembayes simulate OUT {trial}"
           + (f" --rig {rig}" if rig else ""))  # fmt: skip
