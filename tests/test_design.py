@@ -179,7 +179,7 @@ def test_the_design_samples_its_staircase_as_slowly_as_the_targets_allow(designe
     # fewer samples leave the data's part of every level's width wider, and only that part
     for k in ("R0_ohm", "S0_V_per_K", "K_W_per_K"):
         assert at[1.0].sd_laplace[k] > at[5.0].sd_laplace[k], k
-        assert at[1.0].sd[k] > at[2.0].sd[k] > at[5.0].sd[k], k
+        assert at[1.0].sd[k] >= at[2.0].sd[k] >= at[5.0].sd[k], k
         held = [e.sd[k] ** 2 - e.sd_laplace[k] ** 2 for e in (at[1.0], at[5.0])]
         assert held[0] == pytest.approx(held[1], rel=1e-9), k
     k = max(MODULE_PARAMETERS, key=lambda p: at[2.0].sd_rel()[p] / at[5.0].sd_rel()[p])

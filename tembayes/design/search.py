@@ -361,17 +361,18 @@ def design(
 def _at_slower_rate(fast: Evaluated, slow: Evaluated) -> Evaluated:
     """``slow`` (the same staircase sampled slower) with the held rig parameters' part of ``fast``'s widths.
 
-    Fewer samples widen only the part of a law's sd the run's data leave (``sd_laplace``, which
-    falls monotonically with the rate); what the held rig parameters add does not depend on the
+    Fewer samples widen only the part of a law's sd the run's data leave (``sd_laplace``; never
+    narrower than the faster run's, which the short search's mode on another noise stream can
+    give on plates); what the held rig parameters add does not depend on the
     number of samples, and re-estimating it on another noise stream only adds the predictor's noise
     (on the reference rig the 2 Hz and 5 Hz widths of the same modules came out equal at 2 draws,
     where 20 out-of-model modules realised 2 Hz 11-12 % wider).
     """
+    lap = {k: max(slow.sd_laplace[k], fast.sd_laplace[k]) for k in MODULE_PARAMETERS}  # fewer samples never narrow
     sd = {
-        k: float(np.sqrt(max(fast.sd[k] ** 2 - fast.sd_laplace[k] ** 2, 0.0) + slow.sd_laplace[k] ** 2))
-        for k in MODULE_PARAMETERS
+        k: float(np.sqrt(max(fast.sd[k] ** 2 - fast.sd_laplace[k] ** 2, 0.0) + lap[k] ** 2)) for k in MODULE_PARAMETERS
     }
-    return replace(slow, sd=sd)
+    return replace(slow, sd=sd, sd_laplace=lap)
 
 
 def _shortest_first(evaluated) -> tuple:
