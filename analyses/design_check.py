@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tembayes.design.search import RATE_HZ
+from tembayes.constants import RATE_HZ
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from law_coverage import PARAMS, TYPES, run  # noqa: E402
@@ -238,7 +238,9 @@ def markdown(res, args):
         + (", units under an earlier run's population)" if prior else ")"),
         "",
         f"`python analyses/design_check.py --batches {args.batches} --modules {args.modules} "
-        f"--fidelity {args.fidelity} --rig {args.rig} --type {args.type} --designs {' '.join(args.designs)}{pop}` (the prediction "
+        f"--fidelity {args.fidelity} --rig {args.rig} --type {args.type} --designs {' '.join(args.designs)}{pop}"
+        + (f" --suffix {args.suffix}" if args.suffix else "")
+        + "` (the prediction "
         f"from {args.draws} modules the standard bench draws, seed 0).",
         "",
         "| design | h | modules | law | predicted sd % | realised / predicted (median) | 10-90 % | band | coverage 90 % "

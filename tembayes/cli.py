@@ -16,6 +16,7 @@ from pathlib import Path
 
 import tembayes
 from tembayes.common.heap import keep_short_lived_blocks_on_the_heap
+from tembayes.constants import RATE_HZ
 from tembayes.errors import DataError, TembayesError
 
 _EPILOG_SIMULATE = """\
@@ -585,7 +586,8 @@ def _cmd_design(args):
     )
     for k, v in best.sd_rel().items():
         print(f"  {k:<14s} expected sd {100 * v:.3f} %  (reference {100 * ref.sd_rel()[k]:.3f} %)")
-    rig = (rig_config or {}).get("file") or (rig_config or {}).get("preset")
+    cfg = rig_config or {}
+    rig = cfg.get("file") or cfg.get("preset")
     rig = None if rig == "reference" else rig  # simulate's default: the reference rig's own bench
     trial = f"--protocol {args.out / 'protocol.csv'} --rate {best.rate_Hz:g} --datasheet {args.batch_or_toml}"
     print(f"wrote {args.out / 'protocol.csv'}, design.json and design.png; try it: tembayes simulate OUT {trial}"
@@ -1276,10 +1278,10 @@ def _add_design(sub):
     p.add_argument(
         "--rate",
         type=float,
-        default=5.0,
+        default=RATE_HZ,
         metavar="HZ",
-        help="the rig's sampling rate (default 5 Hz, the reference rig's); the design samples as slowly as the "
-        "targets allow, down to 0.5 Hz",
+        help=f"the rig's sampling rate (default {RATE_HZ:g} Hz, the reference rig's); the design samples as slowly "
+        "as the targets allow",
     )
     p.add_argument("--draws", type=int, default=2, metavar="N", help="bench modules each width averages (default 2)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the drawn modules (default 0)")

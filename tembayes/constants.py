@@ -10,6 +10,8 @@ KELVIN = 273.15
 
 #: Reference temperature of the linear laws, 25 degC [K].
 T_REF = 25.0 + KELVIN
+#: The reference rig's sampling rate [Hz]: the bench's and the design's unless told.
+RATE_HZ = 5.0
 
 #: The columns every experiment CSV carries before its rig's temperature columns.
 BASE_COLUMNS = ("time_s", "current_A", "voltage_V")

@@ -501,12 +501,15 @@ def simulate_batch(
     truth, eff_flat, run, rig = bench.truth, bench.effects, bench.run, bench.run["rig"]
     ds = config.datasheet
     high = config.fidelity == "high"
-    if config.protocol is not None and rig.layout.faces_held != (config.protocol.setpoints is not None):
+    plate_program = config.protocol is not None and config.protocol.setpoints is not None
+    if config.protocol is not None and rig.layout.faces_held and not plate_program:
         raise ModelError(
             "the rig's plates hold both module faces: its identification steps the plate temperatures too; give the "
             "protocol a plate_C column (tembayes design writes one) or simulate without --protocol"
-            if rig.layout.faces_held
-            else "the protocol steps plate temperatures (plate_C), but the rig's plates do not hold both module faces; "
+        )
+    if plate_program and not rig.layout.faces_held:
+        raise ModelError(
+            "the protocol steps plate temperatures (plate_C), but the rig's plates do not hold both module faces; "
             "drop the plate_C column"
         )
     identification = config.protocol if config.protocol is not None else identification_run(rig, ds.imax, config.hold)

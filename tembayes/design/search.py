@@ -15,12 +15,12 @@ are set mostly by the rig parameters the calibration holds fixed, which a
 longer run does not remove), so no candidate is skipped on the assumption.
 On plates that hold both module faces a candidate is the rig's plate staircase
 (the current staircase at each plate temperature, :func:`~tembayes.bench.protocols.plate_staircase`)
-with its own 0.4 A step and the holds of :data:`PLATE_HOLDS_S`.
+with its own step (:data:`PLATE_STEPS_A`) and the holds of :data:`PLATE_HOLDS_S`.
 The shortest candidate that meets every target wins, sampled at the rig's
 rate; that staircase is then tried at the slower rates of :data:`RATES_HZ`,
-and the slowest that still meets every target is the design's (a slow logger
-is cheaper, and on the reference rig the widths are set mostly by the held rig
-parameters, not by the number of samples).
+and the design takes the slowest rate at which it and every faster one still
+meet the targets (a slow logger is cheaper).  A slower rate widens only the
+part of the widths the run's data leave (:func:`_at_slower_rate`).
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ import multiprocessing
 import re
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
+from itertools import takewhile
 
 import numpy as np
 
@@ -39,7 +40,7 @@ from tembayes.bench.protocols import (
     identification_staircase,
     plate_staircase,
 )
-from tembayes.constants import MODULE_PARAMETERS
+from tembayes.constants import MODULE_PARAMETERS, RATE_HZ
 from tembayes.errors import ModelError
 
 #: Step sizes of the candidates, for the reference module (Imax REFERENCE_IMAX) [A].  Only the
@@ -68,8 +69,6 @@ N_DRAWS = 2
 #: staircases' widths missed the realised one on the same out-of-model modules (3-6 %,
 #: analyses/design_check.py), so that "as narrow as the reference" is not decided by the predictor's error.
 REFERENCE_SLACK = 0.05
-#: The rig's sampling rate unless told [Hz] (the reference rig's).
-RATE_HZ = 5.0
 #: The slower sampling rates the shortest staircase is tried at [Hz].
 RATES_HZ = (0.5, 1.0, 2.0)
 
@@ -209,7 +208,7 @@ class Designer:
         default the datasheet's.  The drawn modules still come from the bench's own type draw,
         not from that population: the prior changes the widths by a few %, the modules' place little.
     rate_hz : float
-        The rig's sampling rate [Hz]: the candidates' and the reference's (slower ones are tried too).
+        The rig's sampling rate [Hz]: the candidates' and the reference's.
     """
 
     def __init__(
@@ -235,6 +234,11 @@ class Designer:
         self.n_modules = n_draws
         self.options = CalibrationOptions(law_prior=law_prior)
 
+    @property
+    def holds(self) -> tuple:
+        """The candidates' holds [s] on this rig (read at call time)."""
+        return PLATE_HOLDS_S if self.plates else HOLDS_S
+
     def protocol(self, step: float, hold: float) -> Protocol:
         """The candidate staircase of step ``step`` (reference module's A) and hold ``hold`` [s] for this type.
 
@@ -247,7 +251,8 @@ class Designer:
     def evaluate(self, candidates) -> list[Evaluated]:
         """The :class:`Evaluated` of every ``(step_A, hold_s[, rate_Hz])`` (the rig's rate unless given).
 
-        The same modules and noise streams for each.
+        The same modules and noise streams for each; a slower rate's widths as simulated
+        (:func:`design` keeps the rig rate's held-rig part, :func:`_at_slower_rate`).
         """
         keys = [tuple(float(v) for v in (c if len(c) == 3 else (*c, self.rate_hz))) for c in candidates]
         todo = [k for k in dict.fromkeys(keys) if k not in self.cache]
@@ -322,11 +327,10 @@ def design(
         what the closest one (the smallest largest miss) reaches.
     """
     max_s = 3600.0 * max_hours
-    holds = [h for h in (PLATE_HOLDS_S if designer.plates else HOLDS_S) if h >= min_hold_s]
+    holds = [h for h in designer.holds if h >= min_hold_s]
     if not holds:
-        raise ModelError(
-            f"--min-hold {min_hold_s:g}: no candidate holds that long (the longest holds {max(HOLDS_S):g} s)"
-        )
+        longest = max(designer.holds)
+        raise ModelError(f"--min-hold {min_hold_s:g}: no candidate holds that long (the longest holds {longest:g} s)")
     everything = [(s, h) for s in designer.steps for h in holds]
     grid = [c for c in everything if designer.protocol(*c).duration <= max_s]
     if not grid:
@@ -346,14 +350,11 @@ def design(
             f"({best.duration_s / 3600:.2f} h, step {best.step_A:g} A, hold {best.hold_s:g} s) reaches {reach}. "
             "Loosen the targets or allow more time (--max-hours)"
         )
-    best = found[0]
-    slower = designer.evaluate([(best.step_A, best.hold_s, r) for r in sorted(RATES_HZ, reverse=True)
-                                if r < designer.rate_hz])  # fmt: skip
-    slower = [_at_slower_rate(best, e) for e in slower]
-    for e in slower:
-        if not e.meets(targets):
-            break
-        best = e
+    fast = found[0]
+    rates = sorted((r for r in RATES_HZ if r < designer.rate_hz), reverse=True)
+    slower = [_at_slower_rate(fast, e) for e in designer.evaluate([(fast.step_A, fast.hold_s, r) for r in rates])]
+    best = [fast, *takewhile(lambda e: e.meets(targets), slower)][-1]
+    # the reference is a candidate too when its hold is; Evaluated holds dicts, so by identity
     evaluated = _shortest_first({id(e): e for e in (reference, *candidates, *slower)}.values())
     return Design(best=best, reference=reference, targets=targets, evaluated=evaluated)
 
@@ -361,14 +362,12 @@ def design(
 def _at_slower_rate(fast: Evaluated, slow: Evaluated) -> Evaluated:
     """``slow`` (the same staircase sampled slower) with the held rig parameters' part of ``fast``'s widths.
 
-    Fewer samples widen only the part of a law's sd the run's data leave (``sd_laplace``; never
-    narrower than the faster run's, which the short search's mode on another noise stream can
-    give on plates); what the held rig parameters add does not depend on the
-    number of samples, and re-estimating it on another noise stream only adds the predictor's noise
-    (on the reference rig the 2 Hz and 5 Hz widths of the same modules came out equal at 2 draws,
-    where 20 out-of-model modules realised 2 Hz 11-12 % wider).
+    Fewer samples widen only the part of a law's sd the run's data leave (``sd_laplace``, never
+    taken narrower than the faster run's); what the held rig parameters add does not depend on
+    the number of samples, and re-estimating it on another noise stream would only add the
+    predictor's noise, enough to hide the rate's cost (docs/benchmarks.md, 'Designed runs').
     """
-    lap = {k: max(slow.sd_laplace[k], fast.sd_laplace[k]) for k in MODULE_PARAMETERS}  # fewer samples never narrow
+    lap = {k: max(slow.sd_laplace[k], fast.sd_laplace[k]) for k in MODULE_PARAMETERS}
     sd = {
         k: float(np.sqrt(max(fast.sd[k] ** 2 - fast.sd_laplace[k] ** 2, 0.0) + lap[k] ** 2)) for k in MODULE_PARAMETERS
     }
