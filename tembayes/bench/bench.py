@@ -412,13 +412,6 @@ def _protocol_json(protocol: Protocol) -> dict:
     return out
 
 
-def _setpoints_C(protocol: Protocol) -> dict:
-    """``{"plate_setpoints_C": [...]}`` of a protocol that steps the controlled boundaries, else ``{}``."""
-    if protocol.setpoints is None:
-        return {}
-    return {"plate_setpoints_C": protocol.setpoints_C()}
-
-
 def _batch_rig(rig, folder):
     """The batch.toml ``[rig]`` of a bench batch; a rig file is copied into the batch folder."""
     if rig is None:
@@ -554,7 +547,8 @@ def simulate_batch(
                 "validation_rate_Hz": config.validation_rate or config.rate,
                 "hold_s": None if config.protocol is not None else config.hold,
                 "protocol": None if config.protocol is None else _protocol_json(config.protocol),
-                **_setpoints_C(identification),
+                # on plates that hold both faces: the setpoints the staircases ran at
+                **({} if identification.setpoints is None else {"plate_setpoints_C": identification.setpoints_C()}),
                 "n_validations": config.n_validations,
                 "validation_duration_s": config.validation_duration,
                 "bench_rig": rig.name,

@@ -174,17 +174,11 @@ def calibrate_batch(
     workers = int(workers)
     _merged_spreads(batch, population_prior)  # a conflict is refused before anything is written
     opt = options or CalibrationOptions()
-    law_prior = opt.to_json()["law_prior"]
+    law_prior = None if opt.law_prior is None else opt.law_prior.to_json()
     folder = RunFolder(
-        out,
-        batch=batch,
-        seed=seed,
-        resume=resume,
-        overwrite=overwrite,
-        workers=workers,
-        progress=say,
+        out, batch=batch, seed=seed, resume=resume, overwrite=overwrite, workers=workers, progress=say,
         law_prior=law_prior,
-    )
+    )  # fmt: skip
     with folder as work:
         summ = _calibrate_in(
             batch,
