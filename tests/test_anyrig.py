@@ -99,20 +99,27 @@ def heatsink_batch(tmp_path_factory):
     return out, truth
 
 
-def test_the_robust_carry_over_moves_a_lead_share_relatively(heatsink_batch):
-    """The held parameters' carry-over moves a lead share (and a resistance) relatively: a share near its
-    floor moved additively crossed zero in a few draws."""
+def test_the_robust_carry_over_moves_a_lead_share_in_its_logit_and_a_resistance_relatively(heatsink_batch):
+    """The held parameters' carry-over moves a lead share in its logit and a resistance relatively: a share
+    near its floor moved additively crossed zero in a few draws, and relatively passed one."""
     from tembayes.calibrate.model import StepResponseModel
-    from tembayes.calibrate.module import CalibrationOptions, calibration_rig, parameter_space, positive_coordinates
+    from tembayes.calibrate.module import (
+        CalibrationOptions,
+        calibration_rig,
+        parameter_space,
+        positive_coordinates,
+        share_coordinates,
+    )
     from tembayes.calibrate.stepdata import step_data
 
     batch = load_batch(heatsink_batch[0])
     rig = calibration_rig(batch.rig_config, CalibrationOptions())
     data = step_data(batch.modules["TEM1"].identification, face=rig.layout.face)
     space = parameter_space(rig, batch.datasheet, data, StepResponseModel(data, rig).shift_bound)[1]
-    idx = positive_coordinates(space, rig)
-    assert space.index("lead_share") in idx and space.index("g_sink") in idx
-    assert space.index("R1_ohm_per_K") not in idx
+    positive, shares = positive_coordinates(space), share_coordinates(space, rig)
+    assert space.index("g_sink") in positive and space.index("lead_share") not in positive
+    assert shares == [space.index("lead_share")]
+    assert space.index("R1_ohm_per_K") not in positive + shares
 
 
 def test_the_calibration_samples_the_lead_share_flat_and_the_rig_as_before(heatsink_batch):

@@ -39,6 +39,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from tembayes.calibrate.priors import expit, logit
+
 if TYPE_CHECKING:
     from collections.abc import Mapping, Sequence
 
@@ -145,21 +147,28 @@ class HeldSpread:
     shift: np.ndarray
     not_carried: tuple = ()
 
-    def apply(self, X: np.ndarray, rng: np.random.Generator, relative: Sequence[int] = ()) -> np.ndarray:
+    def apply(
+        self, X: np.ndarray, rng: np.random.Generator, relative: Sequence[int] = (), shares: Sequence[int] = ()
+    ) -> np.ndarray:
         """``X`` ``(n, >= p)`` with every draw moved by the held parameters' drawn deviations (a copy).
 
         The coordinates ``relative`` (positive ones, e.g. a resistance) move
-        by the same shift relative to their mean, ``x exp(dx / mean)``: the
-        same to first order, and never across zero.
+        by the same shift relative to their mean, ``x exp(dx / mean)``, and
+        the coordinates ``shares`` (inside 0 ... 1, e.g. a lead share) in their
+        logit, ``expit(logit x + dx / (m (1 - m)))`` with ``m`` their mean: the
+        same to first order, and never across zero (or one).
         """
         X = np.array(X, dtype=float)
         xi = rng.standard_normal((len(X), len(self.names))) * self.log_sd
         dX = xi @ self.shift.T  # (n, p): the model's coordinates, the first p of X
-        rel = np.asarray(list(relative), dtype=int)
-        lin = np.setdiff1d(np.arange(dX.shape[1]), rel)
+        rel, sh = (np.asarray(list(c), dtype=int) for c in (relative, shares))
+        lin = np.setdiff1d(np.arange(dX.shape[1]), np.concatenate([rel, sh]))
         X[:, lin] += dX[:, lin]
         if len(rel):
             X[:, rel] *= np.exp(dX[:, rel] / X[:, rel].mean(axis=0))
+        if len(sh):
+            m = X[:, sh].mean(axis=0)
+            X[:, sh] = expit(logit(X[:, sh]) + dX[:, sh] / (m * (1.0 - m)))
         return X
 
     def to_json(

@@ -278,13 +278,19 @@ def module_seed(seed: int, module_id: str) -> tuple[int, np.random.Generator]:
     return int(a), np.random.default_rng(int(b))
 
 
-def positive_coordinates(space: ParameterSpace, rig: RigDescription) -> list[int]:
-    """Coordinates the robust carry-over moves relatively, so they stay positive: resistances and lead shares.
+def positive_coordinates(space: ParameterSpace) -> list[int]:
+    """Coordinates the robust carry-over moves relatively, so they stay positive: the resistances."""
+    return [j for j, pr in enumerate(space.priors) if pr.kind == "reciprocal"]
+
+
+def share_coordinates(space: ParameterSpace, rig: RigDescription) -> list[int]:
+    """Coordinates the robust carry-over moves in their logit, so they stay inside 0 ... 1: the lead shares.
 
     A share sampled as itself sits near its floor; moved additively it crossed zero in a few
-    draws, which ``predict`` (reading a share through its logit) cannot read.
+    draws, and moved relatively past one (reference-faces, where a sensor's depth and its lead
+    share move its reading alike), which ``predict`` (reading a share through its logit) cannot read.
     """
-    return [j for j, pr in enumerate(space.priors) if pr.kind == "reciprocal" or pr.name in rig.lead_parameters]
+    return [j for j, pr in enumerate(space.priors) if pr.name in rig.lead_parameters]
 
 
 def calibration_rig(rig_config: Mapping | None, options: CalibrationOptions) -> RigDescription:
@@ -1018,7 +1024,9 @@ def _posterior(prob, st, levels) -> _Posterior:
         spread = held_nuisance_spread(
             prob.model, prob.model_space, flat[:, :p].mean(axis=0), st.lin.J, prob.data.noise, held
         )
-        flat = spread.apply(flat, st.rng, relative=positive_coordinates(space, prob.rig))
+        flat = spread.apply(
+            flat, st.rng, relative=positive_coordinates(space), shares=share_coordinates(space, prob.rig)
+        )
         discrepancy["held_sd_over_posterior_sd"] = spread.to_json(space.names, laws, law_sd)
         if spread.not_carried:
             discrepancy["held_not_carried"] = list(spread.not_carried)
