@@ -134,20 +134,25 @@ def test_a_held_parameter_moves_the_mode_as_its_linear_response_says():
     np.testing.assert_allclose(np.log(R[:, 1] / centre), X[:, 1] / centre, rtol=1e-9, atol=1e-12)
 
 
-def test_a_share_is_moved_in_its_logit_never_across_zero_or_one():
-    """A share (a sensor's lead share) pushed by three times its value per sd stays inside 0 ... 1 (moved
-    relatively, some draws would pass one); pushed a little it moves as the linear shift does."""
+def test_a_share_is_moved_in_its_logit_never_out_of_its_range():
+    """A share (a sensor's lead share) pushed by three times its value per sd stays inside its flat prior's
+    range (moved relatively, some draws would pass one); pushed a little it moves as the linear shift does."""
     from tembayes.calibrate.discrepancy import HeldSpread
 
-    for push, mean, close in ((0.003, 0.001, False), (1e-4, 0.3, True)):
+    for push, mean, (low, high), close in (
+        (0.003, 0.001, (0.0, 1.0), False),
+        (0.003, 0.001, (1e-4, 1e-2), False),
+        (1e-4, 0.3, (0.0, 1.0), True),
+    ):
         one = HeldSpread(names=("q",), log_sd=np.array([1.0]), shift=np.array([[0.0], [push]]))
-        S = one.apply(np.column_stack([np.zeros(20000), np.full(20000, mean)]), np.random.default_rng(0), shares=[1])
-        assert np.all((S[:, 1] > 0) & (S[:, 1] < 1))
+        X = np.column_stack([np.zeros(20000), np.full(20000, mean)])
+        S = one.apply(X, np.random.default_rng(0), shares={1: (low, high)})
+        assert np.all((S[:, 1] > low) & (S[:, 1] < high))
         if close:
             np.testing.assert_allclose(S[:, 1].std(), push, rtol=0.02)
         else:  # the same draws of the held parameter, moved relatively
             xi = np.random.default_rng(0).standard_normal(20000)
-            assert np.any(mean * np.exp(xi * push / mean) > 1)
+            assert np.any(mean * np.exp(xi * push / mean) > high)
 
 
 def test_a_held_parameter_the_model_cannot_simulate_is_named_not_fatal():

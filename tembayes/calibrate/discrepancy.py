@@ -148,27 +148,35 @@ class HeldSpread:
     not_carried: tuple = ()
 
     def apply(
-        self, X: np.ndarray, rng: np.random.Generator, relative: Sequence[int] = (), shares: Sequence[int] = ()
+        self,
+        X: np.ndarray,
+        rng: np.random.Generator,
+        relative: Sequence[int] = (),
+        shares: Mapping[int, tuple[float, float]] | None = None,
     ) -> np.ndarray:
         """``X`` ``(n, >= p)`` with every draw moved by the held parameters' drawn deviations (a copy).
 
         The coordinates ``relative`` (positive ones, e.g. a resistance) move
         by the same shift relative to their mean, ``x exp(dx / mean)``, and
-        the coordinates ``shares`` (inside 0 ... 1, e.g. a lead share) in their
-        logit, ``expit(logit x + dx / (m (1 - m)))`` with ``m`` their mean: the
-        same to first order, and never across zero (or one).
+        the coordinates ``shares`` (coordinate -> its flat prior's ``(low, high)``,
+        e.g. a lead share) in the logit of their place in that range,
+        ``u = (x - low) / (high - low)`` moved to ``expit(logit u + du / (m (1 - m)))``
+        with ``m`` its mean: the same to first order, and never out of the range
+        (the posterior has no mass outside its prior's support).
         """
         X = np.array(X, dtype=float)
         xi = rng.standard_normal((len(X), len(self.names))) * self.log_sd
         dX = xi @ self.shift.T  # (n, p): the model's coordinates, the first p of X
+        shares = dict(shares or {})
         rel, sh = (np.asarray(list(c), dtype=int) for c in (relative, shares))
         lin = np.setdiff1d(np.arange(dX.shape[1]), np.concatenate([rel, sh]))
         X[:, lin] += dX[:, lin]
         if len(rel):
             X[:, rel] *= np.exp(dX[:, rel] / X[:, rel].mean(axis=0))
-        if len(sh):
-            m = X[:, sh].mean(axis=0)
-            X[:, sh] = expit(logit(X[:, sh]) + dX[:, sh] / (m * (1.0 - m)))
+        for j, (low, high) in shares.items():
+            u = np.clip((X[:, j] - low) / (high - low), 1e-12, 1.0 - 1e-12)
+            m = u.mean()
+            X[:, j] = low + (high - low) * expit(logit(u) + dX[:, j] / ((high - low) * m * (1.0 - m)))
         return X
 
     def to_json(

@@ -283,14 +283,19 @@ def positive_coordinates(space: ParameterSpace) -> list[int]:
     return [j for j, pr in enumerate(space.priors) if pr.kind == "reciprocal"]
 
 
-def share_coordinates(space: ParameterSpace, rig: RigDescription) -> list[int]:
-    """Coordinates the robust carry-over moves in their logit, so they stay inside 0 ... 1: the lead shares.
+def share_coordinates(space: ParameterSpace, rig: RigDescription) -> dict[int, tuple[float, float]]:
+    """The lead shares' coordinates and their flat priors' ranges: the robust carry-over keeps them inside.
 
     A share sampled as itself sits near its floor; moved additively it crossed zero in a few
     draws, and moved relatively past one (reference-faces, where a sensor's depth and its lead
-    share move its reading alike), which ``predict`` (reading a share through its logit) cannot read.
+    share move its reading alike), which ``predict`` (reading a share through its logit) cannot
+    read; and a share far beyond its documented range made predictions a tenth of a kelvin off.
     """
-    return [j for j, pr in enumerate(space.priors) if pr.name in rig.lead_parameters]
+    return {
+        j: (pr.center - pr.scale, pr.center + pr.scale)
+        for j, pr in enumerate(space.priors)
+        if pr.name in rig.lead_parameters
+    }
 
 
 def calibration_rig(rig_config: Mapping | None, options: CalibrationOptions) -> RigDescription:
