@@ -289,7 +289,7 @@ def share_coordinates(space: ParameterSpace, rig: RigDescription) -> dict[int, t
     A share sampled as itself sits near its floor; moved additively it crossed zero in a few
     draws, and moved relatively past one (reference-faces, where a sensor's depth and its lead
     share move its reading alike), which ``predict`` (reading a share through its logit) cannot
-    read; and a share far beyond its documented range made predictions a tenth of a kelvin off.
+    read.  The posterior has no mass outside the share's flat prior, so the moved draws stay in it.
     """
     return {
         j: (pr.center - pr.scale, pr.center + pr.scale)
