@@ -135,6 +135,7 @@ def test_the_calibration_samples_the_lead_share_flat_and_the_rig_as_before(heats
     space, _ = parameter_space(rig, batch.datasheet, data, StepResponseModel(data, rig).shift_bound)
     kinds = {p.name: p.kind for p in space.priors}
     assert kinds["lead_share"] == "uniform" and kinds["g_sink"] == "reciprocal" and kinds["c_sink"] == "lognormal"
+    assert kinds["leak"] == "reciprocal"  # the load's only way out: a series path, not a shunt
 
 
 def test_bench_writes_the_rigs_columns_and_rig_entry(heatsink_batch):

@@ -175,6 +175,41 @@ def test_a_share_gets_a_logit_normal_prior_that_never_leaves_zero_to_one():
     assert rig_prior(next(q for q in REFERENCE.parameters if q.name == "c_plate_hot")).kind == "lognormal"
 
 
+def test_a_leak_to_the_room_is_sampled_in_its_log_a_series_path_as_its_resistance():
+    """The heat share a conductance carries decides its coordinate: a shunt (little of a face's
+    heat) in its log, a series path (all of it) as its resistance."""
+    from tembayes.calibrate.module import SHUNT_SHARE, CalibrationOptions, calibration_rig
+
+    plates = calibration_rig({"preset": "liquid-plates"}, CalibrationOptions())
+    nominal = plates.nominal()
+    # one watt at the hot face leaves by the liquid or, in parallel, by the leak
+    leak_share = nominal["leak"] / (nominal["leak"] + nominal["g_liquid_hot"])
+    assert plates.face_heat_share("leak") == pytest.approx(leak_share, rel=0.01)
+    assert plates.face_heat_share("g_paste_hot") == pytest.approx(1.0, rel=1e-9)
+    reference = calibration_rig({}, CalibrationOptions())
+    sink = calibration_rig({"preset": "heatsink-al"}, CalibrationOptions())
+    shunts = {
+        (rig.name, p.name)
+        for rig in (plates, reference, sink)
+        for p in rig.parameters
+        if p.unit == "W/K" and rig.face_heat_share(p.name) < SHUNT_SHARE
+    }
+    # the bottom block's leak is its only way out, as the heat sink's load leak is
+    assert {n for _, n in shunts} == {"leak", "leak_top"} and (sink.name, "leak") not in shunts
+    leak = plates.parameter("leak")
+    assert rig_prior(leak, shunt=True).kind == "lognormal" and rig_prior(leak).kind == "reciprocal"
+    assert rig_prior(leak, shunt=True).center == rig_prior(leak).center
+
+    class Data:  # the noise priors need only the channels' noise
+        noise = np.array([1e-3, 4e-3, 4e-3])
+
+    from tembayes.bench.bench import TEC1_12706 as ds
+    from tembayes.calibrate.module import parameter_space
+
+    kinds = {p.name: p.kind for p in parameter_space(plates, ds, Data, 0.1)[0].priors}
+    assert kinds["leak"] == "lognormal" and kinds["g_liquid_hot"] == kinds["g_paste_hot"] == "reciprocal"
+
+
 def test_a_sensors_lead_share_is_sampled_as_itself_flat_over_its_range():
     """The readings are linear in a lead share: its prior is flat over the documented range, its
     coordinate the share itself."""

@@ -278,6 +278,11 @@ def module_seed(seed: int, module_id: str) -> tuple[int, np.random.Generator]:
     return int(a), np.random.default_rng(int(b))
 
 
+#: Largest share of a module face's heat a conductance may carry and still be
+#: sampled as a shunt (in its log, :func:`~tembayes.calibrate.priors.rig_prior`).
+SHUNT_SHARE = 0.2
+
+
 def positive_coordinates(space: ParameterSpace) -> list[int]:
     """Coordinates the robust carry-over moves relatively, so they stay positive: the resistances."""
     return [j for j, pr in enumerate(space.priors) if pr.kind == "reciprocal"]
@@ -340,7 +345,14 @@ def parameter_space(
     fixed = {p.name: p.nominal for p in rig.parameters if p not in nuis}
     pri = (
         list(module_law_priors(datasheet, law_prior))
-        + [rig_prior(p, linear=p.name in rig.lead_parameters) for p in nuis]
+        + [
+            rig_prior(
+                p,
+                linear=p.name in rig.lead_parameters,
+                shunt=p.unit == "W/K" and rig.face_heat_share(p.name) < SHUNT_SHARE,
+            )
+            for p in nuis
+        ]
         + list(form.priors)
         + list(effect_priors(effects))
     )

@@ -427,6 +427,34 @@ class RigDescription:
             total = total + value
         return total
 
+    def face_heat_share(self, name: str) -> float:
+        """Largest share of a module face's heat that the links through parameter ``name`` carry.
+
+        At nominal values and in steady state, one watt enters the hot face
+        (then the cold face) with every boundary held; the share is the heat
+        through the links whose conductance ``name`` sets.  A leak to the
+        room carries a small share (the temperatures are nearly linear in its
+        conductance); a series path (a paste, a heat sink's fins, a block's
+        only way out) carries all of it (linear in its resistance).
+        """
+        net = self.network()
+        G, Gb = net.G[0], net.Gb[0]
+        L = np.diag(G.sum(axis=1) + Gb.sum(axis=1)) - G
+        live = np.flatnonzero(np.diag(L) > 0)  # the legs have no links of their own
+        nominal = self.parameter(name).nominal
+        up = self.network({name: nominal * (1.0 + 1e-6)})
+        moved, moved_b = up.G[0] != G, up.Gb[0] != Gb
+        share = 0.0
+        for face in self.module_faces:
+            T = np.zeros(len(net.nodes))
+            q = np.zeros(len(live))
+            q[np.flatnonzero(live == net.index(face))] = 1.0
+            T[live] = np.linalg.solve(L[np.ix_(live, live)], q)
+            inner = 0.5 * np.sum(np.abs(G * (T[:, None] - T[None, :]))[moved])
+            outer = np.sum(np.abs(Gb * T[:, None])[moved_b])
+            share = max(share, float(inner + outer))
+        return share
+
     def network(self, values: Mapping[str, float | np.ndarray] | None = None) -> Network:
         """Build the network arrays.
 
