@@ -431,28 +431,38 @@ class RigDescription:
         """Largest share of a module face's heat that the links through parameter ``name`` carry.
 
         At nominal values and in steady state, one watt enters the hot face
-        (then the cold face) with every boundary held; the share is the heat
-        through the links whose conductance ``name`` sets.  A leak to the
-        room carries a small share (the temperatures are nearly linear in its
-        conductance); a series path (a paste, a heat sink's fins, a block's
-        only way out) carries all of it (linear in its resistance).
+        (then the cold face) with every boundary held and the module left
+        out; the share is the heat through the links whose conductance
+        ``name`` sets, summed link by link (a parameter in several links in
+        series counts each).  A leak to the room carries a small share (the
+        temperatures are nearly linear in its conductance); a series path (a
+        paste, a heat sink's fins, a block's only way out) carries all of it
+        (linear in its resistance).  A face whose side reaches no boundary but
+        through the module gives 1: every link there is in series with the module.
         """
+        nominal = self.nominal()
+        up = {**nominal, name: nominal[name] * (1.0 + 1e-6)}
+        moved = [
+            (a, b, float(self.evaluate(g, nominal)))
+            for a, b, g in self.links
+            if self.evaluate(g, up) != self.evaluate(g, nominal)
+        ]
         net = self.network()
         G, Gb = net.G[0], net.Gb[0]
-        L = np.diag(G.sum(axis=1) + Gb.sum(axis=1)) - G
-        live = np.flatnonzero(np.diag(L) > 0)  # the legs have no links of their own
-        nominal = self.parameter(name).nominal
-        up = self.network({name: nominal * (1.0 + 1e-6)})
-        moved, moved_b = up.G[0] != G, up.Gb[0] != Gb
         share = 0.0
         for face in self.module_faces:
-            T = np.zeros(len(net.nodes))
-            q = np.zeros(len(live))
-            q[np.flatnonzero(live == net.index(face))] = 1.0
-            T[live] = np.linalg.solve(L[np.ix_(live, live)], q)
-            inner = 0.5 * np.sum(np.abs(G * (T[:, None] - T[None, :]))[moved])
-            outer = np.sum(np.abs(Gb * T[:, None])[moved_b])
-            share = max(share, float(inner + outer))
+            side = [net.index(face)]
+            for i in side:  # the nodes the face reaches without the module
+                side += [j for j in np.flatnonzero(G[i] > 0) if j not in side]
+            if not Gb[side].any():
+                return 1.0
+            L = np.diag(G.sum(axis=1) + Gb.sum(axis=1)) - G
+            q = np.zeros(len(side))
+            q[0] = 1.0
+            T = dict.fromkeys(self.boundaries, 0.0)
+            T.update(zip((net.nodes[i] for i in side), np.linalg.solve(L[np.ix_(side, side)], q)))
+            flow = sum(g * abs(T.get(a, 0.0) - T.get(b, 0.0)) for a, b, g in moved)
+            share = max(share, float(flow))
         return share
 
     def network(self, values: Mapping[str, float | np.ndarray] | None = None) -> Network:
