@@ -449,14 +449,14 @@ class RigDescription:
         ]
         net = self.network()
         G, Gb = net.G[0], net.Gb[0]
+        L = np.diag(G.sum(axis=1) + Gb.sum(axis=1)) - G
         share = 0.0
         for face in self.module_faces:
             side = [net.index(face)]
-            for i in side:  # the nodes the face reaches without the module
+            for i in side:  # the nodes the face reaches without the module (the list grows as it is walked)
                 side += [j for j in np.flatnonzero(G[i] > 0) if j not in side]
             if not Gb[side].any():
                 return 1.0
-            L = np.diag(G.sum(axis=1) + Gb.sum(axis=1)) - G
             q = np.zeros(len(side))
             q[0] = 1.0
             T = dict.fromkeys(self.boundaries, 0.0)
