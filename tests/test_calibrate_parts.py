@@ -663,3 +663,12 @@ def test_the_step_model_adds_grid_points_where_a_boundary_moves_fast():
     assert before.max() > 20 * KNOT_TOL * noise[2]  # the test is not vacuous
     slow = SimpleNamespace(boundary_time=t, boundary_values=drift[None], noise=noise)
     assert len(boundary_knots(slow, grid)) == 0
+
+
+def test_the_pasted_population_table_never_states_a_spread_more_precisely_than_learned():
+    from tembayes.calibrate.batch import population_table
+
+    for sd in (0.510360968, 0.51, 0.0995, 2.345):
+        stated = float(population_table({"tau_S0_rel": (0.01, sd)}).splitlines()[-1].split("=")[1])
+        # rounded up to three significant digits: at least what was learned, by under one in a hundred
+        assert sd <= stated <= sd * 1.01

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import glob
 import json
+import math
 import os
 import shlex
 import time
@@ -77,7 +78,9 @@ def population_table(spreads: Mapping[str, tuple[float, float]]) -> str:
     that none is stated more precisely than it was learned.
     """
     lines = ["[population]"] + [f"spread{k[3:]} = {m:.4g}" for k, (m, _) in spreads.items()]
-    lines.append(f"spread_log_sd = {max(sd for _, sd in spreads.values()):.3g}")
+    sd = max(sd for _, sd in spreads.values())
+    step = 10.0 ** (math.floor(math.log10(sd)) - 2)  # three significant digits, rounded up
+    lines.append(f"spread_log_sd = {math.ceil(sd / step - 1e-9) * step:.3g}")
     return "\n".join(lines) + "\n"
 
 
