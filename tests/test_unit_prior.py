@@ -20,17 +20,27 @@ LEVELS = ("R0_ohm", "S0_V_per_K", "K_W_per_K")
 
 
 def test_an_earlier_runs_population_becomes_the_unit_prior_and_other_runs_are_refused(run3, batch3, tmp_path):
-    """The prior's moments are the population block's: a log-normal's mean c e^(s^2/2) and sd mean sqrt(e^(s^2) - 1)."""
+    """The prior is the population-predictive draws' log moments (R0, S0, K) or moments (R1, S1).
+
+    Against the population block's mean and sd: a log-normal's mean ``c e^(s^2/2)`` matches
+    to 0.1 %; its sd ``mean sqrt(e^(s^2) - 1)`` only as far as the draws are log-normal --
+    a predictive from three modules has heavier tails, measured 3 % apart on this batch.
+    """
+    from tembayes.calibrate.run import load_run
+
     out, summ, _ = run3
     name = load_batch(batch3).datasheet.name
     lp = unit_prior_of_run(out, name)
     pop = summ.to_json()["population"]
-    for p in lp.priors:
+    draws = load_run(out).population_draws()
+    for j, p in enumerate(lp.priors):
         mean, sd = pop[p.name]["mean"], pop[p.name]["sd"]
         if p.name in LEVELS:
+            logs = np.log(draws[:, j])
+            assert (np.log(p.center), p.scale) == pytest.approx((logs.mean(), logs.std(ddof=1)), rel=1e-9)
             m = p.center * np.exp(0.5 * p.scale**2)
             assert m == pytest.approx(mean, rel=1e-3)
-            assert m * np.sqrt(np.expm1(p.scale**2)) == pytest.approx(sd, rel=0.02)
+            assert m * np.sqrt(np.expm1(p.scale**2)) == pytest.approx(sd, rel=0.06)
         else:
             assert (p.center, p.scale) == pytest.approx((mean, sd), rel=1e-3)
     assert str(out.resolve()) in lp.source
