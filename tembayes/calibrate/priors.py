@@ -268,8 +268,8 @@ def rig_prior(parameter: RigParameter, linear: bool = False, shunt: bool = False
     shunt's conductance, and a sensor's lead share (linear too) pulls the
     same readings towards the room: in the leak's resistance their ridge
     curved, the sampler crawled along it and the expansion missed it (three
-    liquid-plate modules out-of-model: autocorrelation times 500-1560
-    steps, PSIS k_hat 1.2-5.4; in the log, one of them 310 steps and 0.57).
+    liquid-plate modules out-of-model: autocorrelation times 220-1560
+    steps, PSIS k_hat 1.0-5.4; in the log, one of them 310 steps and 0.57).
 
     ``linear``: uniform over the documented range, sampled as itself -- for
     a parameter the predictions are linear in, whose data may leave it near
