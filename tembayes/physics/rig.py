@@ -442,28 +442,42 @@ class RigDescription:
         """
         nominal = self.nominal()
         up = {**nominal, name: nominal[name] * (1.0 + 1e-6)}
-        moved = [
-            (a, b, float(self.evaluate(g, nominal)))
-            for a, b, g in self.links
-            if self.evaluate(g, up) != self.evaluate(g, nominal)
-        ]
+        moved = []
+        for a, b, expr in self.links:
+            g = float(self.evaluate(expr, nominal))
+            if self.evaluate(expr, up) != g:
+                moved.append((a, b, g))
+        share = 0.0
+        for T in self._face_temperatures:
+            if T is None:
+                return 1.0
+            share = max(share, sum(g * abs(T.get(a, 0.0) - T.get(b, 0.0)) for a, b, g in moved))
+        return float(share)
+
+    @functools.cached_property
+    def _face_temperatures(self) -> tuple[dict[str, float] | None, ...]:
+        """Per module face, the nominal network's steady temperatures [K/W] for one watt into it.
+
+        Boundaries held at 0, the module left out; None for a face whose side
+        reaches no boundary but through the module.
+        """
         net = self.network()
         G, Gb = net.G[0], net.Gb[0]
         L = np.diag(G.sum(axis=1) + Gb.sum(axis=1)) - G
-        share = 0.0
+        out = []
         for face in self.module_faces:
             side = [net.index(face)]
             for i in side:  # the nodes the face reaches without the module (the list grows as it is walked)
                 side += [j for j in np.flatnonzero(G[i] > 0) if j not in side]
             if not Gb[side].any():
-                return 1.0
+                out.append(None)
+                continue
             q = np.zeros(len(side))
             q[0] = 1.0
             T = dict.fromkeys(self.boundaries, 0.0)
             T.update(zip((net.nodes[i] for i in side), np.linalg.solve(L[np.ix_(side, side)], q)))
-            flow = sum(g * abs(T.get(a, 0.0) - T.get(b, 0.0)) for a, b, g in moved)
-            share = max(share, float(flow))
-        return share
+            out.append(T)
+        return tuple(out)
 
     def network(self, values: Mapping[str, float | np.ndarray] | None = None) -> Network:
         """Build the network arrays.
