@@ -122,16 +122,45 @@ def test_a_held_parameter_moves_the_mode_as_its_linear_response_says():
     move = np.linalg.lstsq(A, y_true - y_held, rcond=None)[0]
     np.testing.assert_allclose(spread.shift[:, 0] * 0.2, -move, rtol=1e-6)  # the held value errs by -0.2
     np.testing.assert_allclose(spread.log_sd, [0.8 / np.sqrt(12.0)])  # uniform over the log range
-    X = spread.apply(np.zeros((20000, 2)), np.random.default_rng(0))
+    xi = spread.draw(np.random.default_rng(0), 20000)
+    X = spread.apply(np.zeros((20000, 2)), xi)
     np.testing.assert_allclose(X.std(axis=0), np.abs(spread.shift[:, 0]) * 0.8 / np.sqrt(12.0), rtol=0.03)
     # a positive coordinate (a resistance) is moved relatively: the same spread, never across zero
     centre = 2.0 * X[:, 1].std()
     # (X may carry more coordinates than the model's, e.g. the noise's: they are left alone)
     Y = np.column_stack([np.zeros(20000), np.full(20000, centre), np.ones(20000)])
-    R = spread.apply(Y, np.random.default_rng(0), relative=[1])
+    R = spread.apply(Y, xi, relative=[1])
     assert np.all(R[:, 2] == 1.0)
     assert np.all(R[:, 1] > 0) and np.any(X[:, 1] < -centre)  # shifted linearly, 2 % of the draws would cross zero
     np.testing.assert_allclose(np.log(R[:, 1] / centre), X[:, 1] / centre, rtol=1e-9, atol=1e-12)
+
+
+def test_a_draw_keeps_the_held_value_its_laws_were_moved_for():
+    """Known answer on the linear model: a draw moved by the held q's deviation xi, simulated at its own
+    q = 2 e^xi, varies from the mode's prediction only by the part of 0.3 xi t^2 that (a, b) cannot take
+    up (the least-squares residual); simulated at the held q = 2 it varies by the part they did take up.
+    A parameter that was not carried over keeps its held value."""
+    from tembayes.calibrate.discrepancy import held_nuisance_spread
+
+    t = T_LINEAR
+    model, space, J, held = _linear_problem({"q": 2.0, "r": 3.0}, fails=("r",))
+    spread = held_nuisance_spread(model, space, np.array([1.0, 0.5]), J, np.array([0.01]), held)
+    xi = spread.draw(np.random.default_rng(1), 20000)
+    X = spread.apply(np.tile([1.0, 0.5], (20000, 1)), xi)
+    values = spread.values(xi)
+    np.testing.assert_allclose(values["q"], 2.0 * np.exp(xi[:, 0]), rtol=1e-12)
+    assert np.all(values["r"] == 3.0)
+
+    def predicted(q):
+        return model.predict({"a": X[:, 0], "b": X[:, 1], "q": q, "r": np.full(20000, 3.0)}, strict=False)[:, 0]
+
+    A = np.column_stack([t, np.ones_like(t)])
+    taken = A @ np.linalg.lstsq(A, 0.3 * t**2, rcond=None)[0]
+    sd = spread.log_sd[0]
+    np.testing.assert_allclose(
+        predicted(values["q"]).std(axis=0), sd * np.abs(0.3 * t**2 - taken), rtol=0.03, atol=1e-9
+    )
+    np.testing.assert_allclose(predicted(np.full(20000, 2.0)).std(axis=0), sd * np.abs(taken), rtol=0.03, atol=1e-9)
 
 
 def test_a_share_is_moved_in_its_logit_never_out_of_its_range():
@@ -144,9 +173,9 @@ def test_a_share_is_moved_in_its_logit_never_out_of_its_range():
         (0.003, 0.001, (1e-4, 1e-2), False),
         (1e-4, 0.3, (0.0, 1.0), True),
     ):
-        one = HeldSpread(names=("q",), log_sd=np.array([1.0]), shift=np.array([[0.0], [push]]))
+        one = HeldSpread(names=("q",), log_sd=np.array([1.0]), shift=np.array([[0.0], [push]]), held_value=np.ones(1))
         X = np.column_stack([np.zeros(20000), np.full(20000, mean)])
-        S = one.apply(X, np.random.default_rng(0), shares={1: (low, high)})
+        S = one.apply(X, one.draw(np.random.default_rng(0), 20000), shares={1: (low, high)})
         assert np.all((S[:, 1] > low) & (S[:, 1] < high))
         if close:
             np.testing.assert_allclose(S[:, 1].std(), push, rtol=0.02)

@@ -461,6 +461,26 @@ def test_anchoring_coordinates_keep_a_share_inside_zero_to_one():
     assert np.all((far["tab_share"] > 0) & (far["tab_share"] < 1)) and np.all(far["g_cooler"] > 0)
 
 
+def test_the_anchoring_starts_from_the_depths_each_draws_laws_were_moved_for():
+    """A robust run keeps each draw's carried-over depth (no prior: held, not sampled): those draws
+    join the anchoring as they are, paired with their laws; a depth the run sampled (it has a prior)
+    is left to the sampled parameters; a depth the run did not keep is drawn from its range."""
+    from tembayes.predict.anchor import held_depth_draws
+
+    rng = np.random.default_rng(3)
+    kept = 2.5e-3 * np.exp(0.05 * rng.standard_normal(400))
+    raw = {"R0_ohm": 2.0 + 1e-3 * np.log(kept / 2.5e-3), "depth_T2": kept, "depth_T3": kept * 1.01}
+    priors = {"depth_T3": {"kind": "lognormal", "center": 2.5e-3, "scale": 0.05}}
+    out = held_depth_draws(RIG, raw, priors, "TEM1")
+    assert set(out) == {"depth_T1", "depth_T2", "depth_T4"}
+    assert np.array_equal(out["depth_T2"], kept)  # joint with R0, draw by draw
+    assert np.corrcoef(out["depth_T2"], raw["R0_ohm"])[0, 1] > 0.999
+    for k in ("depth_T1", "depth_T4"):  # not kept: independent of the laws, spread over the range
+        q = RIG.parameter(k)
+        assert abs(np.corrcoef(out[k], raw["R0_ohm"])[0, 1]) < 0.2
+        np.testing.assert_allclose(np.std(np.log(out[k] / q.nominal)), q.log_sd, rtol=0.1)
+
+
 @pytest.mark.parametrize("depth_T4", [2.70e-3, 2.30e-3])
 def test_anchoring_finds_a_block_sensor_off_its_nominal_depth(run3, tmp_path, depth_T4):
     """The calibration holds the depths at 2.5 mm; the block sensors' transients tell them (a known answer).
@@ -481,7 +501,7 @@ def test_anchoring_finds_a_block_sensor_off_its_nominal_depth(run3, tmp_path, de
     raw = {k: v for k, v in raw.items() if not k.startswith("depth_")}
     # the run's step phase, as a calibration samples it for its identification run
     raw["step_shift_s"] = np.full(64, RunModel(exp, RIG).fit_phase({k: v[0] for k, v in raw.items()}))
-    prior = held_depth_draws(RIG, raw, "TEM1")
+    prior = held_depth_draws(RIG, raw, {}, "TEM1")
     assert set(prior) == {"depth_T1", "depth_T2", "depth_T3", "depth_T4"}
     d = posterior_draws(raw, {}, "TEM1", exp, RIG)
     assert set(d.anchor["TEM1"]["updated"]) == set(prior)

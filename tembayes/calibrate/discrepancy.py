@@ -137,6 +137,8 @@ class HeldSpread:
         Their uncertainty (log scale: the sd of a uniform draw over their documented range).
     shift : ndarray, shape (p, m)
         Shift of the posterior mode's coordinates per unit of each one's log.
+    held_value : ndarray, shape (m,)
+        The values the calibration held them at (SI).
     not_carried : tuple of str
         Held parameters whose response could not be simulated at the posterior's centre (their
         shift is zero: nothing is carried over for them).
@@ -145,16 +147,36 @@ class HeldSpread:
     names: tuple
     log_sd: np.ndarray
     shift: np.ndarray
+    held_value: np.ndarray
     not_carried: tuple = ()
+
+    def draw(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        """``(n, m)`` draws of the held parameters' log deviations from their held values."""
+        return rng.standard_normal((n, len(self.names))) * self.log_sd
+
+    def values(self, xi: np.ndarray) -> dict[str, np.ndarray]:
+        """``name -> (n,)`` the held parameters' values in the draws ``xi`` (SI).
+
+        A draw's laws moved by its ``xi`` (:meth:`apply`), so a simulation of
+        that draw needs these values, not the held ones: with the held value
+        the laws' shift is a spread the data do not allow (on the liquid plates
+        the ceramic's carry-over spread the predicted voltage 3x its noise).
+        A parameter not carried over keeps its held value in every draw.
+        """
+        out = {}
+        for i, q in enumerate(self.names):
+            d = np.zeros(len(xi)) if q in self.not_carried else xi[:, i]
+            out[q] = self.held_value[i] * np.exp(d)
+        return out
 
     def apply(
         self,
         X: np.ndarray,
-        rng: np.random.Generator,
+        xi: np.ndarray,
         relative: Sequence[int] = (),
         shares: Mapping[int, tuple[float, float]] | None = None,
     ) -> np.ndarray:
-        """``X`` ``(n, >= p)`` with every draw moved by the held parameters' drawn deviations (a copy).
+        """``X`` ``(n, >= p)`` with every draw moved by its held parameters' deviations ``xi`` (a copy).
 
         The coordinates ``relative`` (positive ones, e.g. a resistance) move
         by the same shift relative to their mean, ``x exp(dx / mean)``, and
@@ -165,8 +187,7 @@ class HeldSpread:
         (the posterior has no mass outside its prior's support).
         """
         X = np.array(X, dtype=float)
-        xi = rng.standard_normal((len(X), len(self.names))) * self.log_sd
-        dX = xi @ self.shift.T  # (n, p): the model's coordinates, the first p of X
+        dX = np.asarray(xi, float) @ self.shift.T  # (n, p): the model's coordinates, the first p of X
         shares = dict(shares or {})
         rel, sh = (np.asarray(list(c), dtype=int) for c in (relative, shares))
         lin = np.setdiff1d(np.arange(dX.shape[1]), np.concatenate([rel, sh]))
@@ -264,4 +285,5 @@ def held_nuisance_spread(
     shift = -np.linalg.solve(JtWJ + np.diag(prec), JtWD)
     log_sd = np.array([held[q].log_sd for q in names])
     failed = tuple(q for q, good in zip(names, ok) if not good)
-    return HeldSpread(names=names, log_sd=log_sd, shift=shift, not_carried=failed)
+    value = np.array([float(space.fixed[q]) for q in names])
+    return HeldSpread(names=names, log_sd=log_sd, shift=shift, held_value=value, not_carried=failed)

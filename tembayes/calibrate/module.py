@@ -223,7 +223,8 @@ class ModuleCalibration:
     names : tuple of str
         Sampled parameters, coordinate order.
     draws : dict
-        ``name -> ndarray (nwalkers, keep)`` posterior draws in SI.
+        ``name -> ndarray (nwalkers, keep)`` posterior draws in SI: the
+        sampled ``names`` and the ``held`` ones.
     log_prob : ndarray, shape (nwalkers, keep)
     step_loglike : ndarray, shape (nwalkers, keep, n_steps)
         Log-likelihood of every step window at every kept draw.
@@ -244,6 +245,12 @@ class ModuleCalibration:
         The module's seeds.
     rig : str
         Calibration rig name.
+    options : dict
+        The calibration's options (:meth:`CalibrationOptions.to_json`).
+    held : tuple of str
+        Rig parameters the calibration held whose range ``--discrepancy
+        robust`` carried over: their draws are the values each draw's laws
+        were moved for (:meth:`~tembayes.calibrate.discrepancy.HeldSpread.values`).
     """
 
     module_id: str
@@ -260,6 +267,7 @@ class ModuleCalibration:
     seed: dict
     rig: str
     options: dict = field(default_factory=dict)
+    held: tuple = ()
 
     def law_draws(self) -> np.ndarray:
         """``(n, 5)`` draws of the module parameters (contract order, SI)."""
@@ -981,6 +989,7 @@ def _calibrate_module(
     return ModuleCalibration(
         module_id=module.id,
         names=prob.space.names,
+        held=post.held,
         draws=post.draws,
         log_prob=st.run.log_prob[post.sel].T.copy(),
         step_loglike=post.step_loglike,
@@ -1012,6 +1021,7 @@ class _Posterior:
     sel: np.ndarray
     discrepancy: dict
     adequacy: dict
+    held: tuple = ()
 
 
 def _posterior(prob, st, levels) -> _Posterior:
@@ -1030,6 +1040,7 @@ def _posterior(prob, st, levels) -> _Posterior:
         adequacy_numbers(scatter, space.values(flat), prob.data, prob.data.obs - fitted, MODULE_PARAMETERS)
     )
     discrepancy = {"method": "none"}
+    held_draws = {}
     if opt.discrepancy in ("window-sandwich", "robust"):
         centre = flat[:, laws].mean(axis=0)
         flat = flat.copy()
@@ -1041,9 +1052,9 @@ def _posterior(prob, st, levels) -> _Posterior:
         spread = held_nuisance_spread(
             prob.model, prob.model_space, flat[:, :p].mean(axis=0), st.lin.J, prob.data.noise, held
         )
-        flat = spread.apply(
-            flat, st.rng, relative=positive_coordinates(space), shares=share_coordinates(space, prob.rig)
-        )
+        xi = spread.draw(st.rng, len(flat))
+        flat = spread.apply(flat, xi, relative=positive_coordinates(space), shares=share_coordinates(space, prob.rig))
+        held_draws = spread.values(xi)
         discrepancy["held_sd_over_posterior_sd"] = spread.to_json(space.names, laws, law_sd)
         if spread.not_carried:
             discrepancy["held_not_carried"] = list(spread.not_carried)
@@ -1056,8 +1067,8 @@ def _posterior(prob, st, levels) -> _Posterior:
             )
     if opt.discrepancy != "none":
         step_ll = st.like.pointwise(flat)
-    draws = {k: v.reshape(nw, nk) for k, v in space.values(flat).items()}
-    return _Posterior(draws, step_ll.reshape(nw, nk, -1), sel, discrepancy, adequacy.to_json())
+    draws = {k: v.reshape(nw, nk) for k, v in {**space.values(flat), **held_draws}.items()}
+    return _Posterior(draws, step_ll.reshape(nw, nk, -1), sel, discrepancy, adequacy.to_json(), tuple(held_draws))
 
 
 def _diagnostics(run, names, psis, resumed, map_nfev, levels, timings, post) -> ModuleDiagnostics:

@@ -164,6 +164,7 @@ def _meta(r: ModuleCalibration):
             {
                 "module_id": r.module_id,
                 "names": list(r.names),
+                "held": list(r.held),
                 "priors": r.priors,
                 "map": r.map,
                 "diagnostics": r.diagnostics.to_json(),
@@ -195,10 +196,10 @@ def to_inference_data(
     attrs : dict, optional
         Extra attributes (seed, command, versions).
     """
-    names = results[0].names
+    names = results[0].names + results[0].held
     for r in results:
-        if r.names != names:
-            raise ValueError(f"module {r.module_id} has parameters {r.names}, expected {names}")
+        if r.names + r.held != names:
+            raise ValueError(f"module {r.module_id} has parameters {r.names + r.held}, expected {names}")
     mods = [r.module_id for r in results]
     nw, nk = results[0].draws[names[0]].shape
     for r in results:
@@ -341,7 +342,8 @@ def read_module(path: Path | str) -> ModuleCalibration:
     meta = json.loads(post.attrs[keys[0]])
     mid = meta["module_id"]
     names = tuple(meta["names"])
-    draws = {n: post[n].sel(module=mid).values for n in names}
+    held = tuple(meta.get("held", ()))  # runs that predate it kept no held draws
+    draws = {n: post[n].sel(module=mid).values for n in names + held}
     ll = idata.log_likelihood["step_response"].sel(module=mid).values
     ns = int(np.sum(~np.isnan(idata.constant_data["step_time_s"].sel(module=mid).values)))
     const = idata.constant_data
@@ -376,6 +378,7 @@ def read_module(path: Path | str) -> ModuleCalibration:
         seed=meta["seed"],
         rig=meta["rig"],
         options=meta.get("options", {}),
+        held=held,
     )
 
 
@@ -394,7 +397,8 @@ def module_entry(r: ModuleCalibration, outlier_prob: float | None = None) -> dic
     by :func:`summary`), ``diagnostics`` (``rhat_max``,
     ``ess_bulk_min``, ``converged`` plus ``tau_max_steps``, ``steps``,
     ``psis_k``); extras: ``hysteresis``, ``nuisance`` (rig parameters, step
-    shift, noise).
+    shift, noise), ``held`` (with ``--discrepancy robust``: the held rig
+    parameters' carried-over draws).
     """
     d = r.diagnostics
     entry = {k: stats(r.draws[k]) for k in MODULE_PARAMETERS}
@@ -417,6 +421,8 @@ def module_entry(r: ModuleCalibration, outlier_prob: float | None = None) -> dic
             entry["diagnostics"][k] = getattr(d, k)
     entry["hysteresis"] = r.hysteresis
     entry["nuisance"] = {k: stats(r.draws[k]) for k in r.names if k not in MODULE_PARAMETERS}
+    if r.held:
+        entry["held"] = {k: stats(r.draws[k]) for k in r.held}
     return entry
 
 

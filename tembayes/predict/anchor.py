@@ -150,8 +150,8 @@ def unpinned(draws, priors, rig, fraction=UNPINNED_FRACTION):
     return tuple(out)
 
 
-def held_depth_draws(rig, draws, label):
-    """Prior draws of the sensor depths the calibration held, for the anchoring to update.
+def held_depth_draws(rig, draws, priors, label):
+    """Draws of the sensor depths the calibration held, for the anchoring to update.
 
     A sensor's depth below its block's face is held at its nominal value in
     the step likelihood (with ``--discrepancy robust`` its uncertainty is
@@ -161,34 +161,41 @@ def held_depth_draws(rig, draws, label):
     0.15 K/s and nothing at steady state, so at its nominal value every step's
     transient shows as a gap; in the top block, which carries the module's heat
     to the cooler, it also reads a steady offset (~0.15 K at 15 W), where the
-    depth shares the data with ``g_cooler``.  It joins the anchoring with the
-    carry-over's own prior: log-normal about the nominal depth, the sd of a
-    uniform draw over its documented range.  The draws are independent of the
-    laws' (the carry-over's draws are not stored): the cut update conditions
-    them on the laws, not the reverse.  Other held parameters (the module's
-    ceramic) act between the junctions and the faces, where the block sensors
-    cannot separate them from the pastes: they stay held.
+    depth shares the data with ``g_cooler``.  Its draws join the anchoring:
+    the carry-over's own draws when the run kept them (each draw's depth is
+    the one its laws were moved for), otherwise independent draws from the
+    carry-over's prior (log-normal about the nominal depth, the sd of a
+    uniform draw over its documented range), which the cut update conditions
+    on the laws.  Other held parameters (the module's ceramic) act between
+    the junctions and the faces, where the block sensors cannot separate them
+    from the pastes: the run's carried-over draws are simulated as they are.
 
     Parameters
     ----------
     rig : RigDescription
         The calibration rig (its ``depths`` name the parameters).
     draws : dict
-        ``name -> (M,)`` the step-posterior draws (a depth already in them
-        was sampled and is left out).
+        ``name -> (M,)`` the run's draws: sampled parameters (those with a
+        prior) and carried-over held ones.
+    priors : dict
+        The run's priors (a depth with one was sampled and is left out).
     label : str
-        The module's id: seeds the draws (:func:`tembayes.common.seeds.stream`).
+        The module's id: seeds the independent draws (:func:`tembayes.common.seeds.stream`).
 
     Returns
     -------
     dict
-        ``name -> (M,)`` depth [m] of every sensor of the rig the draws lack.
+        ``name -> (M,)`` depth [m] of every held sensor depth of the rig.
     """
     n = len(next(iter(draws.values())))
     wanted = {d.parameter for d in rig.depths.values()}
     out = {}
     for q in rig.parameters:
-        if q.name in wanted and q.name not in draws and q.high > q.low:
+        if q.name not in wanted or q.name in priors or q.high <= q.low:
+            continue
+        if q.name in draws:
+            out[q.name] = np.asarray(draws[q.name], float)
+        else:
             out[q.name] = q.nominal * np.exp(q.log_sd * stream(0, "held", label, q.name).standard_normal(n))
     return out
 

@@ -153,8 +153,13 @@ def posterior_draws(raw, priors, label, identification, rig, *, laws="linear"):
     -------
     PredictiveDraws
     """
-    # the constant laws' misfit is the paper model's to show, not the depths' to absorb
-    held = held_depth_draws(rig, raw, label) if laws == "linear" else {}
+    if laws == "linear":
+        held = held_depth_draws(rig, raw, priors, label)
+    else:
+        # the constant laws' misfit is the paper model's to show, not the held parameters' to absorb:
+        # they go back to the values the calibration held them at (their carried-over draws moved the linear laws)
+        held = {}
+        raw = {k: v for k, v in raw.items() if k in priors or k not in rig.parameter_names}
     raw = {**raw, **held}
     names = unpinned(raw, priors, rig) + tuple(held) + unpinned_effects(raw, priors)
     fixed = None
