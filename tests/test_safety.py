@@ -414,3 +414,29 @@ def test_a_run_records_where_its_batch_is_and_refuses_a_changed_one(run3, tmp_pa
     ident.write_bytes(ident.read_bytes().rstrip(b"\n").rsplit(b"\n", 1)[0] + b"\n")  # one sample fewer
     with pytest.raises(DataError, match="TEM3/identification.csv changed"):
         load_run_batch(run, moved)
+
+
+def test_a_resumed_run_reuses_only_modules_of_the_same_calibration(tmp_path):
+    """A finished module is reused only under the same --model and --discrepancy, and a robust one only
+    if it kept its held values: the batch's posterior joins modules that have the same variables."""
+    import h5py
+
+    from tembayes.calibrate import CalibrationOptions
+    from tembayes.calibrate.runfolder import module_matches
+
+    def module(name, meta):
+        nc = tmp_path / f"{name}.nc"
+        with h5py.File(nc, "w") as f:
+            f.create_group("posterior").attrs["module_TEM1"] = json.dumps({"module_id": "TEM1", **meta})
+        return nc
+
+    robust = {"options": {"model": "full", "discrepancy": "robust"}, "held": ["g_ceramic"]}
+    assert module_matches(module("same", robust), CalibrationOptions())
+    before = module("before", {"options": {"model": "full", "discrepancy": "robust"}})  # no held values kept
+    assert not module_matches(before, CalibrationOptions())
+    assert module_matches(before, CalibrationOptions(discrepancy="window-sandwich")) is False
+    assert not module_matches(module("paper", robust), CalibrationOptions(model="paper"))
+    plain = module("plain", {"options": {"model": "full", "discrepancy": "none"}, "held": []})
+    assert module_matches(plain, CalibrationOptions(discrepancy="none"))
+    assert not module_matches(plain, CalibrationOptions())
+    assert not module_matches(tmp_path / "missing.nc", CalibrationOptions())

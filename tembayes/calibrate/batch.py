@@ -39,7 +39,7 @@ from tembayes.calibrate import results as res
 from tembayes.calibrate.module import CalibrationOptions, module_seed
 from tembayes.calibrate.moduledigest import read_digest, write_digest
 from tembayes.calibrate.priors import law_log_prior, module_law_priors
-from tembayes.calibrate.runfolder import RunFolder, module_usable
+from tembayes.calibrate.runfolder import RunFolder, module_matches, module_usable
 from tembayes.calibrate.runsummary import RunSummary
 from tembayes.common.provenance import versions
 from tembayes.common.seeds import spawned
@@ -239,6 +239,12 @@ def _calibrate_in(
             say(
                 f"[{order[mid] + 1}/{n}] {mid}: {nc} cannot be read (damaged?); kept as {nc.name}.damaged, "
                 "calibrated again"
+            )
+        if resume and nc.exists() and not module_matches(nc, opt):
+            nc.replace(nc.with_name(nc.name + ".stale"))
+            say(
+                f"[{order[mid] + 1}/{n}] {mid}: {nc} was calibrated with another --model or --discrepancy (or "
+                f"before the runs kept the held values); kept as {nc.name}.stale, calibrated again"
             )
         if resume and nc.exists():
             say(f"[{order[mid] + 1}/{n}] {mid}: finished earlier, reused")

@@ -24,7 +24,7 @@ from tembayes.data.outputs import MARKER, RunLock, check_output, foreign_entries
 from tembayes.data.write import atomic_write_text
 from tembayes.errors import DataError
 
-__all__ = ["RunFolder", "partial_path", "module_usable", "bytes_needed"]
+__all__ = ["RunFolder", "partial_path", "module_usable", "module_matches", "bytes_needed"]
 
 #: Free space a run needs per module (its posterior file and sampler checkpoints) [bytes].
 BYTES_PER_MODULE = 40 << 20
@@ -52,6 +52,27 @@ def module_usable(nc: Path | str) -> bool:
             return "posterior" in f and "log_likelihood" in f
     except (OSError, ValueError, KeyError):
         return False
+
+
+def module_matches(nc: Path | str, options) -> bool:
+    """Whether a module's ``.nc`` file was calibrated with ``options``' model and discrepancy.
+
+    A resumed run reuses its finished modules only when they are the same
+    calibration: a module of another ``--model`` or ``--discrepancy``, or a
+    robust one from before the runs kept each draw's held values, has other
+    variables, and the batch's posterior cannot join them.
+    """
+    import h5py
+
+    try:
+        with h5py.File(nc, "r") as f:
+            attrs = f["posterior"].attrs
+            meta = json.loads(next(attrs[k] for k in attrs if k.startswith("module_")))
+    except (OSError, ValueError, KeyError, StopIteration):
+        return False
+    recorded = meta.get("options") or {}
+    same = all(recorded.get(k) == getattr(options, k) for k in ("model", "discrepancy"))
+    return same and (options.discrepancy != "robust" or "held" in meta)
 
 
 def _state(folder) -> dict:

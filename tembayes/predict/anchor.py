@@ -163,7 +163,8 @@ def held_depth_draws(rig, draws, priors, label):
     to the cooler, it also reads a steady offset (~0.15 K at 15 W), where the
     depth shares the data with ``g_cooler``.  Its draws join the anchoring:
     the carry-over's own draws when the run kept them (each draw's depth is
-    the one its laws were moved for), otherwise independent draws from the
+    the one its laws were moved for), otherwise (or where the carry-over
+    could not move it, its draws all at the held value) independent draws from the
     carry-over's prior (log-normal about the nominal depth, the sd of a
     uniform draw over its documented range), which the cut update conditions
     on the laws.  Other held parameters (the module's ceramic) act between
@@ -193,9 +194,10 @@ def held_depth_draws(rig, draws, priors, label):
     for q in rig.parameters:
         if q.name not in wanted or q.name in priors or q.high <= q.low:
             continue
-        if q.name in draws:
-            out[q.name] = np.asarray(draws[q.name], float)
-        else:
+        kept = np.asarray(draws.get(q.name, ()), float)
+        if kept.size and np.ptp(kept) > 0:
+            out[q.name] = kept
+        else:  # not kept, or kept at its held value because the carry-over could not move it
             out[q.name] = q.nominal * np.exp(q.log_sd * stream(0, "held", label, q.name).standard_normal(n))
     return out
 
