@@ -109,7 +109,9 @@ def test_population_table_reaches_the_population_stage(run3, batch3, tmp_path):
         f.write("\n[population]\nspread_S0_rel = 0.01\nspread_R0_rel = 0.02\nspread_K_rel = 0.03\n")
     run = tmp_path / "run"
     shutil.copytree(out / "modules", run / "modules")
-    again = calibrate_batch(load_batch(stated), run, seed=0, resume=True)
+    # run3's options: a resume reuses only modules of the same calibration
+    paper = CalibrationOptions(model="paper", discrepancy="none")
+    again = calibrate_batch(load_batch(stated), run, seed=0, resume=True, options=paper)
     assert again.to_json()["population_prior"]["spread_S0_rel"] == {"median": 0.01, "log_sd": 0.3}
     for mid in summ.modules:  # the modules were reused as they were
         assert again.modules[mid].laws == summ.modules[mid].laws
