@@ -17,6 +17,9 @@ from tembayes.calibrate import sampler as smp
 
 #: Largest PSIS ``k_hat`` for which the expansion counts as exact enough.
 PSIS_K_MAX = 0.7
+#: Fewest effective draws of a second look's weights for it to pass: with 100 the
+#: weighted laws' means it reports (``law_shift_sd``) are known to ~0.1 posterior sd.
+RECHECK_MIN_ESS = 100
 
 
 @dataclass(frozen=True)
@@ -35,6 +38,15 @@ class PsisCheck:
         Largest log-weight deviation from its mean.
     early_steps : int or None
         Set when the check ran during sampling (the stage was stopped there).
+    draws : int or None
+        Posterior draws the check weighed (None: a record from before it was kept).
+    law_shift_sd : float or None
+        How far the Pareto-smoothed weights move the laws' posterior means,
+        in posterior sds (the largest over the five laws): what the expansion
+        costs the laws where ``k_hat`` says the weights can be trusted.
+    recheck : bool
+        A second look, after the first failed; it passes only on weights with
+        at least :data:`RECHECK_MIN_ESS` effective draws.
     """
 
     stage: int
@@ -42,12 +54,25 @@ class PsisCheck:
     weight_ess_fraction: float
     max_logw_dev: float
     early_steps: int | None = None
+    draws: int | None = None
+    law_shift_sd: float | None = None
+    recheck: bool = False
+
+    @property
+    def passes(self) -> bool:
+        """``k_hat`` below :data:`PSIS_K_MAX`, and for a second look enough effective draws."""
+        if self.k_hat >= PSIS_K_MAX:
+            return False
+        return not self.recheck or self.weight_ess_fraction * self.draws >= RECHECK_MIN_ESS
 
     def to_json(self) -> dict:
-        """The check as stored (``early_steps`` only for a check made during sampling)."""
+        """The check as stored (the optional fields only when set)."""
         d = asdict(self)
-        if self.early_steps is None:
-            del d["early_steps"]
+        for k in ("early_steps", "draws", "law_shift_sd"):
+            if d[k] is None:
+                del d[k]
+        if not self.recheck:
+            del d["recheck"]
         return d
 
 
@@ -116,7 +141,7 @@ class ModuleDiagnostics:
     @property
     def converged(self) -> bool:
         """The sampler met its targets and the expansion is exact enough."""
-        return bool(self.sampler_converged and self.psis_k < PSIS_K_MAX)
+        return bool(self.sampler_converged and self.psis[-1].passes)
 
     def reasons(self) -> list:
         """Why the module did not converge, one phrase per failed target (empty when it did)."""
@@ -131,8 +156,15 @@ class ModuleDiagnostics:
             bits.append(f"chain {self.chain_over_tau:.0f} autocorrelation times < {smp.MIN_TAU_MULTIPLE:.0f}")
         if not self.sampler_converged and not bits:
             bits.append("the sampler stopped before its targets were met")
-        if self.psis_k >= PSIS_K_MAX:
-            bits.append(f"expansion PSIS k_hat {self.psis_k:.2f} >= {PSIS_K_MAX}")
+        last = self.psis[-1]
+        on = "" if last.draws is None else f" on {last.draws} draws"
+        if last.k_hat >= PSIS_K_MAX:
+            bits.append(f"expansion PSIS k_hat {last.k_hat:.2f} >= {PSIS_K_MAX}{on}")
+        elif not last.passes:
+            ess = last.weight_ess_fraction * last.draws
+            bits.append(
+                f"expansion PSIS weights degenerate: {ess:.0f} effective of {last.draws} draws < {RECHECK_MIN_ESS}"
+            )
         return bits
 
     def to_json(self) -> dict:

@@ -396,7 +396,7 @@ def module_entry(r: ModuleCalibration, outlier_prob: float | None = None) -> dic
     (null without a population fit or for a module left out of it; filled in
     by :func:`summary`), ``diagnostics`` (``rhat_max``,
     ``ess_bulk_min``, ``converged`` plus ``tau_max_steps``, ``steps``,
-    ``psis_k``); extras: ``hysteresis``, ``nuisance`` (rig parameters, step
+    ``psis_k``, ``psis_draws``, ``psis_effective_draws``, ``psis_law_shift_sd``); extras: ``hysteresis``, ``nuisance`` (rig parameters, step
     shift, noise), ``held`` (with ``--discrepancy robust``: the held rig
     parameters' carried-over draws).
     """
@@ -419,6 +419,11 @@ def module_entry(r: ModuleCalibration, outlier_prob: float | None = None) -> dic
     for k in ("rhat_walkers_max", "discrepancy", "adequacy"):  # runs that predate them have none
         if getattr(d, k) is not None:
             entry["diagnostics"][k] = getattr(d, k)
+    last = d.psis[-1]
+    if last.draws is not None:
+        entry["diagnostics"]["psis_draws"] = last.draws
+        entry["diagnostics"]["psis_effective_draws"] = last.weight_ess_fraction * last.draws
+        entry["diagnostics"]["psis_law_shift_sd"] = last.law_shift_sd
     entry["hysteresis"] = r.hysteresis
     entry["nuisance"] = {k: stats(r.draws[k]) for k in r.names if k not in MODULE_PARAMETERS}
     if r.held:
