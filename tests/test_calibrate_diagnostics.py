@@ -146,6 +146,6 @@ def test_a_second_look_passes_only_on_usable_weights():
     assert off.reasons() == [f"expansion PSIS weights degenerate: 12 effective of 2000 draws < {RECHECK_MIN_ESS}"]
     usable = dataclasses.replace(degenerate, weight_ess_fraction=0.06)  # 120 effective draws
     assert usable.passes and dataclasses.replace(_record(), psis=(usable,)).converged
-    # a first look is judged on k_hat alone, as before
+    # a first look is judged on k_hat alone
     assert dataclasses.replace(degenerate, recheck=False).passes
     assert PsisCheck(**json.loads(json.dumps(degenerate.to_json()))) == degenerate

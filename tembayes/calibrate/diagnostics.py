@@ -6,7 +6,9 @@ autocorrelation times) *and* the linearised likelihood it sampled agrees with
 the exact one at its draws: the Pareto-smoothed importance-sampling shape
 ``k_hat`` of the exact-over-linearised weights is below :data:`PSIS_K_MAX`
 (Vehtari et al. 2024, *JMLR* 25(72): above 0.7 the importance weights have
-too heavy a tail for the correction to be trusted).
+too heavy a tail for the correction to be trusted), and where that took a
+second look on more draws, its weights have at least
+:data:`RECHECK_MIN_ESS` effective draws (:attr:`PsisCheck.passes`).
 """
 
 from __future__ import annotations
@@ -140,7 +142,7 @@ class ModuleDiagnostics:
 
     @property
     def converged(self) -> bool:
-        """The sampler met its targets and the expansion is exact enough."""
+        """The sampler met its targets and the last PSIS check passes (:attr:`PsisCheck.passes`)."""
         return bool(self.sampler_converged and self.psis[-1].passes)
 
     def reasons(self) -> list:

@@ -20,8 +20,9 @@ The pipeline, each step a plain function of the previous one's result:
 5. the expansion is *checked* against the exact model on posterior draws by
    Pareto-smoothed importance sampling: ``k_hat`` < 0.7 means the exact
    posterior is what was sampled (to importance-sampling accuracy); above
-   that the expansion is rebuilt at the posterior mean and the sampling
-   repeated.
+   that, on 400 draws and again on 2000 for a converged run
+   (:func:`_final_checks`), the expansion is rebuilt at the posterior mean
+   and the sampling repeated.
 
 A module's random streams come from the run seed and the module id, so a
 module's result does not depend on which other modules are in the batch or
@@ -133,10 +134,11 @@ class CalibrationOptions:
         ``k_hat`` from 400 draws rests on their 60 largest weights and
         scatters by ~0.17 (0.11 from 2000; weights ``exp(c x^2)``, 40 samples
         each): on one liquid-plate module the same stage's weights gave 0.70
-        from 400 draws and 0.49 from 2000.  A stage is rebuilt only when the
-        larger sample, whose ``k_hat`` the 0.7 threshold is meant for
+        from 400 draws and 0.49 from 2000.  A converged stage is rebuilt only
+        when the larger sample, whose ``k_hat`` the 0.7 threshold is meant for
         (Vehtari et al. 2024: ``1 - 1/log10(S)`` = 0.697 at 2000 draws), also
-        fails (:attr:`~tembayes.calibrate.diagnostics.PsisCheck.passes`).
+        fails (:attr:`~tembayes.calibrate.diagnostics.PsisCheck.passes`); an
+        unconverged one is rebuilt anyway.
     max_relinearise : int
         Last expansion stage (the pilot is stage 0); reported, not fatal.
     psis_probe : int
@@ -603,7 +605,26 @@ def psis_check(
     stage: int,
     early_steps: int | None = None,
 ) -> PsisCheck:
-    """Pareto-k of importance weights exact/linearised on ``n`` posterior draws ``X`` (coordinates, laws first)."""
+    """Pareto-k of the importance weights exact/linearised on ``n`` of the posterior draws ``X``.
+
+    Parameters
+    ----------
+    like_exact, like_lin : StepLikelihood
+        The exact model's likelihood and the expansion's.
+    X : ndarray, shape (S, p)
+        Posterior draws in the sampler's coordinates (the five laws first).
+    rng : numpy.random.Generator
+        Picks the ``n`` draws (without replacement; all of them if fewer).
+    n : int
+    stage : int
+        The expansion stage checked.
+    early_steps : int, optional
+        Steps after which a check during sampling ran.
+
+    Returns
+    -------
+    PsisCheck
+    """
     idx = rng.choice(len(X), size=min(n, len(X)), replace=False)
     Xs = X[idx]
     lw = like_exact.log_likelihood_x(Xs) - like_lin.log_likelihood_x(Xs)
@@ -622,7 +643,19 @@ def psis_check(
 
 
 def law_shift_sd(laws: np.ndarray, log_weights: np.ndarray) -> float:
-    """Largest shift of the weighted over the plain mean of ``laws`` ``(S, 5)``, in the plain sds."""
+    """Largest shift of the weighted over the plain mean of the laws, in their plain sds.
+
+    Parameters
+    ----------
+    laws : ndarray, shape (S, 5)
+        The laws' draws in the sampler's coordinates (the log of R0, S0 and K;
+        a shift in sds is the same in the values to first order).
+    log_weights : ndarray, shape (S,)
+
+    Returns
+    -------
+    float
+    """
     w = np.exp(log_weights - np.max(log_weights))
     w = w / w.sum()
     sd = laws.std(axis=0)
@@ -941,8 +974,9 @@ def _next_state(state, run, psis, p) -> dict:
 def _final_checks(prob, st, stage, exact_like) -> list[PsisCheck]:
     """A finished stage's PSIS checks, the last deciding: ``psis_draws``, then ``psis_recheck_draws`` where that fails.
 
-    The first look decides every stage it passes (their draws and checks as
-    before); one that fails a converged run is followed by a second look on
+    The first look decides every stage it passes (with the same random
+    numbers as a run without a second look); one that fails a converged run
+    is followed by a second look on
     ``psis_recheck_draws`` draws of the same chain (drawn anew from their own
     stream, so they may include the first look's), and that look decides
     (:attr:`~tembayes.calibrate.diagnostics.PsisCheck.passes`: it also needs
@@ -985,8 +1019,10 @@ def _sample_stages(prob, state, levels, exact_like, *, state_file, timings, say,
             psis += _final_checks(prob, st, stage, exact_like)
             if (psis[-1].passes and st.run.converged) or stage >= prob.options.max_relinearise:
                 return st, psis, resumed, state
-            k = psis[-1].k_hat
-            why = f"not converged in {st.budget} steps" if psis[-1].passes else f"expansion off (k_hat {k:.2f})"
+            last = psis[-1]
+            ess = last.weight_ess_fraction * (last.draws or 0)
+            off = f"expansion off (k_hat {last.k_hat:.2f} on {last.draws} draws, {ess:.0f} effective)"
+            why = f"not converged in {st.budget} steps" if last.passes else off
             say(f"{prob.module_id}: {why}; rebuilding the expansion at the posterior mean")
         state = _next_state(state, st.run, psis, prob.model_space.ndim)
         if state_file:
@@ -1036,8 +1072,8 @@ def _calibrate_module(
     if not diag.converged:
         warnings.warn(
             f"{module.id}: not converged (sampler converged: {st.run.converged} after {st.run.steps} steps, R-hat "
-            f"max {np.nanmax(st.run.rhat):.3f}, bulk ESS min {np.nanmin(st.run.ess_bulk):.0f}; expansion PSIS k_hat "
-            f"{diag.psis_k:.2f}); results are marked converged: false",
+            f"max {np.nanmax(st.run.rhat):.3f}, bulk ESS min {np.nanmin(st.run.ess_bulk):.0f}; {'; '.join(diag.reasons())}); "
+            "results are marked converged: false",
             RuntimeWarning,
             stacklevel=3,
         )

@@ -396,7 +396,8 @@ def module_entry(r: ModuleCalibration, outlier_prob: float | None = None) -> dic
     (null without a population fit or for a module left out of it; filled in
     by :func:`summary`), ``diagnostics`` (``rhat_max``,
     ``ess_bulk_min``, ``converged`` plus ``tau_max_steps``, ``steps``,
-    ``psis_k``, ``psis_draws``, ``psis_effective_draws``, ``psis_law_shift_sd``); extras: ``hysteresis``, ``nuisance`` (rig parameters, step
+    ``psis_k``; ``psis_draws``, ``psis_effective_draws`` and
+    ``psis_law_shift_sd`` where the record has them); extras: ``hysteresis``, ``nuisance`` (rig parameters, step
     shift, noise), ``held`` (with ``--discrepancy robust``: the held rig
     parameters' carried-over draws).
     """
