@@ -976,9 +976,9 @@ def _final_checks(prob, st, stage, exact_like) -> list[PsisCheck]:
 
     The first look decides every stage it passes (with the same random
     numbers as a run without a second look); one that fails a converged run
-    is followed by a second look on
-    ``psis_recheck_draws`` draws of the same chain (drawn anew from their own
-    stream, so they may include the first look's), and that look decides
+    is followed by a second look on ``psis_recheck_draws`` draws of the same
+    chain (drawn anew from their own stream, so they may include the first
+    look's), and that look decides
     (:attr:`~tembayes.calibrate.diagnostics.PsisCheck.passes`: it also needs
     usable weights, since on a liquid-plate module it reached ``k_hat`` 0.69
     with 12 effective draws of 2000).
