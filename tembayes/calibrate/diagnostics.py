@@ -61,11 +61,16 @@ class PsisCheck:
     recheck: bool = False
 
     @property
+    def effective_draws(self) -> float | None:
+        """Effective sample size of the weights [draws] (None for a record without ``draws``)."""
+        return None if self.draws is None else self.weight_ess_fraction * self.draws
+
+    @property
     def passes(self) -> bool:
         """``k_hat`` below :data:`PSIS_K_MAX`, and for a second look enough effective draws."""
         if self.k_hat >= PSIS_K_MAX:
             return False
-        return not self.recheck or self.weight_ess_fraction * self.draws >= RECHECK_MIN_ESS
+        return not self.recheck or self.effective_draws >= RECHECK_MIN_ESS
 
     def to_json(self) -> dict:
         """The check as stored (the optional fields only when set)."""
@@ -163,9 +168,9 @@ class ModuleDiagnostics:
         if last.k_hat >= PSIS_K_MAX:
             bits.append(f"expansion PSIS k_hat {last.k_hat:.2f} >= {PSIS_K_MAX}{on}")
         elif not last.passes:
-            ess = last.weight_ess_fraction * last.draws
             bits.append(
-                f"expansion PSIS weights degenerate: {ess:.0f} effective of {last.draws} draws < {RECHECK_MIN_ESS}"
+                f"expansion PSIS weights degenerate: {last.effective_draws:.0f} effective of {last.draws} draws "
+                f"< {RECHECK_MIN_ESS}"
             )
         return bits
 

@@ -1020,8 +1020,7 @@ def _sample_stages(prob, state, levels, exact_like, *, state_file, timings, say,
             if (psis[-1].passes and st.run.converged) or stage >= prob.options.max_relinearise:
                 return st, psis, resumed, state
             last = psis[-1]
-            ess = last.weight_ess_fraction * (last.draws or 0)
-            off = f"expansion off (k_hat {last.k_hat:.2f} on {last.draws} draws, {ess:.0f} effective)"
+            off = f"expansion off (k_hat {last.k_hat:.2f} on {last.draws} draws, {last.effective_draws:.0f} effective)"
             why = f"not converged in {st.budget} steps" if last.passes else off
             say(f"{prob.module_id}: {why}; rebuilding the expansion at the posterior mean")
         state = _next_state(state, st.run, psis, prob.model_space.ndim)

@@ -423,7 +423,7 @@ def module_entry(r: ModuleCalibration, outlier_prob: float | None = None) -> dic
     last = d.psis[-1]
     if last.draws is not None:
         entry["diagnostics"]["psis_draws"] = last.draws
-        entry["diagnostics"]["psis_effective_draws"] = last.weight_ess_fraction * last.draws
+        entry["diagnostics"]["psis_effective_draws"] = last.effective_draws
         entry["diagnostics"]["psis_law_shift_sd"] = last.law_shift_sd
     entry["hysteresis"] = r.hysteresis
     entry["nuisance"] = {k: stats(r.draws[k]) for k in r.names if k not in MODULE_PARAMETERS}
