@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from importlib import resources
+
 import numpy as np
 import pytest
 
@@ -489,3 +491,45 @@ def test_calibration_on_stepped_plates_finds_the_slopes(plates_batch):
     t = truth["modules"]["TEM1"]
     for k, rel in {"R0_ohm": 0.01, "S0_V_per_K": 0.01, "R1_ohm_per_K": 0.05, "S1_V_per_K2": 0.05}.items():
         assert np.mean(res.draws[k]) == pytest.approx(t[k], rel=rel), k
+
+
+def test_a_held_rig_parameter_is_anchored_not_carried_as_a_given_draw(heatsink_batch, tmp_path):
+    """A rig file's held parameter (here a face leak, which the carry-over spreads over its whole range)
+    joins the anchoring's updated parameters, as the held depths do; the module's own held ``g_ceramic``
+    does not.  As a given draw its spread reached the unpinned heat capacities through the update's
+    linear correction: on a heatsink-al module out-of-model it moved ``c_legs`` to 4.7e7 J/K."""
+    from tembayes.calibrate.module import CalibrationOptions, calibration_rig
+    from tembayes.predict.anchor import held_draws
+    from tembayes.predict.predictive import posterior_draws
+    from tembayes.predict.runmodel import RunModel
+
+    text = (
+        resources.files("tembayes")
+        .joinpath("rigs", "heatsink-al.toml")
+        .read_text()
+        .replace(
+            "[boundaries]",
+            'leak_face = {nominal = 0.004, low = 0.001, high = 0.01, unit = "W/K", doc = "a face to the room", '
+            "held = true}\n\n[boundaries]",
+        )
+    )
+    text += "".join(f'\n[[links]]\na = "{f}_plate"\nb = "ambient"\ng = "leak_face"\n' for f in ("hot", "cold"))
+    (tmp_path / "rig.toml").write_text(text)
+    rig = calibration_rig({"file": str(tmp_path / "rig.toml")}, CalibrationOptions(model="full"))
+    out, truth = heatsink_batch
+    t = {**truth["modules"]["TEM1"], **truth["modules"]["TEM1"]["rig"]}
+    exp = load_batch(out).modules["TEM1"].identification
+    rng = np.random.default_rng(4)
+    n = 96
+    raw = {k: t[k] * (1.0 + 1e-4 * rng.standard_normal(n)) for k in (*PAPER, *rig.parameter_names) if k in t}
+    # the carry-over's draws: the face leak over its range, the load's leak moved against it (linear in the log)
+    d = rig.parameter("leak_face").log_sd * rng.standard_normal(n)
+    raw["leak_face"] = 0.004 * np.exp(d)
+    raw["leak"] = t["leak"] - 2 * 0.004 * d
+    raw["step_shift_s"] = np.full(n, RunModel(exp, rig).fit_phase({k: v[0] for k, v in raw.items()}))
+    held = held_draws(rig, raw, {}, "TEM1")
+    assert set(held) == {"leak_face"} and np.array_equal(held["leak_face"], raw["leak_face"])
+    assert rig.parameter("g_ceramic").held
+    a = posterior_draws(raw, {}, "TEM1", exp, rig)
+    assert a.anchor["TEM1"]["updated"] == ["leak_face"] and "leak_face" in a.anchor["TEM1"]["posterior_sd"]
+    assert not np.array_equal(a.params["leak_face"], raw["leak_face"])  # the update's draws, not the run's

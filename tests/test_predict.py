@@ -465,14 +465,14 @@ def test_the_anchoring_starts_from_the_depths_each_draws_laws_were_moved_for():
     """A robust run keeps each draw's carried-over depth (no prior: held, not sampled): those draws
     join the anchoring as they are, paired with their laws; a depth the run sampled (it has a prior)
     is left to the sampled parameters; a depth the run did not keep is drawn from its range."""
-    from tembayes.predict.anchor import held_depth_draws
+    from tembayes.predict.anchor import held_draws
 
     rng = np.random.default_rng(3)
     kept = 2.5e-3 * np.exp(0.05 * rng.standard_normal(400))
     raw = {"R0_ohm": 2.0 + 1e-3 * np.log(kept / 2.5e-3), "depth_T2": kept, "depth_T3": kept * 1.01}
     raw["depth_T4"] = np.full(400, 2.5e-3)  # kept at its held value: the carry-over could not move it
     priors = {"depth_T3": {"kind": "lognormal", "center": 2.5e-3, "scale": 0.05}}
-    out = held_depth_draws(RIG, raw, priors, "TEM1")
+    out = held_draws(RIG, raw, priors, "TEM1")
     assert set(out) == {"depth_T1", "depth_T2", "depth_T4"}
     assert np.array_equal(out["depth_T2"], kept)  # joint with R0, draw by draw
     assert np.corrcoef(out["depth_T2"], raw["R0_ohm"])[0, 1] > 0.999
@@ -489,7 +489,7 @@ def test_anchoring_finds_a_block_sensor_off_its_nominal_depth(run3, tmp_path, de
     The step posterior is the truth (a narrow cloud about it), so only the
     depths are anchored; the run is the bench's with T4 0.2 mm off nominal.
     """
-    from tembayes.predict.anchor import held_depth_draws
+    from tembayes.predict.anchor import held_draws
     from tembayes.predict.predictive import posterior_draws
 
     _, _, truth = run3
@@ -502,7 +502,7 @@ def test_anchoring_finds_a_block_sensor_off_its_nominal_depth(run3, tmp_path, de
     raw = {k: v for k, v in raw.items() if not k.startswith("depth_")}
     # the run's step phase, as a calibration samples it for its identification run
     raw["step_shift_s"] = np.full(64, RunModel(exp, RIG).fit_phase({k: v[0] for k, v in raw.items()}))
-    prior = held_depth_draws(RIG, raw, {}, "TEM1")
+    prior = held_draws(RIG, raw, {}, "TEM1")
     assert set(prior) == {"depth_T1", "depth_T2", "depth_T3", "depth_T4"}
     d = posterior_draws(raw, {}, "TEM1", exp, RIG)
     assert set(d.anchor["TEM1"]["updated"]) == set(prior)

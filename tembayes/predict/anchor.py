@@ -45,6 +45,7 @@ from tembayes.constants import MODULE_PARAMETERS
 from tembayes.data.quality import noise_estimate
 from tembayes.errors import ModelError
 from tembayes.physics.effects import EFFECT_PARAMETERS
+from tembayes.physics.rigfile import CERAMIC
 from tembayes.predict.runmodel import VOLTAGE
 
 #: Parameters sampled on their natural scale (can be negative); every other
@@ -150,49 +151,57 @@ def unpinned(draws, priors, rig, fraction=UNPINNED_FRACTION):
     return tuple(out)
 
 
-def held_depth_draws(rig, draws, priors, label):
-    """Draws of the sensor depths the calibration held, for the anchoring to update.
+def held_draws(rig, draws, priors, label):
+    """Draws of the rig parameters the calibration held, for the anchoring to update.
 
-    A sensor's depth below its block's face is held at its nominal value in
-    the step likelihood (with ``--discrepancy robust`` its uncertainty is
-    carried over to the laws).  The block sensors themselves tell it: in the
-    bottom block, which holds no steady heat flow, one a quarter of a
-    millimetre off its nominal depth reads ~20 mK off while the block heats at
-    0.15 K/s and nothing at steady state, so at its nominal value every step's
-    transient shows as a gap; in the top block, which carries the module's heat
-    to the cooler, it also reads a steady offset (~0.15 K at 15 W), where the
-    depth shares the data with ``g_cooler``.  Its draws join the anchoring:
-    the carry-over's own draws when the run kept them (each draw's depth is
-    the one its laws were moved for), otherwise (or where the carry-over
-    could not move it, its draws all at the held value) independent draws from the
-    carry-over's prior (log-normal about the nominal depth, the sd of a
-    uniform draw over its documented range), which the cut update conditions
-    on the laws.  Other held parameters (the module's ceramic) act between
-    the junctions and the faces, where the block sensors cannot separate them
-    from the pastes: the run's carried-over draws are simulated as they are.
+    A parameter the rig file marks ``held`` is held at its nominal value in the
+    step likelihood (with ``--discrepancy robust`` its uncertainty is carried
+    over to the laws), yet the block sensors' levels and transients tell it.
+    A sensor's depth below its block's face: in the bottom block, which holds
+    no steady heat flow, one a quarter of a millimetre off its nominal depth
+    reads ~20 mK off while the block heats at 0.15 K/s and nothing at steady
+    state, so at its nominal value every step's transient shows as a gap; in
+    the top block, which carries the module's heat to the cooler, it also reads
+    a steady offset (~0.15 K at 15 W), where the depth shares the data with
+    ``g_cooler``.  A module face's leak to the room sets how the load block's
+    level follows the room against the cold face's.  Their draws join the
+    anchoring: the carry-over's own draws when the run kept them (each draw's
+    value is the one its laws were moved for), otherwise (or where the
+    carry-over could not move it, its draws all at the held value) independent
+    draws from the carry-over's prior (log-normal about the nominal value, the
+    sd of a uniform draw over its documented range), which the cut update
+    conditions on the laws.  Left with the other parameters (simulated as they
+    are) is the module's own held parameter (``g_ceramic``): it acts between
+    the junctions and the faces, where the block sensors cannot separate it
+    from the pastes.
+
+    Held parameters must be updated, not simulated as given: a given
+    parameter's spread is carried into the updated ones by a correction
+    linear in its deviation, and a held parameter's spread (its whole range)
+    is too wide for that -- a face leak spread over 0.001-0.01 W/K moved the
+    updated heat capacities by orders of magnitude.
 
     Parameters
     ----------
     rig : RigDescription
-        The calibration rig (its ``depths`` name the parameters).
+        The calibration rig (its parameters' ``held`` flags).
     draws : dict
         ``name -> (M,)`` the run's draws: sampled parameters (those with a
         prior) and carried-over held ones.
     priors : dict
-        The run's priors (a depth with one was sampled and is left out).
+        The run's priors (a held parameter with one was sampled and is left out).
     label : str
         The module's id: seeds the independent draws (:func:`tembayes.common.seeds.stream`).
 
     Returns
     -------
     dict
-        ``name -> (M,)`` depth [m] of every held sensor depth of the rig.
+        ``name -> (M,)`` value (SI) of every held rig parameter with a range.
     """
     n = len(next(iter(draws.values())))
-    wanted = {d.parameter for d in rig.depths.values()}
     out = {}
     for q in rig.parameters:
-        if q.name not in wanted or q.name in priors or q.high <= q.low:
+        if not q.held or q.name == CERAMIC.name or q.name in priors or q.high <= q.low:
             continue
         kept = np.asarray(draws.get(q.name, ()), float)
         if kept.size and np.ptp(kept) > 0:

@@ -38,7 +38,7 @@ from tembayes.constants import KELVIN, MODULE_PARAMETERS, T_REF
 from tembayes.errors import DataError, ModelError, TembayesError
 from tembayes.physics import effects as E
 from tembayes.physics.effects import EFFECT_PARAMETERS
-from tembayes.predict.anchor import UNPINNED_FRACTION, anchor_rig, held_depth_draws, unpinned
+from tembayes.predict.anchor import UNPINNED_FRACTION, anchor_rig, held_draws, unpinned
 from tembayes.predict.runmodel import RunModel
 
 #: Central band levels [%] (docs/outputs.md, 'metrics.json (predict)').
@@ -154,7 +154,7 @@ def posterior_draws(raw, priors, label, identification, rig, *, laws="linear"):
     PredictiveDraws
     """
     if laws == "linear":
-        held = held_depth_draws(rig, raw, priors, label)
+        held = held_draws(rig, raw, priors, label)
     else:
         # the constant laws' misfit is the paper model's to show, not the held parameters' to absorb:
         # they go back to the values the calibration held them at (their carried-over draws moved the linear laws)
