@@ -186,3 +186,31 @@ def test_run_prior_draws_per_module(written):
     assert d.shape == (300, 2)
     np.testing.assert_array_equal(d[:, 0], written["prior"]["R0_ohm"])
     np.testing.assert_array_equal(run.prior_draws(("R0_ohm",), "TEM2")[:, 0], written["prior"]["R0_ohm"])
+
+
+def test_a_rig_files_own_parameters_carry_its_units(tmp_path):
+    """A rig file's parameters that no shipped table knows (``g_sink``, ``lead_share``) get the units
+    the rig file gives them, in the module files, both writers' posterior.nc and a module read back."""
+    import dataclasses
+
+    from tembayes.physics.rigread import shipped_rig
+
+    rig = shipped_rig("heatsink-al").build(layers=True)
+    extra = ("g_sink", "lead_share")
+    assert all(results.variable_unit(k) is None for k in extra)  # unknown without the run's rig
+    rng = np.random.default_rng(2)
+    mods = []
+    for mid in ("TEM1", "TEM2"):
+        m = make_module(mid, rng)
+        shape = m.draws["R0_ohm"].shape
+        draws = {**m.draws, **{k: rig.parameter(k).nominal * np.ones(shape) for k in extra}}
+        units = {k: rig.parameter(k).unit for k in extra}
+        mods.append(dataclasses.replace(m, names=m.names + extra, draws=draws, units=units))
+    files = [results.write_netcdf(results.to_inference_data([m]), tmp_path / "m" / f"{m.module_id}.nc") for m in mods]
+    memory = results.write_netcdf(results.to_inference_data(mods), tmp_path / "memory.nc")
+    streamed = results.write_run_posterior(tmp_path / "streamed.nc", files)
+    for path in (*files, memory, streamed):
+        post = _read(path).posterior
+        assert (post["g_sink"].attrs["units"], post["lead_share"].attrs["units"]) == ("W/K", "1"), path
+        assert post["R0_ohm"].attrs["units"] == "ohm"
+    assert results.read_module(files[0]).units == {"g_sink": "W/K", "lead_share": "1"}

@@ -264,6 +264,10 @@ class ModuleCalibration:
         Rig parameters the calibration held whose range ``--discrepancy
         robust`` carried over: their draws are the values each draw's laws
         were moved for (:meth:`~tembayes.calibrate.discrepancy.HeldSpread.values`).
+    units : dict
+        ``name -> unit`` (SI) of the calibration rig's parameters among
+        ``names`` and ``held``, as its rig file gives them (``posterior.nc``'s
+        ``units`` attributes).
     """
 
     module_id: str
@@ -281,6 +285,7 @@ class ModuleCalibration:
     rig: str
     options: dict = field(default_factory=dict)
     held: tuple = ()
+    units: dict = field(default_factory=dict)
 
     def law_draws(self) -> np.ndarray:
         """``(n, 5)`` draws of the module parameters (contract order, SI)."""
@@ -1102,6 +1107,7 @@ def _calibrate_module(
         seed={"run": int(seed), "emcee": prob.emcee_seed},
         rig=prob.rig.name,
         options=opt.to_json(),
+        units={q.name: q.unit for q in prob.rig.parameters if q.name in prob.space.names + post.held},
     )
 
 

@@ -125,17 +125,26 @@ def _suffix_unit(name):
     return _UNIT_TOKENS.get(tok[-1]) if len(tok) >= 2 else None
 
 
-def variable_unit(name: str) -> str | None:
+def variable_unit(name: str, units: Mapping[str, str] | None = None) -> str | None:
     """SI unit of a ``posterior.nc`` variable (its ``units`` attribute), or None if unknown.
 
-    From, in turn: the log-likelihoods (``"nat"``) and indices (``"1"``); the
-    rig's and the effect catalogue's parameter tables
+    From, in turn: ``units`` (the calibration rig's own parameters, e.g. a
+    rig file's ``g_sink``); the log-likelihoods (``"nat"``) and indices
+    (``"1"``); the reference rig's and the effect catalogue's parameter tables
     (:class:`~tembayes.physics.rig.RigParameter`,
     :class:`~tembayes.physics.effects.EffectParameter`); the noise scales
     (``"1"``); the population's ``hyper_``/``mu_``/``tau_`` prefixes; the name's
     unit suffix (``R1_ohm_per_K`` -> ``"ohm/K"``, ``S1_V_per_K2`` -> ``"V/K^2"``,
     ``step_Tavg_C`` -> ``"degC"``, ``tau_R0_rel`` -> ``"1"``).
+
+    Parameters
+    ----------
+    name : str
+    units : dict, optional
+        ``name -> unit`` of the run's rig parameters (:attr:`ModuleCalibration.units`).
     """
+    if units and name in units:
+        return units[name]
     if name in _FIXED_UNITS:
         return _FIXED_UNITS[name]
     table = _table_units()
@@ -145,14 +154,14 @@ def variable_unit(name: str) -> str | None:
         return "1"
     for prefix in ("hyper_", "mu_", "tau_"):
         if name.startswith(prefix):
-            return variable_unit(name[len(prefix) :])
+            return variable_unit(name[len(prefix) :], units)
     return _suffix_unit(name)
 
 
-def _set_units(ds):
-    """Put ``units`` on every data variable of ``ds`` whose unit is known (in place)."""
+def _set_units(ds, units=None):
+    """Put ``units`` on every data variable of ``ds`` whose unit is known (in place; see :func:`variable_unit`)."""
     for k, v in ds.data_vars.items():
-        u = variable_unit(k)
+        u = variable_unit(k, units)
         if u is not None:
             v.attrs["units"] = u
     return ds
@@ -172,6 +181,7 @@ def _meta(r: ModuleCalibration):
                 "seed": r.seed,
                 "rig": r.rig,
                 "options": r.options,
+                "units": r.units,
             }
         )
     )
@@ -244,8 +254,9 @@ def to_inference_data(
         groups["prior"] = prior_dataset(prior_draws, mods)
     if population is not None:
         groups["population"] = population_dataset(population)
+    units = {k: u for r in results for k, u in r.units.items()}
     for ds in groups.values():
-        _set_units(ds)
+        _set_units(ds, units)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # "population" is not one of arviz's standard groups
         idata = az.InferenceData(**groups)
@@ -379,6 +390,7 @@ def read_module(path: Path | str) -> ModuleCalibration:
         rig=meta["rig"],
         options=meta.get("options", {}),
         held=held,
+        units=meta.get("units", {}),
     )
 
 
@@ -497,6 +509,7 @@ def _module_layout(path):
         mid = post["module"][0]
         return {
             "names": names,
+            "units": {k: post[k].attrs["units"] for k in names if "units" in post[k].attrs},
             "nw": post.dimensions["chain"].size,
             "nk": post.dimensions["draw"].size,
             "ns": ns,
@@ -544,6 +557,7 @@ def write_run_posterior(
     if not lay:
         raise ValueError("no module files to write")
     names, nw, nk = lay[0]["names"], lay[0]["nw"], lay[0]["nk"]
+    units = {k: u for m in lay for k, u in m["units"].items()}
     for p, m in zip(module_files, lay):
         if m["names"] != names or (m["nw"], m["nk"]) != (nw, nk):
             raise ValueError(
@@ -594,8 +608,8 @@ def write_run_posterior(
                     chunks = tuple(1 if d == "module" else sizes[d] for d in dims)
                     v = grp.create_variable(k, dims, dtype="f8", chunks=chunks, fillvalue=np.nan)
                     v.attrs["_FillValue"] = np.nan
-                    if variable_unit(k) is not None:
-                        v.attrs["units"] = variable_unit(k)
+                    if variable_unit(k, units) is not None:
+                        v.attrs["units"] = variable_unit(k, units)
                 grp.attrs["tembayes_tref_C"] = tref
                 groups[g] = grp
             if prior_draws is not None:  # prior_dataset's layout, written a module at a time
@@ -611,8 +625,8 @@ def write_run_posterior(
                         k, ("chain", "draw", "module"), dtype="f8", chunks=(1, nd, 1), fillvalue=np.nan
                     )
                     v.attrs["_FillValue"] = np.nan
-                    if variable_unit(k) is not None:
-                        v.attrs["units"] = variable_unit(k)
+                    if variable_unit(k, units) is not None:
+                        v.attrs["units"] = variable_unit(k, units)
                 grp.attrs["tembayes_tref_C"] = tref
             for i, (p, m) in enumerate(zip(module_files, lay)):
                 with h5netcdf.File(p, "r") as src:
