@@ -10,6 +10,7 @@ too rarely and the sandwich brings it back into the band.
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.stats import binom
 
 from tembayes.calibrate.discrepancy import window_sandwich, window_scores
@@ -121,7 +122,7 @@ def test_a_held_parameter_moves_the_mode_as_its_linear_response_says():
     A = np.column_stack([t, np.ones_like(t)])
     move = np.linalg.lstsq(A, y_true - y_held, rcond=None)[0]
     np.testing.assert_allclose(spread.shift[:, 0] * 0.2, -move, rtol=1e-6)  # the held value errs by -0.2
-    np.testing.assert_allclose(spread.log_sd, [0.8 / np.sqrt(12.0)])  # uniform over the log range
+    np.testing.assert_allclose(spread.sd, [0.8 / np.sqrt(12.0)])  # uniform over the log range
     xi = spread.draw(np.random.default_rng(0), 20000)
     X = spread.apply(np.zeros((20000, 2)), xi)
     np.testing.assert_allclose(X.std(axis=0), np.abs(spread.shift[:, 0]) * 0.8 / np.sqrt(12.0), rtol=0.03)
@@ -156,7 +157,7 @@ def test_a_draw_keeps_the_held_value_its_laws_were_moved_for():
 
     A = np.column_stack([t, np.ones_like(t)])
     taken = A @ np.linalg.lstsq(A, 0.3 * t**2, rcond=None)[0]
-    sd = spread.log_sd[0]
+    sd = spread.sd[0]
     np.testing.assert_allclose(
         predicted(values["q"]).std(axis=0), sd * np.abs(0.3 * t**2 - taken), rtol=0.03, atol=1e-9
     )
@@ -173,7 +174,7 @@ def test_a_share_is_moved_in_its_logit_never_out_of_its_range():
         (0.003, 0.001, (1e-4, 1e-2), False),
         (1e-4, 0.3, (0.0, 1.0), True),
     ):
-        one = HeldSpread(names=("q",), log_sd=np.array([1.0]), shift=np.array([[0.0], [push]]), held_value=np.ones(1))
+        one = HeldSpread(names=("q",), sd=np.array([1.0]), shift=np.array([[0.0], [push]]), held_value=np.ones(1))
         X = np.column_stack([np.zeros(20000), np.full(20000, mean)])
         S = one.apply(X, one.draw(np.random.default_rng(0), 20000), shares={1: (low, high)})
         assert np.all((S[:, 1] > low) & (S[:, 1] < high))
@@ -198,3 +199,36 @@ def test_a_held_parameter_the_model_cannot_simulate_is_named_not_fatal():
     A = np.column_stack([t, np.ones_like(t)])
     move = np.linalg.lstsq(A, 0.3 * 0.2 * t**2, rcond=None)[0]
     np.testing.assert_allclose(spread.shift[:, 0] * 0.2, -move, rtol=1e-6)
+
+
+def test_a_held_share_is_carried_in_its_logit_and_stays_below_one():
+    """A held share over 0.2-0.9 (a bottom block's tabs): moved in its log, 0.5 e^d passed one in 5.5 % of
+    the carry-over's draws; in its logit every draw is a share, its logit moved by exactly the draw, and
+    the anchoring's own draws of it (a run that kept none) are shares too."""
+    from types import SimpleNamespace
+
+    from tembayes.calibrate.discrepancy import held_nuisance_spread
+    from tembayes.calibrate.priors import logit
+    from tembayes.physics.rig import RigParameter
+    from tembayes.predict.anchor import held_draws
+
+    share = RigParameter("q", 0.5, 0.2, 0.9, "1", held=True)
+    assert share.is_share
+    assert share.spread_sd == pytest.approx((logit(0.9) - logit(0.2)) / np.sqrt(12.0))
+    model, space, J, _ = _linear_problem({"q": 0.5})
+    spread = held_nuisance_spread(model, space, np.array([1.0, 0.5]), J, np.array([0.01]), {"q": share})
+    assert spread.shares == ("q",) and spread.sd[0] == pytest.approx(share.spread_sd)
+    xi = spread.draw(np.random.default_rng(2), 20000)
+    q = spread.values(xi)["q"]
+    assert np.all((q > 0) & (q < 1))
+    old = 0.5 * np.exp(xi[:, 0] / share.spread_sd * np.log(4.5) / np.sqrt(12.0))  # the same draws in the log
+    assert 0.04 < np.mean(old > 1) < 0.07
+    np.testing.assert_allclose(logit(q), xi[:, 0], atol=1e-9)
+    # the response per unit of logit: at 0.5, d log q / d logit q = 1 - q = 0.5, so half the log's shift
+    log_space = held_nuisance_spread(
+        model, space, np.array([1.0, 0.5]), J, np.array([0.01]), {"q": RigParameter("q", 0.5, 0.4, 0.6, "W/K")}
+    )
+    np.testing.assert_allclose(spread.shift, 0.5 * log_space.shift, rtol=2e-3)
+    drawn = held_draws(SimpleNamespace(parameters=(share,), depths={}), {"R0_ohm": np.ones(4000)}, {}, "TEM1")["q"]
+    assert np.all((drawn > 0) & (drawn < 1))
+    assert np.std(logit(drawn)) == pytest.approx(share.spread_sd, rel=0.05)

@@ -479,7 +479,7 @@ def test_the_anchoring_starts_from_the_depths_each_draws_laws_were_moved_for():
     for k in ("depth_T1", "depth_T4"):  # not kept or not moved: independent of the laws, over the range
         q = RIG.parameter(k)
         assert abs(np.corrcoef(out[k], raw["R0_ohm"])[0, 1]) < 0.2
-        np.testing.assert_allclose(np.std(np.log(out[k] / q.nominal)), q.log_sd, rtol=0.1)
+        np.testing.assert_allclose(np.std(np.log(out[k] / q.nominal)), q.spread_sd, rtol=0.1)
 
 
 @pytest.mark.parametrize("depth_T4", [2.70e-3, 2.30e-3])

@@ -133,26 +133,30 @@ class HeldSpread:
     ----------
     names : tuple of str
         The held parameters.
-    log_sd : ndarray, shape (m,)
-        Their uncertainty (log scale: the sd of a uniform draw over their documented range).
+    sd : ndarray, shape (m,)
+        Their uncertainty in their coordinate (the log, the logit for a share: the sd of a
+        uniform draw over their documented range, :attr:`~tembayes.physics.rig.RigParameter.spread_sd`).
     shift : ndarray, shape (p, m)
-        Shift of the posterior mode's coordinates per unit of each one's log.
+        Shift of the posterior mode's coordinates per unit of each one's coordinate.
     held_value : ndarray, shape (m,)
         The values the calibration held them at (SI).
     not_carried : tuple of str
         Held parameters whose response could not be simulated at the posterior's centre (their
         shift is zero: nothing is carried over for them).
+    shares : tuple of str
+        Held parameters that are shares (moved in their logit, not their log).
     """
 
     names: tuple
-    log_sd: np.ndarray
+    sd: np.ndarray
     shift: np.ndarray
     held_value: np.ndarray
     not_carried: tuple = ()
+    shares: tuple = ()
 
     def draw(self, rng: np.random.Generator, n: int) -> np.ndarray:
-        """``(n, m)`` draws of the held parameters' log deviations from their held values."""
-        return rng.standard_normal((n, len(self.names))) * self.log_sd
+        """``(n, m)`` draws of the held parameters' deviations from their held values, in their coordinates."""
+        return rng.standard_normal((n, len(self.names))) * self.sd
 
     def values(self, xi: np.ndarray) -> dict[str, np.ndarray]:
         """``name -> (n,)`` the held parameters' values in the draws ``xi`` (SI).
@@ -168,7 +172,8 @@ class HeldSpread:
         out = {}
         for i, q in enumerate(self.names):
             d = np.zeros(len(xi)) if q in self.not_carried else xi[:, i]
-            out[q] = self.held_value[i] * np.exp(d)
+            v = self.held_value[i]
+            out[q] = expit(logit(v) + d) if q in self.shares else v * np.exp(d)
         return out
 
     def apply(
@@ -208,7 +213,7 @@ class HeldSpread:
         """Each held parameter's sd contribution to each law, as a fraction of the law's posterior sd."""
         return {
             q: {
-                coordinate_names[j]: float(abs(self.shift[j, i]) * self.log_sd[i] / law_sd[k])
+                coordinate_names[j]: float(abs(self.shift[j, i]) * self.sd[i] / law_sd[k])
                 for k, j in enumerate(law_idx)
             }
             for i, q in enumerate(self.names)
@@ -237,7 +242,8 @@ def held_nuisance_spread(
 
     A parameter the calibration holds at its nominal value (``RigParameter.held``,
     or a documented range too narrow to sample) is still uncertain.  Where
-    the mode would move if it were ``e^d`` times its value is the weighted
+    the mode would move if it were moved by ``d`` in its coordinate (``e^d``
+    times its value; a share in its logit, so it stays below one) is the weighted
     least-squares response ``-(J^T W J + P)^-1 J^T W df/dd`` of the mode to
     the prediction's change ``df/dd`` (``J`` the prediction's slopes in the
     sampled coordinates, ``W`` the noise weights, ``P`` the prior's curvature at ``x``);
@@ -273,8 +279,8 @@ def held_nuisance_spread(
     params = space.params(X)
     for i, q in enumerate(names):
         v = np.full(2 * m, float(space.fixed[q]))
-        v[2 * i] *= np.exp(h)
-        v[2 * i + 1] *= np.exp(-h)
+        v[2 * i] = held[q].moved(v[2 * i], h)
+        v[2 * i + 1] = held[q].moved(v[2 * i + 1], -h)
         params[q] = v
     Y = model.predict(params, strict=False)
     ok = np.all(np.isfinite(Y), axis=(1, 2))
@@ -285,7 +291,8 @@ def held_nuisance_spread(
     prec = np.array([p.coordinate_precision(xj) for p, xj in zip(space.priors, x)])
     JtWD = np.einsum("icn,qcn,c->iq", J, D, w)
     shift = -np.linalg.solve(JtWJ + np.diag(prec), JtWD)
-    log_sd = np.array([held[q].log_sd for q in names])
+    sd = np.array([held[q].spread_sd for q in names])
     failed = tuple(q for q, good in zip(names, ok) if not good)
     value = np.array([float(space.fixed[q]) for q in names])
-    return HeldSpread(names=names, log_sd=log_sd, shift=shift, held_value=value, not_carried=failed)
+    shares = tuple(q for q in names if held[q].is_share)
+    return HeldSpread(names=names, sd=sd, shift=shift, held_value=value, not_carried=failed, shares=shares)

@@ -30,7 +30,8 @@ A run folder::
 
 Every data variable has a ``units`` attribute (:func:`variable_unit`).
 
-Per-module metadata (diagnostics, hysteresis, priors, mode, seeds) is kept as
+Per-module metadata (names, held names, diagnostics, hysteresis, priors, mode,
+seeds, rig, options, the rig parameters' units) is kept as
 JSON in the attributes, so a module file alone restores its
 :class:`~tembayes.calibrate.module.ModuleCalibration`.
 """

@@ -92,7 +92,7 @@ def expected_widths(experiment, datasheet, *, rig_config=None, options=None, sta
         # the prediction's slopes (p, nc, n) from the whitened residuals' (obs - f) / noise
         J = -(fit.jac[: nc * n].T.reshape(len(x), nc, n)) * data.noise[None, :, None]
         spread = held_nuisance_spread(fit.model, space, x, J, data.noise, held)
-        total = cov + (spread.shift * spread.log_sd**2) @ spread.shift.T
+        total = cov + (spread.shift * spread.sd**2) @ spread.shift.T
     laws = _law_slopes(space, x)
     return Widths(
         sd={k: abs(d) * float(np.sqrt(total[j, j])) for k, (j, d, _) in laws.items()},

@@ -61,18 +61,34 @@ class RigParameter:
     held: bool = False
 
     @property
-    def log_sd(self) -> float:
-        """The sd of the log of a uniform draw over the documented range, ``log(high/low)/sqrt(12)``.
+    def spread_sd(self) -> float:
+        """The sd of the coordinate of a uniform draw over the documented range.
 
+        The coordinate is the log, or for a share (:attr:`is_share`) the logit,
+        so that a value moved by it (:meth:`moved`) stays positive, and a share
+        below one: ``log(high/low)/sqrt(12)``, or ``(logit(high) - logit(low))/sqrt(12)``.
         The uncertainty a held parameter is given wherever it is carried
         (the laws' carry-over, the predictive's anchoring).
         """
+        if self.is_share:
+            return float((_logit(self.high) - _logit(self.low)) / np.sqrt(12.0))
         return float(np.log(self.high / self.low) / np.sqrt(12.0))
+
+    def moved(self, value, d):
+        """``value`` moved by ``d`` in its coordinate (see :attr:`spread_sd`)."""
+        if self.is_share:
+            return 1.0 / (1.0 + np.exp(-(_logit(value) + d)))
+        return value * np.exp(d)
 
     @property
     def is_share(self) -> bool:
         """A share: dimensionless, its documented range inside (0, 1)."""
         return self.unit == "1" and 0.0 < self.low and self.high < 1.0
+
+
+def _logit(p):
+    p = np.asarray(p, float)
+    return np.log(p / (1.0 - p))
 
 
 @dataclass(frozen=True)

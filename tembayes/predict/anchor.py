@@ -168,8 +168,9 @@ def held_draws(rig, draws, priors, label):
     anchoring: the carry-over's own draws when the run kept them (each draw's
     value is the one its laws were moved for), otherwise (or where the
     carry-over could not move it, its draws all at the held value) independent
-    draws from the carry-over's prior (log-normal about the nominal value, the
-    sd of a uniform draw over its documented range), which the cut update
+    draws from the carry-over's prior (log-normal about the nominal value, or
+    logit-normal for a share, the sd of a uniform draw over its documented
+    range), which the cut update
     conditions on the laws.  Left with the other parameters (simulated as they
     are) is the module's own held parameter (``g_ceramic``): it acts between
     the junctions and the faces, where the block sensors cannot separate it
@@ -184,7 +185,7 @@ def held_draws(rig, draws, priors, label):
     Parameters
     ----------
     rig : RigDescription
-        The calibration rig (its parameters' ``held`` flags).
+        The calibration rig (its parameters' ``held`` flags, its sensors' ``depths``).
     draws : dict
         ``name -> (M,)`` the run's draws: sampled parameters (those with a
         prior) and carried-over held ones.
@@ -196,18 +197,19 @@ def held_draws(rig, draws, priors, label):
     Returns
     -------
     dict
-        ``name -> (M,)`` value (SI) of every held rig parameter with a range.
+        ``name -> (M,)`` value (SI) of every held rig parameter and sensor depth with a range.
     """
     n = len(next(iter(draws.values())))
+    depths = {d.parameter for d in rig.depths.values()}  # held, or fixed for a range too narrow to sample
     out = {}
     for q in rig.parameters:
-        if not q.held or q.name == CERAMIC.name or q.name in priors or q.high <= q.low:
+        if not (q.held or q.name in depths) or q.name == CERAMIC.name or q.name in priors or q.high <= q.low:
             continue
         kept = np.asarray(draws.get(q.name, ()), float)
         if kept.size and np.ptp(kept) > 0:
             out[q.name] = kept
         else:  # not kept, or kept at its held value because the carry-over could not move it
-            out[q.name] = q.nominal * np.exp(q.log_sd * stream(0, "held", label, q.name).standard_normal(n))
+            out[q.name] = q.moved(q.nominal, q.spread_sd * stream(0, "held", label, q.name).standard_normal(n))
     return out
 
 
