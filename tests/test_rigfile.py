@@ -348,7 +348,7 @@ def test_layers_put_the_alumina_outside_the_junctions():
     assert c[net.index("cold_ceramic")] == pytest.approx(0.8 * nom["c_plate"], rel=1e-12)
     assert c[net.index("cold_plate")] == pytest.approx(0.2 * nom["c_plate"] + 0.5 * nom["c_legs"], rel=1e-12)
     # the series is written from a to b: the alumina's half at the plate's end (the same sum, the same rounding)
-    (g,) = [g for a, b, g in rig.links if a == "cold_ceramic" and b != "cold_plate"]
+    (g,) = [g for a, b, g in rig.links if a == "cold_ceramic" and b not in ("cold_plate", "ambient")]
     assert g[0] == "2.0*g_ceramic"
     # the paste meets the alumina, the alumina the junctions (half its conductance on each side)
     g = net.G[0, net.index("sink"), net.index("hot_ceramic")]
@@ -356,6 +356,8 @@ def test_layers_put_the_alumina_outside_the_junctions():
     assert net.G[0, net.index("sink"), net.index("hot_plate")] == 0.0
     # a thermocouple on a plate touches its outside
     assert rig.sensors["T_hot_C"] == "hot_ceramic" and rig.sensors["T_cold_C"] == "cold_ceramic"
+    # and so does the room at the plate's rim
+    assert ("cold_ceramic", "ambient", ["2.0*g_ceramic", "leak*face_share"]) in rig.links
 
 
 def test_a_value_negative_only_at_a_corner_of_the_ranges_is_refused(tmp_path):
