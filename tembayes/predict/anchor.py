@@ -170,11 +170,10 @@ def held_draws(rig, draws, priors, label):
     carry-over could not move it, its draws all at the held value) independent
     draws from the carry-over's prior (log-normal about the nominal value, or
     logit-normal for a share, the sd of a uniform draw over its documented
-    range), which the cut update
-    conditions on the laws.  Left with the other parameters (simulated as they
-    are) is the module's own held parameter (``g_ceramic``): it acts between
-    the junctions and the faces, where the block sensors cannot separate it
-    from the pastes.
+    range), which the cut update conditions on the laws.  Left with the other
+    parameters (simulated as they are) is the module's own held parameter
+    (``g_ceramic``): it acts between the junctions and the faces, where the
+    block sensors cannot separate it from the pastes.
 
     Held parameters must be updated, not simulated as given: a given
     parameter's spread is carried into the updated ones by a correction
