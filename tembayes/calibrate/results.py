@@ -609,8 +609,9 @@ def write_run_posterior(
                     chunks = tuple(1 if d == "module" else sizes[d] for d in dims)
                     v = grp.create_variable(k, dims, dtype="f8", chunks=chunks, fillvalue=np.nan)
                     v.attrs["_FillValue"] = np.nan
-                    if variable_unit(k, units) is not None:
-                        v.attrs["units"] = variable_unit(k, units)
+                    unit = variable_unit(k, units)
+                    if unit is not None:
+                        v.attrs["units"] = unit
                 grp.attrs["tembayes_tref_C"] = tref
                 groups[g] = grp
             if prior_draws is not None:  # prior_dataset's layout, written a module at a time
@@ -626,8 +627,9 @@ def write_run_posterior(
                         k, ("chain", "draw", "module"), dtype="f8", chunks=(1, nd, 1), fillvalue=np.nan
                     )
                     v.attrs["_FillValue"] = np.nan
-                    if variable_unit(k, units) is not None:
-                        v.attrs["units"] = variable_unit(k, units)
+                    unit = variable_unit(k, units)
+                    if unit is not None:
+                        v.attrs["units"] = unit
                 grp.attrs["tembayes_tref_C"] = tref
             for i, (p, m) in enumerate(zip(module_files, lay)):
                 with h5netcdf.File(p, "r") as src:
