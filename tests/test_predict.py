@@ -17,10 +17,12 @@ import pytest
 from benchdata import record_validation as _record_validation
 
 from tembayes.calibrate.run import load_run
+from tembayes.calibrate.stepdata import step_grid
 from tembayes.cli import main
 from tembayes.constants import MODULE_PARAMETERS
 from tembayes.data import load_batch
 from tembayes.errors import DataError, ModelError
+from tembayes.physics import effects
 from tembayes.physics.rigread import rig_from_config
 from tembayes.predict import RunModel, constant_laws, predict, simulate_predictive
 from tembayes.predict.anchor import ResidualProcess, fit_residual_process
@@ -80,6 +82,54 @@ def test_run_model_interpolates_within_a_millikelvin_and_matches_the_bench_at_th
     # a wrong law moves it far off: the comparison can fail
     s3, _ = rm.simulate({**p, "S0_V_per_K": 1.02 * p["S0_V_per_K"]}, best[1])
     assert np.sqrt(np.mean((exp.sensors - s3[0]) ** 2, axis=1)).max() > 0.03
+
+
+@pytest.fixture(scope="module")
+def plate_sensor_run(tmp_path_factory):
+    """A 1 Hz staircase of a heat-sink rig module (thermocouples on its plates): the rig, the run, its truth."""
+    from tembayes.bench import BenchConfig, simulate_batch
+
+    path = tmp_path_factory.mktemp("hs1") / "batch"
+    config = BenchConfig(n_modules=1, seed=5, hold=120.0, rate=1.0, n_validations=0, rig={"preset": "heatsink-al"})
+    simulate_batch(path, config, progress=lambda msg: None)
+    batch = load_batch(path)
+    rig = rig_from_config(batch.rig_config, 4, 3, layers=True)
+    t = json.loads((path / "truth.json").read_text())["modules"]["TEM1"]
+    truth = {k: t[k] for k in MODULE_PARAMETERS} | {k: t["rig"][k] for k in rig.parameter_names if k in t["rig"]}
+    return rig, batch.modules["TEM1"].identification, truth
+
+
+def test_a_sensor_lag_sees_the_first_second_after_a_step_as_a_finer_grid_does(plate_sensor_run, monkeypatch):
+    # the lag is exact for an input linear between grid points; a plate's temperature is not
+    # linear between a step and the next sample, a second later
+    rig, exp, truth = plate_sensor_run
+    p = {**truth, "sensor_tau_s": 0.7}
+    out = {}
+    for name, fractions in (
+        ("none", ()),
+        ("shipped", effects.STEP_FRACTIONS),
+        ("fine", tuple(np.arange(1, 128) / 128)),
+    ):
+        monkeypatch.setattr(effects, "STEP_FRACTIONS", fractions)
+        rm = RunModel(exp, rig)
+        out[name] = rm.simulate(p, -0.4)[0][0]  # each step 0.9 s before the next sample
+    first = np.searchsorted(rm.time, [s.t for s in rm.steps])
+    # with the step and the first sample alone the plates' first reading is off by more than the noise (4 mK) ...
+    assert np.max(np.abs(out["none"] - out["fine"])[:, first]) > 8e-3
+    # ... with the shipped points it is the finer grid's, everywhere in the run
+    assert np.max(np.abs(out["shipped"] - out["fine"])) < 5e-4
+
+
+def test_a_step_grids_unobserved_points_move_with_the_step_and_stay_before_the_next_sample():
+    sg = step_grid(np.arange(0.0, 10.0), [2.5, 6.5], [0.5, 0.5], fractions=(0.25, 0.5))
+    assert sg.is_step.sum() == 8 and len(sg.grid) == 18
+    G = sg.shifted([-0.3, 0.4])
+    assert np.all(np.diff(G, axis=1) > 0)
+    new = G[:, sg.pos_step + 1]
+    after = np.array([3.0, 7.0])  # the first sample after each step
+    assert np.allclose(G[:, sg.pos_new[:, 1]], new + 0.25 * (after - new))
+    assert np.allclose(G[:, sg.pos_new[:, 2]], new + 0.5 * (after - new))
+    assert np.allclose(G[:, ~sg.is_step], np.arange(0.0, 10.0))
 
 
 def test_residual_process_recovers_a_known_ou_process():

@@ -52,6 +52,7 @@ from tembayes.data import (
     write_json,
 )
 from tembayes.errors import ModelError
+from tembayes.physics.effects import STEP_FRACTIONS
 from tembayes.physics.rigfile import CERAMIC
 from tembayes.physics.rigread import rig_file_of
 from tembayes.physics.simulate import Inputs, simulate
@@ -354,7 +355,11 @@ def run_experiment(
     # resolve each current step with a 1 ms ramp (the amplifier), between samples
     steps = protocol.step_times
     pre = [ts[0] - 0.03, ts[0] - 0.02 - 1e-3, ts[0] - 0.02] if start == "rest" else []
-    grid = np.unique(np.concatenate([pre, ts, steps - 1e-3, steps]))
+    # and the first interval after it finely, as the models do (a sensor's lag is integrated as
+    # if its input were linear between grid points)
+    nxt = ts[np.minimum(np.searchsorted(ts, steps, side="right"), len(ts) - 1)]
+    sub = steps[:, None] + np.maximum(nxt - steps, 0.0)[:, None] * np.asarray(STEP_FRACTIONS)[None, :]
+    grid = np.unique(np.concatenate([pre, ts, steps - 1e-3, steps, sub.ravel()]))
     grid = grid[np.concatenate([[True], np.diff(grid) > 1e-6])]
     i_true = protocol.current(grid)
     i_true[np.isin(grid, steps - 1e-3)] = protocol.current(steps - 2e-3)

@@ -77,7 +77,7 @@ class StepResponseModel:
         self.hmax = float(hmax)
         ns = data.n_steps
         # grid: t0, observed samples, regular input points, points where a boundary moves
-        # faster than linear between those can follow, and two points per step
+        # faster than linear between those can follow, and each step's points
         extra = np.arange(data.t0, data.time[-1], input_spacing)[1:]
         extra = np.union1d(extra, boundary_knots(data, np.concatenate([[data.t0], data.time, extra])))
         extra = extra[np.min(np.abs(extra[:, None] - data.step_time[None, :]), axis=1) > 1.0]
@@ -90,7 +90,7 @@ class StepResponseModel:
         base, kind = base[order], kind[order]
         # the step pairs at their nominal instants (each draw shifts them in
         # grid()); the boundaries below are read there, so never leave them unset
-        sg = step_grid(base, data.step_time, data.step_window)
+        sg = step_grid(base, data.step_time, data.step_window, fractions=effects.STEP_FRACTIONS)
         grid, pos_step = sg.grid, sg.pos_step
         n = len(grid)
         kinds = np.full(n, 3)
@@ -103,7 +103,7 @@ class StepResponseModel:
         # hold index of every non-step point, and the step points' levels
         hold = np.searchsorted(data.step_time, grid, side="right")
         hold[pos_step] = np.arange(ns)
-        hold[pos_step + 1] = np.arange(ns) + 1
+        hold[sg.pos_new] = np.arange(ns)[:, None] + 1
         self._hold = hold
         self._current = data.levels[hold]
         self._bounds = data.boundaries(grid)

@@ -182,6 +182,14 @@ def _network_ambient(net, rig, params):
     net.Gb[:, :, k] += share * extra[:, None]
 
 
+#: Where a simulation of sampled data puts unobserved points after each current step: at these
+#: fractions of the way to the first sample after it.  The lag below is exact for an input linear
+#: between points, and in the first second after a step a module plate's temperature is far from
+#: linear: at 1 Hz, with the step and that sample alone, the lag's first reading after a 0.7 A
+#: step came out 0.07-0.24 K short.  Finer fractions change it by under 1 mK.
+STEP_FRACTIONS = (1 / 64, 1 / 32, 1 / 16, 1 / 8, 1 / 4, 3 / 8, 1 / 2, 5 / 8, 3 / 4, 7 / 8)
+
+
 def _sensor_lag(time, Y, params):
     """First-order sensor lag on ``Y`` (nd, nch, nt), in place (compiled: a hot path)."""
     tau = _get(params, "sensor_tau_s", Y.shape[0], nonnegative=True)

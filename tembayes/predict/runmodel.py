@@ -155,7 +155,7 @@ class RunModel:
         self._samples = np.flatnonzero(keep)
         base = t[self._samples]
         # two points per step (old level, new level) before its first new sample
-        sg = step_grid(base, self.step_time, self.step_window)
+        sg = step_grid(base, self.step_time, self.step_window, fractions=effects.STEP_FRACTIONS)
         self._steps = sg
         is_step, pos_step, grid = sg.is_step, sg.pos_step, sg.grid
         n = len(grid)
@@ -164,7 +164,7 @@ class RunModel:
         hold = np.empty(n, dtype=np.int64)
         hold[~is_step] = self.sample_hold[self._samples]
         hold[pos_step] = np.arange(ns)
-        hold[pos_step + 1] = np.arange(ns) + 1
+        hold[sg.pos_new] = np.arange(ns)[:, None] + 1
         self._grid_hold = hold
         bounds = [exp.channel(c) for c in rig.boundaries.values()]
         self._bounds = np.array([np.interp(grid, t, smooth_boundary(t, np.asarray(b, float), smooth)) for b in bounds])
