@@ -20,7 +20,7 @@ from tembayes.calibrate.run import load_run
 from tembayes.calibrate.stepdata import step_grid
 from tembayes.cli import main
 from tembayes.constants import MODULE_PARAMETERS
-from tembayes.data import load_batch
+from tembayes.data import experiment_from_arrays, load_batch
 from tembayes.errors import DataError, ModelError
 from tembayes.physics import effects
 from tembayes.physics.rigread import rig_from_config
@@ -118,6 +118,31 @@ def test_a_sensor_lag_sees_the_first_second_after_a_step_as_a_finer_grid_does(pl
     assert np.max(np.abs(out["none"] - out["fine"])[:, first]) > 8e-3
     # ... with the shipped points it is the finer grid's, everywhere in the run
     assert np.max(np.abs(out["shipped"] - out["fine"])) < 5e-4
+
+
+def test_the_step_phase_survives_a_parameter_point_that_misfits_for_minutes(plate_sensor_run):
+    # a run made by the model at a known phase, compared at points a little off: each misfits the
+    # run for minutes after every step, which a phase that moves a heat impulse could trade with
+    rig, exp, truth = plate_sensor_run
+    s, v = RunModel(exp, rig).simulate(truth, 0.2)
+    rng = np.random.default_rng(4)
+    made = experiment_from_arrays(
+        exp.time,
+        exp.current,
+        v[0] + rng.normal(0.0, 1e-3, v.shape[1]),
+        s[0] + rng.normal(0.0, 4e-3, s[0].shape),
+        exp.boundaries,
+        sensor_names=exp.sensor_names,
+        boundary_names=exp.boundary_names,
+    )
+    model = RunModel(made, rig)
+    assert abs(model.fit_phase(truth) - 0.2) < 0.03
+    for name, factor in (("K_W_per_K", 1.01), ("R0_ohm", 1.01), ("g_paste", 0.9)):
+        off = {**truth, name: factor * truth[name]}
+        assert abs(model.fit_phase(off) - 0.2) < 0.04, name
+        # the point does misfit the run, beyond the sensors' noise (4 mK): there is something to resist
+        s_off, _ = model.simulate(off, 0.2)
+        assert np.sqrt(np.mean((s_off[0] - s[0]) ** 2)) > 0.008
 
 
 def test_a_step_grids_unobserved_points_move_with_the_step_and_stay_before_the_next_sample():
