@@ -120,6 +120,19 @@ def test_a_sensor_lag_sees_the_first_second_after_a_step_as_a_finer_grid_does(pl
     assert np.max(np.abs(out["shipped"] - out["fine"])) < 5e-4
 
 
+def test_each_draws_lag_follows_its_own_step_instants(plate_sensor_run):
+    # draws with different step shifts in one call: each is the draw simulated alone
+    rig, exp, truth = plate_sensor_run
+    rm = RunModel(exp, rig)
+    p = {**truth, "sensor_tau_s": 0.7}
+    both, _ = rm.simulate({k: np.full(2, v) for k, v in p.items()}, np.array([-0.4, 0.3]))
+    for d, shift in enumerate((-0.4, 0.3)):
+        alone, _ = rm.simulate(p, shift)
+        assert np.max(np.abs(both[d] - alone[0])) < 1e-6
+    # the shifts do matter there: the comparison can fail
+    assert np.max(np.abs(both[0] - both[1])) > 0.01
+
+
 def test_the_step_phase_survives_a_parameter_point_that_misfits_for_minutes(plate_sensor_run):
     # a run made by the model at a known phase, compared at points a little off: each misfits the
     # run for minutes after every step, which a phase that moves a heat impulse could trade with
@@ -148,13 +161,19 @@ def test_the_step_phase_survives_a_parameter_point_that_misfits_for_minutes(plat
 def test_a_step_grids_unobserved_points_move_with_the_step_and_stay_before_the_next_sample():
     sg = step_grid(np.arange(0.0, 10.0), [2.5, 6.5], [0.5, 0.5], fractions=(0.25, 0.5))
     assert sg.is_step.sum() == 8 and len(sg.grid) == 18
-    G = sg.shifted([-0.3, 0.4])
+    G = sg.shifted([-0.3, 0.4, -1.0, 1.0])  # the last two clipped into each step's interval
     assert np.all(np.diff(G, axis=1) > 0)
+    G = G[:2]
     new = G[:, sg.pos_step + 1]
     after = np.array([3.0, 7.0])  # the first sample after each step
     assert np.allclose(G[:, sg.pos_new[:, 1]], new + 0.25 * (after - new))
     assert np.allclose(G[:, sg.pos_new[:, 2]], new + 0.5 * (after - new))
     assert np.allclose(G[:, ~sg.is_step], np.arange(0.0, 10.0))
+    # a step after the last sample keeps its points in order, within its ramp
+    end = step_grid(np.arange(0.0, 5.0), [5.5], [0.5], fractions=(0.25, 0.5)).shifted([0.0, 0.49])
+    assert np.all(np.diff(end, axis=1) > 0)
+    with pytest.raises(ValueError, match="fractions"):
+        step_grid(np.arange(0.0, 5.0), [2.5], [0.5], fractions=(0.5, 0.25))
 
 
 def test_residual_process_recovers_a_known_ou_process():

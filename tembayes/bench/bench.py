@@ -358,8 +358,10 @@ def run_experiment(
     # and the first interval after it finely, as the models do (a sensor's lag is integrated as
     # if its input were linear between grid points)
     nxt = ts[np.minimum(np.searchsorted(ts, steps, side="right"), len(ts) - 1)]
-    sub = steps[:, None] + np.maximum(nxt - steps, 0.0)[:, None] * np.asarray(STEP_FRACTIONS)[None, :]
-    grid = np.unique(np.concatenate([pre, ts, steps - 1e-3, steps, sub.ravel()]))
+    sub = (steps[:, None] + np.maximum(nxt - steps, 0.0)[:, None] * np.asarray(STEP_FRACTIONS)[None, :]).ravel()
+    near = ts[np.clip(np.searchsorted(ts, sub), 0, len(ts) - 1)]
+    sub = sub[np.abs(near - sub) > 1e-6]  # never crowd out a sample (the filter below keeps the earlier point)
+    grid = np.unique(np.concatenate([pre, ts, steps - 1e-3, steps, sub]))
     grid = grid[np.concatenate([[True], np.diff(grid) > 1e-6])]
     i_true = protocol.current(grid)
     i_true[np.isin(grid, steps - 1e-3)] = protocol.current(steps - 2e-3)

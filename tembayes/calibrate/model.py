@@ -88,7 +88,7 @@ class StepResponseModel:
         kind = np.concatenate([[0], np.ones(len(data.time), int), np.full(len(extra), 2)])
         order = np.argsort(base, kind="stable")
         base, kind = base[order], kind[order]
-        # the step pairs at their nominal instants (each draw shifts them in
+        # the step points at their nominal instants (each draw shifts them in
         # grid()); the boundaries below are read there, so never leave them unset
         sg = step_grid(base, data.step_time, data.step_window, fractions=effects.STEP_FRACTIONS)
         grid, pos_step = sg.grid, sg.pos_step
@@ -156,7 +156,7 @@ class StepResponseModel:
         sensors = np.ascontiguousarray(sensors.transpose(0, 2, 1))
         self.rig.read_leads(sensors, self.data.face, m["params"], self._bounds)
         if effects.has_sensor_effect(m["params"]):
-            effects.apply_sensors(G[0], sensors, m["params"])
+            effects.apply_sensors(G, sensors, m["params"])  # each draw's own step instants
         o = self.obs_pos
         return dict(sensors=sensors[:, :, o], voltage=volt[:, o], t_hot=out[:, o, 2], t_cold=out[:, o, 3], steps=steps)
 

@@ -165,7 +165,7 @@ def hold_levels(current: np.ndarray, holds: Iterable[tuple[int, int]]) -> np.nda
 
 @dataclass(frozen=True)
 class StepGrid:
-    """A time grid with two points per current step (old level, new level).
+    """A time grid with each current step's points (old level, new level, optional unobserved ones).
 
     Each draw moves the step instants within their sampling intervals.  The step may fall anywhere
     in its sampling interval: one common shift ranges over the widest interval and each step's
@@ -227,8 +227,9 @@ class StepGrid:
             G[:, self.pos_step + 1] = G[:, self.pos_step] + RAMP
             if self.fractions:
                 new = G[:, self.pos_step + 1]
-                nxt = G[:, np.minimum(self.pos_step + 2 + len(self.fractions), len(self.grid) - 1)]
-                nxt = np.maximum(nxt, new)  # a step after the last point has nothing to resolve
+                after = self.pos_step + 2 + len(self.fractions)
+                # a step after the last point has no sample to resolve: its points stay within RAMP
+                nxt = np.where(after < len(self.grid), G[:, np.minimum(after, len(self.grid) - 1)], new + RAMP)
                 for j, f in enumerate(self.fractions):
                     G[:, self.pos_step + 2 + j] = new + f * (nxt - new)
         return G
@@ -245,6 +246,9 @@ def step_grid(
     -------
     StepGrid
     """
+    f = np.asarray(fractions, float)
+    if f.size and not (np.all(np.diff(f) > 0) and f[0] > 0 and f[-1] < 1):
+        raise ValueError(f"fractions must increase strictly inside (0, 1), got {tuple(fractions)}")
     ns = len(step_time)
     per = 2 + len(fractions)
     pos_step = np.searchsorted(points, step_time) + per * np.arange(ns)

@@ -191,10 +191,14 @@ STEP_FRACTIONS = (1 / 64, 1 / 32, 1 / 16, 1 / 8, 1 / 4, 3 / 8, 1 / 2, 5 / 8, 3 /
 
 
 def _sensor_lag(time, Y, params):
-    """First-order sensor lag on ``Y`` (nd, nch, nt), in place (compiled: a hot path)."""
+    """First-order sensor lag on ``Y`` (nd, nch, nt), in place (compiled: a hot path).
+
+    ``time``: ``(nt,)`` or each draw's own ``(nd, nt)`` [s].
+    """
     tau = _get(params, "sensor_tau_s", Y.shape[0], nonnegative=True)
     if np.any(tau):
-        K.first_order_lag(K.writable(time, np.float64), Y, K.writable(tau, np.float64))
+        t = np.broadcast_to(np.asarray(time, np.float64), (Y.shape[0], Y.shape[2]))
+        K.first_order_lag(K.writable(t, np.float64), Y, K.writable(tau, np.float64))
 
 
 CATALOGUE = {
@@ -324,7 +328,10 @@ def apply_network(net: Network, rig: RigDescription, params: Mapping[str, float 
 
 
 def apply_sensors(time: np.ndarray, Y: np.ndarray, params: Mapping[str, float | np.ndarray]) -> None:
-    """Apply every ``sensors`` effect to the sensor readings ``Y`` (nd, nch, nt) in place."""
+    """Apply every ``sensors`` effect to the sensor readings ``Y`` (nd, nch, nt) in place.
+
+    ``time``: the sample times ``(nt,)``, or each draw's ``(nd, nt)`` when the draws' grids differ [s].
+    """
     for e in CATALOGUE.values():
         if e.stage == "sensors":
             e.hook(time, Y, params)

@@ -685,8 +685,8 @@ def first_order_lag(time: np.ndarray, Y: np.ndarray, tau: np.ndarray) -> None:
 
     Parameters
     ----------
-    time : ndarray, shape (nt,)
-        [s]
+    time : ndarray, shape (nd, nt)
+        Each draw's sample times [s] (a draw's step points move with its own step shift).
     Y : ndarray, shape (nd, nch, nt)
         Signals; replaced by the lagged ones.  Draws with ``tau <= 0`` are left alone.
     tau : ndarray, shape (nd,)
@@ -700,7 +700,7 @@ def first_order_lag(time: np.ndarray, Y: np.ndarray, tau: np.ndarray) -> None:
             u_prev = Y[d, c, 0]
             y = u_prev
             for n in range(nt - 1):
-                h = time[n + 1] - time[n]
+                h = time[d, n + 1] - time[d, n]
                 u = Y[d, c, n + 1]
                 m = (u - u_prev) / h
                 a = np.exp(-h / tau[d])

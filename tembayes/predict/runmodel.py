@@ -158,7 +158,7 @@ class RunModel:
             keep[s.index - 1] = True  # the last old sample ends its hold's spline
         self._samples = np.flatnonzero(keep)
         base = t[self._samples]
-        # two points per step (old level, new level) before its first new sample
+        # each step's points (old level, new level, the lag's unobserved ones) before its first new sample
         sg = step_grid(base, self.step_time, self.step_window, fractions=effects.STEP_FRACTIONS)
         self._steps = sg
         is_step, pos_step, grid = sg.is_step, sg.pos_step, sg.grid
@@ -246,7 +246,7 @@ class RunModel:
         sensors = np.ascontiguousarray(sensors.transpose(0, 2, 1))
         self.rig.read_leads(sensors, self.sensor_channels, m["params"], bounds)
         if effects.has_sensor_effect(m["params"]):
-            effects.apply_sensors(G[0], sensors, m["params"])
+            effects.apply_sensors(G, sensors, m["params"])  # each draw's own step instants
         sensors, volt = sensors[:, :, 1:], volt[:, 1:]
         o = self._obs_pos
         sensors, volt = sensors[:, :, o], volt[:, o]
