@@ -133,11 +133,11 @@ def test_each_draws_lag_follows_its_own_step_instants(plate_sensor_run):
     assert np.max(np.abs(both[0] - both[1])) > 0.01
 
 
-def test_the_step_phase_survives_a_parameter_point_that_misfits_for_minutes(plate_sensor_run):
-    # a run made by the model at a known phase, compared at points a little off: each misfits the
-    # run for minutes after every step, which a phase that moves a heat impulse could trade with
+def test_the_step_phase_of_a_run_with_lagging_sensors_is_found(plate_sensor_run):
+    # fit_phase simulates its trial phases as the draws of one call: each must lag on its own grid
     rig, exp, truth = plate_sensor_run
-    s, v = RunModel(exp, rig).simulate(truth, 0.2)
+    p = {**truth, "sensor_tau_s": 0.7}
+    s, v = RunModel(exp, rig).simulate(p, 0.2)
     rng = np.random.default_rng(4)
     made = experiment_from_arrays(
         exp.time,
@@ -148,14 +148,7 @@ def test_the_step_phase_survives_a_parameter_point_that_misfits_for_minutes(plat
         sensor_names=exp.sensor_names,
         boundary_names=exp.boundary_names,
     )
-    model = RunModel(made, rig)
-    assert abs(model.fit_phase(truth) - 0.2) < 0.03
-    for name, factor in (("K_W_per_K", 1.01), ("R0_ohm", 1.01), ("g_paste", 0.9)):
-        off = {**truth, name: factor * truth[name]}
-        assert abs(model.fit_phase(off) - 0.2) < 0.04, name
-        # the point does misfit the run, beyond the sensors' noise (4 mK): there is something to resist
-        s_off, _ = model.simulate(off, 0.2)
-        assert np.sqrt(np.mean((s_off[0] - s[0]) ** 2)) > 0.008
+    assert abs(RunModel(made, rig).fit_phase(p) - 0.2) < 0.03
 
 
 def test_a_step_grids_unobserved_points_move_with_the_step_and_stay_before_the_next_sample():

@@ -59,10 +59,6 @@ START_WINDOW_S = 60.0
 START_SPAN = 1.5
 
 
-#: How long after a step's first sample :meth:`RunModel.fit_phase` compares the voltage's moves [s].
-PHASE_WINDOW_S = 6.0
-
-
 class RunModel:
     """Simulate one experiment at every sample for many parameter draws.
 
@@ -275,16 +271,9 @@ class RunModel:
         to the module: a model compared with a run may take it from the run.
         It matters for minutes: a step 0.45 s late moves a heat impulse of
         ``S T dI`` x 0.45 s (~7 J at 1 A) into a block, ~0.1 K on the reference rig's cold-face sensor that
-        decays with the block.  Least squares on ``n`` phases across the
-        interval, refined by the parabola through the best three, of how the
-        voltage moves in the first :data:`PHASE_WINDOW_S` after its first
-        sample at each new level: the junctions' temperatures move fastest
-        there, and the differences drop both the resistive jump (a wrong R
-        would trade with the phase) and every slow misfit.  A fit of the whole
-        run trades the phase for any misfit that lasts: with K 1 % off, the
-        phase of a 1 Hz run made at 0.2 s came out 0.46 s (the voltage) or at
-        the bound (the sensors and the voltage); these differences give
-        0.20-0.23 s for K, R0 or S0 1 % off or a paste or plate 10 % off.
+        decays with the block.  Least squares over the sensors and the
+        voltage (each scaled by its measurement noise) on ``n`` phases across
+        the interval, refined by the parabola through the best three.
 
         Parameters
         ----------
@@ -299,14 +288,17 @@ class RunModel:
         b = self.shift_bound
         if b <= 0:
             return 0.0
-        first, later = self._phase_pairs()
-        if len(first) == 0:
-            return 0.0
         s = np.linspace(-b, b, n) * (1 - 1e-9)
         P = {k: np.repeat(np.ravel(np.asarray(v, float))[:1], n) for k, v in params.items()}
-        _, volt = self.simulate(P, s, at="grid", strict=False)
-        v = self.measured[-1, self.grid_samples]
-        cost = np.sum(((v[later] - v[first])[None] - (volt[:, later] - volt[:, first])) ** 2, axis=1)
+        sens, volt = self.simulate(P, s, at="grid", strict=False)
+        idx = self.grid_samples
+        y = self.measured[:, idx]
+        # the weights from the samples compared (the grid's), as the benchmark ran;
+        # there second differences see some of the blocks' response on the far sensors
+        sd = np.array([noise_estimate(np.asarray(y[c], float)) for c in range(len(y))])
+        sd = np.where(np.isfinite(sd) & (sd > 0), sd, 1e-3)
+        F = np.concatenate([sens, volt[:, None]], axis=1)
+        cost = np.sum(((y[None] - F) / sd[None, :, None]) ** 2, axis=(1, 2))
         cost = np.where(np.isfinite(cost), cost, np.inf)
         k = int(np.argmin(cost))
         if 0 < k < n - 1 and np.all(np.isfinite(cost[k - 1 : k + 2])):
@@ -315,26 +307,6 @@ class RunModel:
             if den > 0:
                 return float(np.clip(s[k] + 0.5 * (s[1] - s[0]) * (c0 - c2) / den, -b * (1 - 1e-9), b * (1 - 1e-9)))
         return float(s[k])
-
-    def _phase_pairs(self):
-        """Grid-sample positions ``(first, later)`` of :meth:`fit_phase`'s differences.
-
-        Each step's first sample, paired with every later one within
-        :data:`PHASE_WINDOW_S` of it in the same hold.
-        """
-        idx = self.grid_samples
-        t = self.time
-        first, later = [], []
-        for st in self.steps:
-            a = np.searchsorted(idx, st.index)
-            if a == len(idx) or idx[a] != st.index:
-                continue
-            near = (t[idx] - t[st.index] > 0) & (t[idx] - t[st.index] <= PHASE_WINDOW_S)
-            near &= self.sample_hold[idx] == self.sample_hold[st.index]
-            js = np.flatnonzero(near)
-            first += [a] * len(js)
-            later += list(js)
-        return np.array(first, dtype=np.int64), np.array(later, dtype=np.int64)
 
     def _initial_states(self, m, current, t, readout, modes=4):
         """``(nd, N)``: the steady states under ``current`` [A], moved to the run's first samples.
