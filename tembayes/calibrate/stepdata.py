@@ -230,8 +230,7 @@ class StepGrid:
                 after = self.pos_step + 2 + len(self.fractions)
                 # a step after the last point has no sample to resolve: its points stay within RAMP
                 nxt = np.where(after < len(self.grid), G[:, np.minimum(after, len(self.grid) - 1)], new + RAMP)
-                for j, f in enumerate(self.fractions):
-                    G[:, self.pos_step + 2 + j] = new + f * (nxt - new)
+                G[:, self.pos_new[:, 1:]] = new[:, :, None] + np.asarray(self.fractions) * (nxt - new)[:, :, None]
         return G
 
 
@@ -246,19 +245,16 @@ def step_grid(
     -------
     StepGrid
     """
-    f = np.asarray(fractions, float)
-    if f.size and not (np.all(np.diff(f) > 0) and f[0] > 0 and f[-1] < 1):
-        raise ValueError(f"fractions must increase strictly inside (0, 1), got {tuple(fractions)}")
+    fractions = tuple(float(f) for f in fractions)
+    if fractions and not (np.all(np.diff(fractions) > 0) and 0 < fractions[0] and fractions[-1] < 1):
+        raise ValueError(f"fractions must increase strictly inside (0, 1), got {fractions}")
     ns = len(step_time)
     per = 2 + len(fractions)
     pos_step = np.searchsorted(points, step_time) + per * np.arange(ns)
-    is_step = np.zeros(len(points) + per * ns, bool)
-    for j in range(per):
-        is_step[pos_step + j] = True
-    grid = np.empty(len(is_step))
-    grid[~is_step] = points
-    for j in range(per):
-        grid[pos_step + j] = step_time
+    at_step = (pos_step[:, None] + np.arange(per)[None, :]).ravel()
+    grid = np.empty(len(points) + per * ns)
+    grid[at_step] = np.repeat(np.asarray(step_time, float), per)  # placed by shifted(0) below
+    grid[np.setdiff1d(np.arange(len(grid)), at_step)] = points
     w = np.asarray(step_window, float)
     sg = StepGrid(
         grid,
@@ -267,7 +263,7 @@ def step_grid(
         -w + eps,
         w - RAMP - eps,
         float(np.max(w)) - eps if ns else 0.0,
-        tuple(float(f) for f in fractions),
+        fractions,
     )
     return replace(sg, grid=sg.shifted(0.0)[0]) if ns else sg
 
