@@ -127,6 +127,73 @@ def test_refit_of_a_correct_model_sits_at_the_noise_floor_and_an_absent_effect_s
     assert split.log_evidence - base.log_evidence < 5.0  # the Occam factor of an unneeded parameter
 
 
+def _windowed_fit(rng, scale, offset, n_windows=40, m=30, p=6, bump=0.0):
+    """A linear least-squares fit on white-weighted data whose noise is ``scale`` times white plus a
+    per-window offset of sd ``offset`` (units of the weighting, per channel); window 0 also gets a
+    misfit of ``bump`` on channel 1.  ``(J, r, cov, step)`` as :func:`~tembayes.gap.which.window_cv` takes them."""
+    nc, n = 3, n_windows * m
+    step = np.repeat(np.arange(n_windows), m)
+    J = rng.standard_normal((nc * n, p)) / np.sqrt(n)
+    e = scale[:, None] * rng.standard_normal((nc, n)) + offset[:, None] * rng.standard_normal((nc, n_windows))[:, step]
+    e[1, step == 0] += bump
+    y = e.ravel()  # the truth at 0: residuals are the data less the fit
+    cov = np.linalg.inv(J.T @ J)
+    r = (y - J @ (cov @ (J.T @ y))).reshape(nc, n)
+    return J, r, cov, step
+
+
+def test_held_out_windows_are_judged_by_the_calibrations_noise_model():
+    """Known answer: residuals with a noise scale of 1.05 and window offsets of 0.35 noise sds (a
+    sensor's slow noise, as the out-of-model bench's) are over-dispersed for white held-out
+    predictions (mean z^2 about 1 + 30 x 0.35^2 = 4.7 per window mean, 1.2 per sample) and N(0, 1)
+    under that noise model: mean z^2 within 3 se of 1 over 24 000 residuals (se 0.009 for chi2;
+    0.02 allowed), and 1 % window-channel tests at p < 0.01 within the binomial band of 600 (at most
+    15).  With the white model (scale 1, no offset) the residuals are the white ones exactly.  A misfit
+    of 3 noise sds on a whole window (8.6 offset sds) stays material and significant: expected score
+    sqrt((29 + (30 * 9 + 1.1) / (30 * 0.35^2 + 1.1)) / 30) = 1.69, above sqrt(2)."""
+    from scipy import stats
+
+    from tembayes.gap.which import window_cv
+
+    rng = np.random.default_rng(11)
+    scale, offset = np.array([1.0, 1.05, 1.05]), np.array([0.05, 0.35, 0.35])
+    J, r, cov, step = _windowed_fit(rng, scale, offset, n_windows=200, m=30)
+    lpd, z_white = window_cv(J, r, cov, step)
+    lpd2, z = window_cv(J, r, cov, step, (scale, offset))
+    np.testing.assert_array_equal(lpd, lpd2)  # the evidence stays on the white noise
+    z, z_white = z.astype(float), z_white.astype(float)
+    assert abs(np.mean(z[1:] ** 2) - 1.0) < 0.03
+    assert np.mean(z_white[1:] ** 2) > 1.15
+    t = np.array([[np.sum(z[c, step == k] ** 2) for k in range(200)] for c in (1, 2)])
+    assert np.sum(stats.chi2.sf(t, 30) < 0.01) <= 15  # 4 expected of 400
+    t_white = np.array([[np.sum(z_white[c, step == k] ** 2) for k in range(200)] for c in (1, 2)])
+    assert np.sum(stats.chi2.sf(t_white, 30) < 0.01) > 40
+    _, z_same = window_cv(J, r, cov, step, (np.ones(3), np.zeros(3)))
+    np.testing.assert_allclose(z_same, z_white, atol=1e-5)
+    J, r, cov, step = _windowed_fit(np.random.default_rng(12), scale, offset, bump=3.0)
+    _, z = window_cv(J, r, cov, step, (scale, offset))
+    t = np.sum(z[1, step == 0].astype(float) ** 2)
+    assert np.sqrt(t / 30) > 2.0**0.5 and stats.chi2.sf(t, 30) < 1e-4
+
+
+def test_a_window_noise_model_beyond_the_adequacy_limits_excuses_no_more_than_they_allow():
+    """A calibration that absorbed a misfit in its noise (a 6 s sensor lag left out: dT scale 1.43,
+    offsets 11 noise sds) lends the windows no more than the adequacy limits (1.5, 2 noise sds); one
+    within them lends its own values; a scale below 1 (0.97 on a correctly specified module) counts
+    as 1, the level the run measures.  The medians are the draws'."""
+    from tembayes.calibrate.adequacy import LIMITS
+    from tembayes.calibrate.likelihood import NOISE_SCALE, OFFSET_SD
+    from tembayes.gap.which import WindowNoise
+
+    noise = np.array([1e-3, 5.7e-3, 2.8e-3])
+    draws = {q: np.array([0.9, 1.0, 1.1]) * v for q, v in zip(NOISE_SCALE, (0.97, 1.43, 2.41))}
+    draws |= {q: np.array([1.0, 1.0, 1.0]) * v for q, v in zip(OFFSET_SD, noise * [0.85, 11.4, 0.26])}
+    scale, offset = WindowNoise.of_draws(draws).whitened(noise)
+    np.testing.assert_allclose(scale, [1.0, 1.43, LIMITS["noise_scale"]])
+    np.testing.assert_allclose(offset, [0.85, LIMITS["window_offsets"], 0.26])
+    assert WindowNoise.of_draws({q: draws[q] for q in NOISE_SCALE}) is None
+
+
 def test_refit_names_a_sensor_lag_at_the_noise_floor_and_recovers_its_time_constant(tmp_path):
     """The screen's known answer, cheap enough for CI (the blind end-to-end run is the slow tier's
     and the benchmark's): a bench module with a 6 s sensor lag, refitted from its true laws.  With
@@ -596,6 +663,8 @@ def test_gap_is_quiet_without_an_effect_and_refuses_a_batch_without_held_out_run
     d = diagnose(load_run(run3[0]), load_batch(held), n_draws=80)
     assert d.verdict == "no_gap" and d.best is None and d.where == []
     assert d.ranking == [] and d.screen == []  # nothing screened without a gap
+    # its windows judged by the calibration's noise model: the scale at least the measured level
+    assert min(d.base.refits["TEM1"].window_noise["scale"]) >= 1.0
 
     import importlib
 

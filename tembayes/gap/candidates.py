@@ -176,7 +176,7 @@ class Setting:
     alpha: float
 
 
-def refit_job(setting, module, effect, start, heldout):
+def refit_job(setting, module, effect, start, heldout, window_noise=None):
     """One refit and, with ``heldout``, its Laplace posterior scored on the held-out runs (a worker's job).
 
     Parameters
@@ -188,6 +188,8 @@ def refit_job(setting, module, effect, start, heldout):
     start : dict
         Where the mode search starts (SI).
     heldout : bool
+    window_noise : WindowNoise, optional
+        The base calibration's noise model, by which the held-out windows are judged.
 
     Returns
     -------
@@ -204,7 +206,15 @@ def refit_job(setting, module, effect, start, heldout):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # a wrong effect's refit may probe where the rig strains
         try:
-            out.refit = refit(module, s.datasheet, effect, rig_config=s.rig_config, start=start, options=s.base)
+            out.refit = refit(
+                module,
+                s.datasheet,
+                effect,
+                rig_config=s.rig_config,
+                start=start,
+                options=s.base,
+                window_noise=window_noise,
+            )
             if heldout:
                 n = s.screen_draws
                 raw = out.refit.draws(stream(s.seed, module.id, "laplace", effect), LAPLACE_DRAWS_PER_DRAW * n)
@@ -226,7 +236,7 @@ def refit_job(setting, module, effect, start, heldout):
     return out
 
 
-def candidate_job(setting, module, effect, start, refitted):
+def candidate_job(setting, module, effect, start, refitted, window_noise=None):
     """One module recalibrated with ``effect`` and scored on its held-out runs (a worker's job).
 
     A recalibration whose model fails (the effect drives the rig somewhere it
@@ -242,6 +252,9 @@ def candidate_job(setting, module, effect, start, refitted):
         Where the refit starts (SI).
     refitted : Refit or None
         The screen's refit with ``effect``, if there is one.
+    window_noise : WindowNoise, optional
+        The base calibration's noise model: the yardstick of every model's held-out windows in one
+        diagnosis (a candidate's own noise parameters may have absorbed what it does not explain).
 
     Returns
     -------
@@ -257,7 +270,7 @@ def candidate_job(setting, module, effect, start, refitted):
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", RuntimeWarning)
         try:
-            cal, raw, rf = _recalibrate(s, module, effect, start, refitted)
+            cal, raw, rf = _recalibrate(s, module, effect, start, refitted, window_noise)
             with threadpool_limits(limits=1, user_api="blas"):
                 draws, evals, conflicting = score_posterior(
                     module, raw, cal.priors, rig, tag=effect, seed=s.seed, n_draws=s.n_draws, alpha=s.alpha
@@ -278,18 +291,20 @@ def candidate_job(setting, module, effect, start, refitted):
     )
 
 
-def _recalibrate(setting, module, effect, start, refitted):
+def _recalibrate(setting, module, effect, start, refitted, window_noise):
     """The sampler with ``effect`` added, from the refit's mode; ``(calibration, raw draws, refit)``.
 
     The refit returned is the mode search again from the posterior median:
     the identification windows are judged at the recalibration's own fit (a
-    screen refit may have stopped short of the mode).
+    screen refit may have stopped short of the mode), by ``window_noise``.
     """
     from tembayes.calibrate.module import calibrate_module
     from tembayes.gap.which import refit
 
     s = setting
-    rf = refitted or refit(module, s.datasheet, effect, rig_config=s.rig_config, start=start, options=s.base)
+    rf = refitted or refit(
+        module, s.datasheet, effect, rig_config=s.rig_config, start=start, options=s.base, window_noise=window_noise
+    )
     cal = calibrate_module(
         module,
         s.datasheet,
@@ -301,7 +316,16 @@ def _recalibrate(setting, module, effect, start, refitted):
     )
     raw = {k: np.asarray(v).ravel() for k, v in cal.draws.items()}
     median = {k: float(np.median(v)) for k, v in raw.items()}
-    return cal, raw, refit(module, s.datasheet, effect, rig_config=s.rig_config, start=median, options=s.base)
+    rf = refit(
+        module,
+        s.datasheet,
+        effect,
+        rig_config=s.rig_config,
+        start=median,
+        options=s.base,
+        window_noise=window_noise,
+    )
+    return cal, raw, rf
 
 
 def effect_size(effect, draws):

@@ -58,6 +58,7 @@ from tembayes.gap.jobs import collect, default_jobs, executor, in_order, race, s
 from tembayes.gap.ranking import LeadJudge, rank, verdict
 from tembayes.gap.result import GapDiagnosis
 from tembayes.gap.screen import CANDIDATES, choose, screen_rows
+from tembayes.gap.which import WindowNoise
 from tembayes.physics import effects as E
 from tembayes.predict.predictive import module_raw_draws, posterior_draws
 from tembayes.predict.runmodel import RunModel
@@ -86,6 +87,7 @@ class _Plan:
     setting: Setting
     raws: dict
     starts: dict
+    noises: dict
     conflicts: dict
     suspects: list
     jobs: int
@@ -98,12 +100,14 @@ class _Plan:
 
     def refit(self, module_id, effect, *, heldout=False):
         """A refit job, ``(fn, args)``."""
-        args = (self.setting, self.batch.modules[module_id], effect, self.start(module_id, effect), heldout)
+        start = self.start(module_id, effect)
+        args = (self.setting, self.batch.modules[module_id], effect, start, heldout, self.noises[module_id])
         return refit_job, args
 
     def recalibration(self, module_id, effect, refitted=None):
         """A recalibration job's args (:func:`~tembayes.gap.candidates.candidate_job`)."""
-        return self.setting, self.batch.modules[module_id], effect, self.start(module_id, effect), refitted
+        start = self.start(module_id, effect)
+        return self.setting, self.batch.modules[module_id], effect, start, refitted, self.noises[module_id]
 
 
 @dataclass(frozen=True)
@@ -227,6 +231,7 @@ def _plan(run, batch, exclude, n_draws, seed, options, jobs, cache, say):
         setting=setting,
         raws=raws,
         starts={mid: {k: float(np.median(raws[mid][k])) for k in MODULE_PARAMETERS} for mid in ids},
+        noises={mid: WindowNoise.of_draws(raws[mid]) for mid in ids},
         conflicts=conflicts,
         suspects=suspects(conflicts, rig, allowed=allowed),
         jobs=default_jobs() if jobs is None else int(jobs),

@@ -27,7 +27,16 @@ units, ``H = J (J^T J)^-1 J^T`` over the data and prior rows).  These are
 held-out evidence come from them.  On a correctly specified bench module the
 held-out windows scatter as the noise says (``chi2`` 1.01, no window above
 1.25 noise sds); a Thomson heat the linear laws half absorb leaves windows
-at 2-2.5 sds.
+at 2-2.5 sds.  The held-out residuals are whitened by the noise model of
+the base calibration (:class:`WindowNoise`: its noise scale and window
+offsets, which carry a sensor's slow noise, each within its adequacy
+limit), so a window counts as a gap only beyond what that model allows: a
+sensor's slow noise, which the second differences of the measured noise
+level do not see, would otherwise read as a misfit.  It is one yardstick
+for the base and every candidate of a diagnosis (a candidate's own noise
+may have absorbed what it does not explain).  The windows' log densities
+stay on the white noise at the measured level, as the Laplace evidence is:
+the comparison between effects is on one noise model.
 
 The screen ranks the effects by their Laplace log evidence on the
 identification run against the base refit's; the diagnosis
@@ -52,6 +61,53 @@ from tembayes.physics import effects as E
 
 #: Model evaluations (Jacobians not counted) of a refit's mode search.
 MAX_NFEV = 60
+
+
+@dataclass(frozen=True)
+class WindowNoise:
+    """The noise model a held-out step window is judged by: a calibration's, per channel of the step likelihood.
+
+    Attributes
+    ----------
+    scale : ndarray, shape (3,)
+        Each channel's noise sd over its measured level (``noise_scale_*``).
+    offset_sd : ndarray, shape (3,)
+        Each channel's window-offset sd (``offset_sd_*``) [V, K, K].
+    """
+
+    scale: np.ndarray
+    offset_sd: np.ndarray
+
+    @classmethod
+    def of_draws(cls, draws):
+        """The posterior medians of a calibration's noise parameters; None if the draws have none.
+
+        Parameters
+        ----------
+        draws : mapping of str to array_like
+            A module's posterior draws (SI).
+        """
+        from tembayes.calibrate.likelihood import NOISE_SCALE, OFFSET_SD
+
+        if not all(q in draws for q in NOISE_SCALE + OFFSET_SD):
+            return None
+        med = [float(np.median(np.asarray(draws[q], float))) for q in NOISE_SCALE + OFFSET_SD]
+        return cls(scale=np.array(med[:3]), offset_sd=np.array(med[3:]))
+
+    def whitened(self, noise):
+        """``(scale, offset_sd / noise)`` in units of the measured noise levels ``noise`` (3,), within the limits.
+
+        Within the limits (:data:`~tembayes.calibrate.adequacy.LIMITS`, about twice what a model
+        that is right gave on the benches) the noise parameters are noise; beyond them they carry
+        a misfit the model absorbed there, which the windows must not be excused.  The scale is
+        at least 1: the level the run itself measures is the floor (a correctly specified bench
+        module's posterior puts it at 0.97-0.98, which would raise every window's score by 2-3 %).
+        """
+        from tembayes.calibrate.adequacy import LIMITS
+
+        scale = np.clip(self.scale, 1.0, LIMITS["noise_scale"])
+        offset = np.minimum(self.offset_sd / np.asarray(noise, float), LIMITS["window_offsets"])
+        return scale, offset
 
 
 @dataclass(frozen=True)
@@ -85,7 +141,11 @@ class Refit:
         Leave-one-window-out log predictive density of every step window
         [nats, noise units: a constant shared by every refit of the run left out].
     cv_z : ndarray, shape (3, n)
-        The windows' held-out residuals, whitened (N(0, 1) under the model).
+        The windows' held-out residuals, whitened by their predictive
+        covariance under ``window_noise`` (N(0, 1) under the model).
+    window_noise : dict or None
+        The noise model the windows were judged by, in units of the measured
+        noise levels: ``{"scale": [3], "offset": [3]}`` (None: white).
     windows : dict
         What the identification map needs of the run: ``step``, ``since``
         (per sample), ``tmean_C`` (measured sensor mean, per sample),
@@ -109,6 +169,7 @@ class Refit:
     log_evidence: float
     cv_lpd: np.ndarray
     cv_z: np.ndarray
+    window_noise: dict | None
     windows: dict
     nfev: int
     converged: bool
@@ -159,6 +220,7 @@ class Refit:
             "chi2": self.chi2_total,
             "chi2_channels": self.chi2,
             "cv_chi2": self.cv_chi2,
+            "window_noise": self.window_noise,
             "cv_elpd": float(np.sum(self.cv_lpd)),
             "size": self.size(),
             "nfev": self.nfev,
@@ -167,7 +229,9 @@ class Refit:
         }
 
 
-def refit(module, datasheet, effect=None, *, rig_config=None, start=None, options=None, max_nfev=MAX_NFEV):
+def refit(
+    module, datasheet, effect=None, *, rig_config=None, start=None, options=None, window_noise=None, max_nfev=MAX_NFEV
+):
     """Refit a module's identification run with the base model or one effect added.
 
     Parameters
@@ -184,6 +248,9 @@ def refit(module, datasheet, effect=None, *, rig_config=None, start=None, option
         the step shift at the middle of its interval.
     options : CalibrationOptions, optional
         The calibration's resolution (``leg_cells``, ``block_split``).
+    window_noise : WindowNoise, optional
+        The noise model the held-out windows are judged by (the base
+        calibration's); default white noise at the measured level.
     max_nfev : int
 
     Returns
@@ -207,7 +274,8 @@ def refit(module, datasheet, effect=None, *, rig_config=None, start=None, option
     data_cost = 0.5 * float(np.sum(r * r))
     _, logdet = np.linalg.slogdet(cov)
     log_evidence = -data_cost + float(space.log_prior(x[None])[0]) + 0.5 * (len(x) * np.log(2 * np.pi) + logdet)
-    cv_lpd, cv_z = window_cv(J[: r.size], r, cov, data.step)
+    wn = None if window_noise is None else window_noise.whitened(data.noise)
+    cv_lpd, cv_z = window_cv(J[: r.size], r, cov, data.step, wn)
     windows = {
         "step": data.step,
         "since": data.since.astype(np.float32),
@@ -229,6 +297,7 @@ def refit(module, datasheet, effect=None, *, rig_config=None, start=None, option
         log_evidence=float(log_evidence),
         cv_lpd=cv_lpd,
         cv_z=cv_z,
+        window_noise=None if wn is None else {"scale": wn[0].tolist(), "offset": wn[1].tolist()},
         windows=windows,
         nfev=fit.nfev,
         converged=fit.converged,
@@ -236,7 +305,7 @@ def refit(module, datasheet, effect=None, *, rig_config=None, start=None, option
     )
 
 
-def window_cv(J, r, cov, step):
+def window_cv(J, r, cov, step, noise=None):
     """Leave-one-window-out predictions of a model linearised at its mode.
 
     Parameters
@@ -249,15 +318,22 @@ def window_cv(J, r, cov, step):
         ``(J_all^T J_all)^-1`` over every row (data and prior).
     step : ndarray of int, shape (n,)
         Window of every sample.
+    noise : tuple of ndarray, optional
+        ``(scale, offset)``, each (nc,), in units of the whitening: the noise
+        model the residuals ``z`` are judged by (:meth:`WindowNoise.whitened`).
+        Default white at the whitening's level.
 
     Returns
     -------
     lpd : ndarray, shape (n_windows,)
-        Log predictive density of each window given the others [nats].
+        Log predictive density of each window given the others, under white
+        noise at the whitening's level [nats].
     z : ndarray, shape (nc, n), float32
-        Each window's held-out residual whitened by its predictive
-        covariance (``z_k = L^T e_k`` with ``I - H_kk = L L^T``,
-        ``e_k = (I - H_kk)^-1 r_k``): N(0, I) under the model.
+        Each window's held-out residual ``e_k = (I - H_kk)^-1 r_k`` whitened
+        by its predictive covariance ``C_k = (I - H_kk)^-1 - I + S_k``, ``S_k``
+        the noise model's covariance of the window (``scale^2 I + offset^2 1 1^T``
+        per channel; ``I`` for white noise, which gives ``z_k = L^-1 r_k``
+        with ``I - H_kk = L L^T``): N(0, I) under the model.
     """
     nc, n = r.shape
     ns = int(step.max()) + 1
@@ -271,6 +347,25 @@ def window_cv(J, r, cov, step):
         L = np.linalg.cholesky(0.5 * (A + A.T))
         rk = r[:, idx].ravel()
         w = np.linalg.solve(L, rk)  # ||w||^2 = r^T A^-1 r; z = L^T A^-1 r = L^-1 r
-        z[:, idx] = w.reshape(nc, -1)
         lpd[k] = -0.5 * float(w @ w) + float(np.sum(np.log(np.diag(L)))) - 0.5 * len(rows) * np.log(2 * np.pi)
+        if noise is None:
+            z[:, idx] = w.reshape(nc, -1)
+        else:
+            z[:, idx] = _whiten_window(L, w, len(idx), *noise).reshape(nc, -1)
     return lpd, z
+
+
+def _whiten_window(L, w, m, scale, offset):
+    """A window's held-out residual whitened by ``C_k`` (see :func:`window_cv`).
+
+    ``L L^T = I - H_kk`` and ``w = L^-1 r_k`` (the white case's ``z``).  With
+    ``C_k = A^-1 + D``, ``D = S_k - I``, the residual ``L^T e_k = w`` has
+    covariance ``M = I + L^T D L``, so ``chol(M)^-1 w`` is white; ``D = 0``
+    gives ``w`` itself.
+    """
+    D = np.zeros((len(w), len(w)))
+    for c in range(len(scale)):
+        sl = slice(c * m, (c + 1) * m)
+        D[sl, sl] = (scale[c] ** 2 - 1.0) * np.eye(m) + offset[c] ** 2
+    M = np.eye(len(w)) + L.T @ D @ L
+    return np.linalg.solve(np.linalg.cholesky(0.5 * (M + M.T)), w)
