@@ -15,6 +15,7 @@ A null case on the out-of-model bench should have no cell; a catalogue
 effect that shows in the windows should keep some.
 
     python analyses/window_noise_check.py /work/gapnull_rf_high --label reference-faces_high_null
+    python analyses/window_noise_check.py --label reference-faces_high_null --summarise
 
 Writes ``analyses/results/window_noise_check_LABEL.{json,md}``.
 """
@@ -31,13 +32,16 @@ import numpy as np
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
-def check_module(run, batch, module_id):
-    """``{"white": ..., "noise_model": ..., "noise": ...}`` of one module (see the module docstring)."""
+def check_module(run, batch, module_id, alpha):
+    """``{"white": ..., "noise_model": ..., "noise": ...}`` of one module (see the module docstring).
+
+    ``alpha`` is the level of each cell test, the family-wise level split as ``gap`` splits it.
+    """
     from types import SimpleNamespace
 
     from tembayes.calibrate.module import laplace_fit
     from tembayes.constants import KELVIN, MODULE_PARAMETERS
-    from tembayes.gap.evidence import ALPHA, material
+    from tembayes.gap.evidence import material
     from tembayes.gap.where import identification_map
     from tembayes.gap.which import WindowNoise, window_cv
     from tembayes.predict.predictive import module_raw_draws
@@ -60,7 +64,6 @@ def check_module(run, batch, module_id):
         "step_time": data.step_time,
         "source": data.source,
     }
-    alpha = ALPHA / (len(module.validations) + 1)
     wn = WindowNoise.of_draws(raws)
     out = {"noise": {"scale": wn.scale.tolist(), "offset_over_noise": (wn.offset_sd / data.noise).tolist()}}
     for tag, noise in (("white", None), ("noise_model", wn.whitened(data.noise))):
@@ -77,18 +80,21 @@ def check_module(run, batch, module_id):
 
 
 def check_case(case):
-    """Every module of one gap-benchmark case, with the verdict ``gap`` gave there (if recorded)."""
+    """The modules ``gap`` diagnoses in one gap-benchmark case, with the verdict it gave there (if recorded)."""
     from tembayes.calibrate.run import load_run
     from tembayes.data import load_batch
+    from tembayes.gap.evidence import ALPHA
 
     run, batch = load_run(case / "run"), load_batch(case / "batch")
+    ids = [m for m in run.module_ids if batch.modules[m].validations]
+    alpha = ALPHA / (sum(len(batch.modules[m].validations) for m in ids) + len(ids))  # as gap's plan
     gap = case / "gap.json"
     verdict = json.loads(gap.read_text())["verdict"] if gap.is_file() else None
     return {
         "case": case.name,
         "folder": str(case),
         "gap_verdict_recorded": verdict,
-        "modules": {m: check_module(run, batch, m) for m in run.module_ids},
+        "modules": {m: check_module(run, batch, m, alpha) for m in ids},
     }
 
 
@@ -97,7 +103,7 @@ def _row(c):
     for m, d in c["modules"].items():
         w, n = d["white"], d["noise_model"]
         rows.append(
-            f"| {c['case']} | {m} | {c['gap_verdict_recorded'] or '-'} | {len(w['cells'])} | "
+            f"| {Path(c['folder']).parent.name}/{c['case']} | {m} | {c['gap_verdict_recorded'] or '-'} | {len(w['cells'])} | "
             f"{w['worst']['score']:.2f} | {w['mean_z2']:.3f} | {len(n['cells'])} | {n['worst']['score']:.2f} | "
             f"{n['mean_z2']:.3f} | {', '.join(f'{v:.2f}' for v in d['noise']['scale'])} | "
             f"{', '.join(f'{v:.2f}' for v in d['noise']['offset_over_noise'])} |"
@@ -111,33 +117,54 @@ def main(argv=None):
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="example: python analyses/window_noise_check.py /work/gapnull_rf_high --label reference-faces_high_null",
     )
-    ap.add_argument("work", nargs="+", type=Path, help="gap-benchmark work folders (their CASE/run and CASE/batch)")
+    ap.add_argument("work", nargs="*", type=Path, help="gap-benchmark work folders (their CASE/run and CASE/batch)")
     ap.add_argument("--label", required=True)
+    ap.add_argument("--summarise", action="store_true", help="only write the .md again from the recorded .json")
     args = ap.parse_args(argv)
+    if not args.work and not args.summarise:
+        ap.error("name at least one work folder (or --summarise a recorded label)")
     warnings.simplefilter("ignore", RuntimeWarning)
+    stem = RESULTS / f"window_noise_check_{args.label}"
+    if args.summarise:
+        doc = json.loads(stem.with_suffix(".json").read_text())
+        summary, results = doc["summary"], doc["cases"]
+    else:
+        summary, results = _check_all(args.work)
+        RESULTS.mkdir(exist_ok=True)
+        stem.with_suffix(".json").write_text(json.dumps({"summary": summary, "cases": results}, indent=1))
+    stem.with_suffix(".md").write_text(_markdown(args, summary, results))
+    print(json.dumps(summary))
+
+
+def _check_all(work):
+    """``(summary, cases)`` of every case with a run under the folders ``work``."""
     cases = sorted(
-        (c for w in args.work for c in w.iterdir() if (c / "run" / "summary.json").is_file()),
+        (c for w in work for c in w.iterdir() if (c / "run" / "summary.json").is_file()),
         key=lambda c: (str(c.parent), c.name),
     )
     results = []
     for c in cases:
         results.append(check_case(c))
-        m = next(iter(results[-1]["modules"].values()))
-        print(f"{c}: white {len(m['white']['cells'])} cells, noise model {len(m['noise_model']['cells'])}", flush=True)
+        for m, d in results[-1]["modules"].items():
+            print(f"{c} {m}: white {len(d['white']['cells'])} cells, noise model {len(d['noise_model']['cells'])}")
     mods = [d for c in results for d in c["modules"].values()]
     summary = {
         "cases": len(results),
+        "modules": len(mods),
         "modules_with_cells_white": sum(bool(d["white"]["cells"]) for d in mods),
         "modules_with_cells_noise_model": sum(bool(d["noise_model"]["cells"]) for d in mods),
-        "work": [str(w) for w in args.work],
+        "work": [str(w) for w in work],
     }
-    RESULTS.mkdir(exist_ok=True)
-    stem = RESULTS / f"window_noise_check_{args.label}"
-    stem.with_suffix(".json").write_text(json.dumps({"summary": summary, "cases": results}, indent=1))
+    return summary, results
+
+
+def _markdown(args, summary, results):
+    """The record's table."""
+    mods = [d for c in results for d in c["modules"].values()]
     md = [
         f"# Identification windows: white noise against the calibration's noise model ({args.label})",
         "",
-        f"`python analyses/window_noise_check.py {' '.join(map(str, args.work))} --label {args.label}`",
+        f"`python analyses/window_noise_check.py {' '.join(summary['work'])} --label {args.label}`",
         "",
         f"Modules with a significant, material window cell: white {summary['modules_with_cells_white']}, "
         f"noise model {summary['modules_with_cells_noise_model']} (of {len(mods)}).",
@@ -148,8 +175,7 @@ def main(argv=None):
         *[r for c in results for r in _row(c)],
         "",
     ]
-    stem.with_suffix(".md").write_text("\n".join(md))
-    print(json.dumps(summary))
+    return "\n".join(md)
 
 
 if __name__ == "__main__":

@@ -145,12 +145,15 @@ def _windowed_fit(rng, scale, offset, n_windows=40, m=30, p=6, bump=0.0):
 def test_held_out_windows_are_judged_by_the_calibrations_noise_model():
     """Known answer: residuals with a noise scale of 1.05 and window offsets of 0.35 noise sds (a
     sensor's slow noise, as the out-of-model bench's) are over-dispersed for white held-out
-    predictions (mean z^2 about 1 + 30 x 0.35^2 = 4.7 per window mean, 1.2 per sample) and N(0, 1)
-    under that noise model: mean z^2 within 3 se of 1 over 24 000 residuals (se 0.009 for chi2;
-    0.02 allowed), and 1 % window-channel tests at p < 0.01 within the binomial band of 600 (at most
-    15).  With the white model (scale 1, no offset) the residuals are the white ones exactly.  A misfit
-    of 3 noise sds on a whole window (8.6 offset sds) stays material and significant: expected score
-    sqrt((29 + (30 * 9 + 1.1) / (30 * 0.35^2 + 1.1)) / 30) = 1.69, above sqrt(2)."""
+    predictions and N(0, 1) under that noise model.  Over the 12 000 residuals of dT and the mean
+    the mean z^2 is within 0.04 of 1 (3 se of a chi2_1 mean); along each window's mean, where an
+    offset shows, (sum z)^2 / m averages 1 within 0.25 over 400 window-channels (3.5 se) with the
+    noise model and 1 + 30 x 0.35^2 / 1.05^2 = 4.3 at white noise (above 2).  Of the 400 window
+    tests at p < 0.01 at most 15 fall there with the noise model (4 expected), more than 20 at
+    white noise (about 40).  With the white model (scale 1, no offset) the residuals are the white
+    ones exactly.  A misfit of 3 noise sds on a whole window (8.6 offset sds) stays material and
+    significant: expected score sqrt((29 + (30 * 9 + 1.1) / (30 * 0.35^2 + 1.1)) / 30) = 1.69,
+    above sqrt(2)."""
     from scipy import stats
 
     from tembayes.gap.which import window_cv
@@ -162,12 +165,18 @@ def test_held_out_windows_are_judged_by_the_calibrations_noise_model():
     lpd2, z = window_cv(J, r, cov, step, (scale, offset))
     np.testing.assert_array_equal(lpd, lpd2)  # the evidence stays on the white noise
     z, z_white = z.astype(float), z_white.astype(float)
-    assert abs(np.mean(z[1:] ** 2) - 1.0) < 0.03
+    assert abs(np.mean(z[1:] ** 2) - 1.0) < 0.04
     assert np.mean(z_white[1:] ** 2) > 1.15
+
+    def window_mean_chi2(zz):
+        return np.mean([np.sum(zz[c, step == k]) ** 2 / 30 for c in (1, 2) for k in range(200)])
+
+    assert abs(window_mean_chi2(z) - 1.0) < 0.25
+    assert window_mean_chi2(z_white) > 2.0
     t = np.array([[np.sum(z[c, step == k] ** 2) for k in range(200)] for c in (1, 2)])
-    assert np.sum(stats.chi2.sf(t, 30) < 0.01) <= 15  # 4 expected of 400
+    assert np.sum(stats.chi2.sf(t, 30) < 0.01) <= 15
     t_white = np.array([[np.sum(z_white[c, step == k] ** 2) for k in range(200)] for c in (1, 2)])
-    assert np.sum(stats.chi2.sf(t_white, 30) < 0.01) > 40
+    assert np.sum(stats.chi2.sf(t_white, 30) < 0.01) > 20
     _, z_same = window_cv(J, r, cov, step, (np.ones(3), np.zeros(3)))
     np.testing.assert_allclose(z_same, z_white, atol=1e-5)
     J, r, cov, step = _windowed_fit(np.random.default_rng(12), scale, offset, bump=3.0)

@@ -34,7 +34,7 @@ GAP_METRIC = (
 )
 #: The gap on the identification run's held-out step windows, when only they show one.
 ID_GAP_METRIC = (
-    "excess RMS [noise sds] of the identification run's step windows, each predicted from the others "
+    "excess RMS [sds of the calibration's noise model] of the identification run's step windows, each predicted from the others "
     "(leave-one-window-out, whitened by its predictive covariance under the calibration's noise model: "
     "its noise scale and window offsets): sqrt(max(0, mean z^2 - 1)) over the voltage, sensor dT and "
     "sensor mean; pooled over the modules.  0 when the windows scatter as the calibrated noise says"
