@@ -25,20 +25,21 @@ units, ``H = J (J^T J)^-1 J^T`` over the data and prior rows).  These are
 *held-out blocks of time*: the identification run's gap map
 (:func:`~tembayes.gap.where.identification_map`) and its share of the
 held-out evidence come from them.  On a correctly specified bench module the
-held-out windows scatter as the noise says (measured at white noise before
+held-out windows scatter as the noise says (measured at white noise, before
 the noise model below: ``chi2`` 1.01, no window above 1.25 noise sds); a
-Thomson heat the linear laws half absorb left windows at 2-2.5 sds.  The held-out residuals are whitened by the noise model of
-the base calibration (:class:`WindowNoise`: its noise scale and window
-offsets, which carry a sensor's slow noise, each within its adequacy
-limit), so a window counts as a gap only beyond what that model allows: a
-sensor's slow noise, which the second differences of the measured noise
-level do not see, would otherwise read as a misfit.  It is one yardstick
-for the base and every candidate of a diagnosis (a candidate's own noise
-may have absorbed what it does not explain).  The windows' log densities
-stay on the white noise at the measured level, as the Laplace evidence is:
-the comparison between effects is on one noise model.  A calibration
-without noise parameters leaves the windows at white noise
-(``window_noise`` None in ``gap.json``).
+Thomson heat the linear laws half absorb left windows at 2-2.5 sds.
+
+The held-out residuals are whitened by the noise model of the base
+calibration (:class:`WindowNoise`: its noise scale and window offsets, which
+carry a sensor's slow noise, each within its adequacy limit), so a window
+counts as a gap only beyond what that model allows: a sensor's slow noise,
+which the second differences of the measured noise level do not see, would
+otherwise read as a misfit.  It is one yardstick for the base and every
+candidate of a diagnosis (a candidate's own noise may have absorbed what it
+does not explain).  The windows' log densities stay on the white noise at
+the measured level, as the Laplace evidence is: the comparison between
+effects is on one noise model.  A calibration without noise parameters
+leaves the windows at white noise (``window_noise`` None in ``gap.json``).
 
 The screen ranks the effects by their Laplace log evidence on the
 identification run against the base refit's; the diagnosis
