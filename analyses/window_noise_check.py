@@ -40,10 +40,10 @@ def check_module(run, batch, module_id, alpha):
     from types import SimpleNamespace
 
     from tembayes.calibrate.module import laplace_fit
-    from tembayes.constants import KELVIN, MODULE_PARAMETERS
+    from tembayes.constants import MODULE_PARAMETERS
     from tembayes.gap.evidence import material
     from tembayes.gap.where import identification_map
-    from tembayes.gap.which import WindowNoise, window_cv
+    from tembayes.gap.which import WindowNoise, step_windows, window_cv
     from tembayes.predict.predictive import module_raw_draws
 
     raws = module_raw_draws(run, module_id)
@@ -56,14 +56,7 @@ def check_module(run, batch, module_id, alpha):
         start={k: float(np.median(raws[k])) for k in MODULE_PARAMETERS},
     )
     data, r = fit.data, fit.residuals
-    windows = {
-        "step": data.step,
-        "since": data.since,
-        "tmean_C": data.obs[2] - KELVIN,
-        "levels": data.levels,
-        "step_time": data.step_time,
-        "source": data.source,
-    }
+    windows = step_windows(data)
     wn = WindowNoise.of_draws(raws)
     out = {"noise": {"scale": wn.scale.tolist(), "offset_over_noise": (wn.offset_sd / data.noise).tolist()}}
     for tag, noise in (("white", None), ("noise_model", wn.whitened(data.noise))):

@@ -175,6 +175,20 @@ class Setting:
     screen_draws: int
     alpha: float
 
+    def refit(self, module, effect, start, window_noise):
+        """:func:`~tembayes.gap.which.refit` of ``module``'s identification run with the run's options."""
+        from tembayes.gap.which import refit
+
+        return refit(
+            module,
+            self.datasheet,
+            effect,
+            rig_config=self.rig_config,
+            start=start,
+            options=self.base,
+            window_noise=window_noise,
+        )
+
 
 def refit_job(setting, module, effect, start, heldout, window_noise=None):
     """One refit and, with ``heldout``, its Laplace posterior scored on the held-out runs (a worker's job).
@@ -199,22 +213,13 @@ def refit_job(setting, module, effect, start, heldout, window_noise=None):
 
     from tembayes.calibrate.module import calibration_rig
     from tembayes.errors import TembayesError
-    from tembayes.gap.which import refit
 
     s, t0 = setting, time.perf_counter()
     out = RefitOutcome(module=module.id, effect=effect)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # a wrong effect's refit may probe where the rig strains
         try:
-            out.refit = refit(
-                module,
-                s.datasheet,
-                effect,
-                rig_config=s.rig_config,
-                start=start,
-                options=s.base,
-                window_noise=window_noise,
-            )
+            out.refit = s.refit(module, effect, start, window_noise)
             if heldout:
                 n = s.screen_draws
                 raw = out.refit.draws(stream(s.seed, module.id, "laplace", effect), LAPLACE_DRAWS_PER_DRAW * n)
@@ -299,12 +304,9 @@ def _recalibrate(setting, module, effect, start, refitted, window_noise):
     screen refit may have stopped short of the mode), by ``window_noise``.
     """
     from tembayes.calibrate.module import calibrate_module
-    from tembayes.gap.which import refit
 
     s = setting
-    rf = refitted or refit(
-        module, s.datasheet, effect, rig_config=s.rig_config, start=start, options=s.base, window_noise=window_noise
-    )
+    rf = refitted or s.refit(module, effect, start, window_noise)
     cal = calibrate_module(
         module,
         s.datasheet,
@@ -316,16 +318,7 @@ def _recalibrate(setting, module, effect, start, refitted, window_noise):
     )
     raw = {k: np.asarray(v).ravel() for k, v in cal.draws.items()}
     median = {k: float(np.median(v)) for k, v in raw.items()}
-    rf = refit(
-        module,
-        s.datasheet,
-        effect,
-        rig_config=s.rig_config,
-        start=median,
-        options=s.base,
-        window_noise=window_noise,
-    )
-    return cal, raw, rf
+    return cal, raw, s.refit(module, effect, median, window_noise)
 
 
 def effect_size(effect, draws):

@@ -279,14 +279,6 @@ def refit(
     log_evidence = -data_cost + float(space.log_prior(x[None])[0]) + 0.5 * (len(x) * np.log(2 * np.pi) + logdet)
     wn = None if window_noise is None else window_noise.whitened(data.noise)
     cv_lpd, cv_z = window_cv(J[: r.size], r, cov, data.step, wn)
-    windows = {
-        "step": data.step,
-        "since": data.since.astype(np.float32),
-        "tmean_C": (data.obs[2] - KELVIN).astype(np.float32),
-        "levels": data.levels,
-        "step_time": data.step_time,
-        "source": data.source,
-    }
     return Refit(
         module_id=module.id,
         effect=effects[0] if effects else None,
@@ -301,11 +293,23 @@ def refit(
         cv_lpd=cv_lpd,
         cv_z=cv_z,
         window_noise=None if wn is None else {"scale": wn[0].tolist(), "offset": wn[1].tolist()},
-        windows=windows,
+        windows=step_windows(data),
         nfev=fit.nfev,
         converged=fit.converged,
         seconds=time.perf_counter() - t0,
     )
+
+
+def step_windows(data):
+    """What the identification map needs of a run's step data (``Refit.windows``)."""
+    return {
+        "step": data.step,
+        "since": data.since.astype(np.float32),
+        "tmean_C": (data.obs[2] - KELVIN).astype(np.float32),
+        "levels": data.levels,
+        "step_time": data.step_time,
+        "source": data.source,
+    }
 
 
 def window_cv(J, r, cov, step, noise=None):
