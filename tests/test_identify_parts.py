@@ -9,7 +9,7 @@ from tembayes.data.steps import detect_steps
 from tembayes.errors import ModelError
 from tembayes.identify.estimates import Steady, jump_resistance, junction_temperatures
 from tembayes.identify.fits import fit_line, hysteresis
-from tembayes.physics import Inputs, simulate
+from tembayes.physics import Inputs, shipped_rig, simulate
 from tembayes.physics import kernel as K
 from tembayes.physics.rigread import REFERENCE
 from tembayes.physics.simulate import build
@@ -115,9 +115,13 @@ def test_hysteresis_detects_an_offset_and_not_its_absence():
 # --------------------------------------------------- junction temperatures
 
 
+@pytest.mark.parametrize("rig_name", ["reference", "reference-faces"])
 @pytest.mark.parametrize("current", [0.8, -1.4])
-def test_junction_temperatures_recover_the_plates_at_steady_state(current):
+def test_junction_temperatures_recover_the_plates_at_steady_state(current, rig_name):
+    """On the reference rig every block cell is read; on reference-faces the cells beyond the face
+    thermistors are not, and their steady state carries the heat the face cells pass on."""
     # oracle: the model's own steady state, where the plate temperatures are known
+    rig = shipped_rig(rig_name).build()
     rig_values = {"g_paste_hot": 28.0, "g_paste_cold": 41.0, "leak_top": 0.015, "leak_bottom": 0.05}
     params = {
         "R0_ohm": 1.75,
@@ -127,14 +131,16 @@ def test_junction_temperatures_recover_the_plates_at_steady_state(current):
         "K_W_per_K": 0.54,
         **rig_values,
     }
-    m = build(params, REFERENCE)
+    m = build(params, rig)
     tw, ta = 293.15, 295.65
+    n = len(m["network"].nodes)
     y, ok = K.steady_one(
-        np.full(6, tw), current, np.array([tw, ta]), m["A"][0], m["Bb"][0], m["Cinv"][0], m["tem"], m["P"][0]
+        np.full(n, tw), current, np.array([tw, ta]), m["A"][0], m["Bb"][0], m["Cinv"][0], m["tem"], m["P"][0]
     )
     assert ok
     names = m["network"].nodes
-    sensors = np.array([y[names.index(REFERENCE.sensors[c])] for c in REFERENCE.sensors])
+    sensors = np.array([y[names.index(rig.sensors[c])] for c in rig.sensors])
+    face = [list(rig.sensors).index(c) for c in ("T2_C", "T3_C")]
     ss = Steady(
         t_end=0,
         window=60,
@@ -142,20 +148,20 @@ def test_junction_temperatures_recover_the_plates_at_steady_state(current):
         voltage=0,
         voltage_sd=0,
         sensors=sensors,
-        sensors_sd=np.zeros(4),
+        sensors_sd=np.zeros(len(sensors)),
         boundaries=np.array([tw, ta]),
-        face_T=(sensors[1], sensors[2]),
+        face_T=(sensors[face[0]], sensors[face[1]]),
         drift=0,
     )
-    (th, tc), (sh, sc), _ = junction_temperatures(ss, REFERENCE, rig_values)
+    (th, tc), (sh, sc), _ = junction_temperatures(ss, rig, rig_values)
     assert th == pytest.approx(y[names.index("hot_plate")], abs=1e-6)
     assert tc == pytest.approx(y[names.index("cold_plate")], abs=1e-6)
     # the sensors sit tenths of a kelvin (cooling) to kelvins (heating) away
     # from the junctions: the point of the correction
-    assert abs(th - sensors[1]) + abs(tc - sensors[2]) > 0.3 * abs(current)
+    assert abs(th - sensors[face[0]]) + abs(tc - sensors[face[1]]) > 0.3 * abs(current)
     # with the rig values unknown (documented ranges) the spread is honest:
     # the truth lies within 3 sd of the nominal-rig reconstruction
-    (th2, tc2), (sh2, sc2), (dh, dc) = junction_temperatures(ss, REFERENCE)
+    (th2, tc2), (sh2, sc2), (dh, dc) = junction_temperatures(ss, rig)
     assert dh.shape == (400,) and np.std(dh) == pytest.approx(sh2)
     assert sh2 > 0.01 and sc2 > 0.01
     assert abs(th2 - th) < 3 * sh2 and abs(tc2 - tc) < 3 * sc2

@@ -218,11 +218,14 @@ def junction_temperatures(
     """Module plate (junction) temperatures at steady state, from the sensors.
 
     A plate read by a sensor is that sensor.  Otherwise the rig's node next
-    to the plate must be read by a sensor and all of that node's other
-    neighbours must be measured (sensors or boundaries), as on the reference
-    rig.  Then the heat the plate sends into the block equals what that node
-    passes on (steady state), and the plate temperature is the node's plus
-    that flux over the plate-node link's conductance.
+    to the plate must be read by a sensor.  Then the heat the plate sends
+    into the block equals what that node passes on (steady state), and the
+    plate temperature is the node's plus that flux over the plate-node
+    link's conductance.  The node's other neighbours are read by sensors (the
+    reference rig) or, where none is, sit at the steady state of the rig's
+    unread nodes between the read ones and the boundaries
+    (:func:`unread_temperatures`; ``reference-faces``, whose blocks are read
+    next to the module only).
 
     Parameters
     ----------
@@ -267,6 +270,7 @@ def junction_temperatures(
     sens = steady.sensors[None, :] + np.concatenate(
         [np.zeros((1, ns)), rng.normal(0, 1, (n_draws, ns)) * steady.sensors_sd[None, :]]
     )
+    unread = unread_temperatures(rig, net, sens, steady.boundaries)
     out = []
     for plate in (rig.hot, rig.cold):
         if plate in read:
@@ -282,11 +286,59 @@ def junction_temperatures(
         for j in np.flatnonzero(net.G[0, b]):
             if j == p:
                 continue
-            if names[j] not in read:
-                raise ModelError(f"rig '{rig.name}': node '{names[j]}' next to '{names[b]}' has no sensor")
-            flux += net.G[:, b, j] * (Tb - sens[:, read[names[j]]])
+            Tj = sens[:, read[names[j]]] if names[j] in read else unread[names[j]]
+            flux += net.G[:, b, j] * (Tb - Tj)
         for kb in range(len(rig.boundaries)):
             flux += net.Gb[:, b, kb] * (Tb - steady.boundaries[kb])
         out.append(Tb + flux / net.G[:, p, b])
     th, tc = out
     return (float(th[0]), float(tc[0])), (float(np.std(th[1:])), float(np.std(tc[1:]))), (th[1:], tc[1:])
+
+
+def unread_temperatures(rig: RigDescription, net, sens: np.ndarray, boundaries: np.ndarray) -> dict[str, np.ndarray]:
+    """Steady temperatures of the rig's nodes no sensor reads, outside the module.
+
+    Every such node passes on all the heat it takes (no source at steady
+    state), so with the read nodes and the boundaries given their
+    temperatures solve one linear system per draw.
+
+    Parameters
+    ----------
+    rig : RigDescription
+    net : the rig's network at the draws (``G`` (nd, N, N), ``Gb`` (nd, N, nb)) [W/K]
+    sens : ndarray, shape (nd, n_sensors)
+        Sensor readings per draw [K], in the order of ``rig.sensors``.
+    boundaries : ndarray, shape (nb,)
+        [K]
+
+    Returns
+    -------
+    dict
+        Node name -> (nd,) temperatures [K].
+
+    Raises
+    ------
+    ModelError
+        An unread node next to the module (its heat is not passed on).
+    """
+    names = list(net.nodes)
+    read = {node: c for c, node in enumerate(rig.sensors.values())}
+    module = {rig.hot, rig.cold, *rig.tem_chain}
+    free = [i for i, n in enumerate(names) if n not in read and n not in module]
+    if not free:
+        return {}
+    at = {u: k for k, u in enumerate(free)}
+    nd = net.G.shape[0]
+    A = np.zeros((nd, len(free), len(free)))
+    rhs = net.Gb[:, free, :] @ np.asarray(boundaries, float)
+    for u, k in at.items():
+        A[:, k, k] = net.G[:, u, :].sum(axis=1) + net.Gb[:, u, :].sum(axis=1)
+        for j in np.flatnonzero(net.G[0, u]):
+            if j in at:
+                A[:, k, at[j]] -= net.G[:, u, j]
+            elif names[j] in read:
+                rhs[:, k] += net.G[:, u, j] * sens[:, read[names[j]]]
+            else:
+                raise ModelError(f"rig '{rig.name}': node '{names[u]}' next to the module's '{names[j]}' has no sensor")
+    T = np.linalg.solve(A, rhs[..., None])[..., 0]
+    return {names[u]: T[:, k] for u, k in at.items()}
