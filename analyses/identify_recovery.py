@@ -15,6 +15,7 @@ afterwards its laws are compared with the truth:
 Targets: R0, S0 within 2 %, R1, S1 within 20 % for ``fit``.
 
 Run:  python analyses/identify_recovery.py [--seeds 10 11 12 13] [--validation]
+      python analyses/identify_recovery.py --seeds --batch B1 --batch B2 --label reference-faces
       (about 2 min per batch on 2 cores)
 Writes analyses/results/identify_recovery.json and prints a table.
 """
@@ -41,7 +42,7 @@ TARGETS = {"R0_ohm": 0.02, "R1_ohm_per_K": 0.20, "S0_V_per_K": 0.02, "S1_V_per_K
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--seeds", type=int, nargs="+", default=[10, 11, 12, 13])
+    ap.add_argument("--seeds", type=int, nargs="*", default=[10, 11, 12, 13])
     ap.add_argument(
         "--batch",
         type=Path,
@@ -50,6 +51,7 @@ def main(argv=None):
         help="also an existing batch folder with truth.json (e.g. data/example)",
     )
     ap.add_argument("--validation", action="store_true", help="also run validation experiments")
+    ap.add_argument("--label", default="", help="appended to the results' name (e.g. the rig of --batch folders)")
     args = ap.parse_args(argv)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -119,10 +121,9 @@ def main(argv=None):
     }
     print(json.dumps(summary, indent=2))
     RESULTS.mkdir(exist_ok=True)
-    write_json(
-        RESULTS / "identify_recovery.json", {"summary": summary, "rows": rows, "targets": TARGETS, "seeds": args.seeds}
-    )
-    print(f"wrote {RESULTS / 'identify_recovery.json'}")
+    out = RESULTS / ("identify_recovery" + (f"_{args.label}" if args.label else "") + ".json")
+    write_json(out, {"summary": summary, "rows": rows, "targets": TARGETS, "seeds": args.seeds})
+    print(f"wrote {out}")
     return 0
 
 
