@@ -224,7 +224,7 @@ def junction_temperatures(
     link's conductance.  The node's other neighbours are read by sensors (the
     reference rig) or, where none is, sit at the steady state of the rig's
     unread nodes between the read ones and the boundaries
-    (:func:`unread_temperatures`; ``reference-faces``, whose blocks are read
+    (:func:`node_temperatures`; ``reference-faces``, whose blocks are read
     next to the module only).
 
     Parameters
@@ -270,7 +270,7 @@ def junction_temperatures(
     sens = steady.sensors[None, :] + np.concatenate(
         [np.zeros((1, ns)), rng.normal(0, 1, (n_draws, ns)) * steady.sensors_sd[None, :]]
     )
-    unread = unread_temperatures(rig, net, sens, steady.boundaries)
+    node_T = node_temperatures(rig, net, sens, steady.boundaries)
     out = []
     for plate in (rig.hot, rig.cold):
         if plate in read:
@@ -281,13 +281,11 @@ def junction_temperatures(
         if len(nbrs) != 1 or names[nbrs[0]] not in read:
             raise ModelError(f"rig '{rig.name}': plate '{plate}' needs exactly one neighbour read by a sensor")
         b = nbrs[0]
-        Tb = sens[:, read[names[b]]]
+        Tb = node_T[names[b]]
         flux = np.zeros(n_draws + 1)  # heat leaving node b other than to the plate [W]
         for j in np.flatnonzero(net.G[0, b]):
-            if j == p:
-                continue
-            Tj = sens[:, read[names[j]]] if names[j] in read else unread[names[j]]
-            flux += net.G[:, b, j] * (Tb - Tj)
+            if j != p:
+                flux += net.G[:, b, j] * (Tb - node_T[names[j]])
         for kb in range(len(rig.boundaries)):
             flux += net.Gb[:, b, kb] * (Tb - steady.boundaries[kb])
         out.append(Tb + flux / net.G[:, p, b])
@@ -295,12 +293,13 @@ def junction_temperatures(
     return (float(th[0]), float(tc[0])), (float(np.std(th[1:])), float(np.std(tc[1:]))), (th[1:], tc[1:])
 
 
-def unread_temperatures(rig: RigDescription, net, sens: np.ndarray, boundaries: np.ndarray) -> dict[str, np.ndarray]:
-    """Steady temperatures of the rig's nodes no sensor reads, outside the module.
+def node_temperatures(rig: RigDescription, net, sens: np.ndarray, boundaries: np.ndarray) -> dict[str, np.ndarray]:
+    """Steady temperatures of the rig's nodes outside the module.
 
-    Every such node passes on all the heat it takes (no source at steady
-    state), so with the read nodes and the boundaries given their
-    temperatures solve one linear system per draw.
+    A node a sensor reads is that sensor.  Every other one passes on all
+    the heat it takes (no source at steady state), so with the read nodes
+    and the boundaries given their temperatures solve one linear system per
+    draw.
 
     Parameters
     ----------
@@ -323,10 +322,11 @@ def unread_temperatures(rig: RigDescription, net, sens: np.ndarray, boundaries: 
     """
     names = list(net.nodes)
     read = {node: c for c, node in enumerate(rig.sensors.values())}
+    known = {node: sens[:, c] for node, c in read.items()}
     module = {rig.hot, rig.cold, *rig.tem_chain}
     free = [i for i, n in enumerate(names) if n not in read and n not in module]
     if not free:
-        return {}
+        return known
     at = {u: k for k, u in enumerate(free)}
     nd = net.G.shape[0]
     A = np.zeros((nd, len(free), len(free)))
@@ -341,4 +341,4 @@ def unread_temperatures(rig: RigDescription, net, sens: np.ndarray, boundaries: 
             else:
                 raise ModelError(f"rig '{rig.name}': node '{names[u]}' next to the module's '{names[j]}' has no sensor")
     T = np.linalg.solve(A, rhs[..., None])[..., 0]
-    return {names[u]: T[:, k] for u, k in at.items()}
+    return {**known, **{names[u]: T[:, k] for u, k in at.items()}}
