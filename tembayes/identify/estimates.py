@@ -321,24 +321,24 @@ def node_temperatures(rig: RigDescription, net, sens: np.ndarray, boundaries: np
         An unread node next to the module (its heat is not passed on).
     """
     names = list(net.nodes)
-    read = {node: c for c, node in enumerate(rig.sensors.values())}
-    known = {node: sens[:, c] for node, c in read.items()}
-    module = {rig.hot, rig.cold, *rig.tem_chain}
-    free = [i for i, n in enumerate(names) if n not in read and n not in module]
+    read = {names.index(node): c for c, node in enumerate(rig.sensors.values())}
+    known = {names[i]: sens[:, c] for i, c in read.items()}
+    module = {names.index(n) for n in (rig.hot, rig.cold, *rig.tem_chain)}
+    free = [i for i in range(len(names)) if i not in read and i not in module]
     if not free:
         return known
-    at = {u: k for k, u in enumerate(free)}
-    nd = net.G.shape[0]
-    A = np.zeros((nd, len(free), len(free)))
-    rhs = net.Gb[:, free, :] @ np.asarray(boundaries, float)
-    for u, k in at.items():
-        A[:, k, k] = net.G[:, u, :].sum(axis=1) + net.Gb[:, u, :].sum(axis=1)
-        for j in np.flatnonzero(net.G[0, u]):
-            if j in at:
-                A[:, k, at[j]] -= net.G[:, u, j]
-            elif names[j] in read:
-                rhs[:, k] += net.G[:, u, j] * sens[:, read[names[j]]]
-            else:
-                raise ModelError(f"rig '{rig.name}': node '{names[u]}' next to the module's '{names[j]}' has no sensor")
+    blind = sorted(module - set(read))
+    touching = np.argwhere(net.G[0][np.ix_(free, blind)] > 0)
+    if len(touching):
+        u, j = touching[0]
+        raise ModelError(
+            f"rig '{rig.name}': node '{names[free[u]]}' next to the module's '{names[blind[j]]}' has no sensor"
+        )
+    # the free nodes' rows of the network's Laplacian, the read nodes and the boundaries moved to the right
+    G = net.G[:, free, :]
+    A = -G[:, :, free]
+    A[:, np.arange(len(free)), np.arange(len(free))] += G.sum(axis=2) + net.Gb[:, free, :].sum(axis=2)
+    at, cols = list(read), list(read.values())
+    rhs = net.Gb[:, free, :] @ np.asarray(boundaries, float) + np.einsum("dkr,dr->dk", G[:, :, at], sens[:, cols])
     T = np.linalg.solve(A, rhs[..., None])[..., 0]
-    return {**known, **{names[u]: T[:, k] for u, k in at.items()}}
+    return {**known, **{names[u]: T[:, k] for k, u in enumerate(free)}}
