@@ -275,6 +275,80 @@ def test_range_conflicts_flag_a_leak_far_above_the_enclosure_and_nothing_inside(
     assert np.isfinite(next(r for r in range_conflicts(draws, rig) if r["parameter"] == "tab_share")["outside_sd"])
 
 
+def test_a_conflict_counts_only_if_holding_it_at_its_edge_leaves_a_held_out_window():
+    """The range checks' rule: held together with no window cell left, no conflict is needed; otherwise
+    each is judged alone, and conflicts that stand in for each other (none needed alone) all are.  A
+    conflict found immaterial points at no suspect and moves no refit's start."""
+    from tembayes.gap.conflicts import is_gap, judge_materiality, range_checks, range_conflicts, suspect_start, suspects
+    from tembayes.physics.rigread import rig_from_config
+
+    rig = rig_from_config(None, 4, 3)
+    rng = np.random.default_rng(1)
+    draws = {k: v * np.exp(0.02 * rng.standard_normal(500)) for k, v in rig.nominal().items()}
+    draws["leak_bottom"] = 0.14 * np.exp(0.05 * rng.standard_normal(500))
+    draws["c_plate_cold"] = 6.5 * np.exp(0.03 * rng.standard_normal(500))
+    rows = range_conflicts(draws, rig)
+    checks = range_checks(rows)
+    # together at their nearer edges, then each alone
+    assert checks == [{"c_plate_cold": 5.0, "leak_bottom": 0.06}, {"c_plate_cold": 5.0}, {"leak_bottom": 0.06}]
+    assert range_checks([r for r in rows if r["parameter"] == "leak_bottom"]) == [{"leak_bottom": 0.06}]
+
+    def judged(cells):
+        return {r["parameter"]: r["material"] for r in judge_materiality(rows, cells) if r["conflict"]}
+
+    assert judged([0, 0, 0]) == {"c_plate_cold": False, "leak_bottom": False}
+    assert judged([12, 0, 9]) == {"c_plate_cold": False, "leak_bottom": True}
+    assert judged([12, 0, 0]) == {"c_plate_cold": True, "leak_bottom": True}  # they stand in for each other
+    assert judged([None, 0, None]) == {"c_plate_cold": False, "leak_bottom": True}  # a failed refit is a misfit
+    assert all("material" not in r for r in judge_materiality(rows, [12, 0, 9]) if not r["conflict"])
+
+    kept = judge_materiality(rows, [12, 0, 9])
+    assert [r["parameter"] for r in kept if is_gap(r)] == ["leak_bottom"]
+    assert suspects({"TEM1": kept}, rig, allowed=["ambient_leak", "sensor_lag", "contact_resistance"]) == [
+        "ambient_leak"
+    ]
+    none = judge_materiality(rows, [0, 0, 0])
+    assert suspects({"TEM1": none}, rig, allowed=["ambient_leak", "sensor_lag", "contact_resistance"]) == []
+    assert suspect_start("ambient_leak", none, rig) == {}
+    assert suspect_start("ambient_leak", kept, rig)["leak_bottom"] == 0.06
+
+
+def test_a_range_check_refit_holds_its_values_and_leaves_windows_only_where_the_data_disagree(batch3, run3):
+    """The yardstick of the range checks on a correctly specified module (batch3's TEM1, the paper's form).
+    Held at its documented edge, the cold plate's capacity -- which the data tell only through the
+    step transients -- leaves no significant and material held-out window and the misfit within 2 %:
+    a conflict there would not be needed.  The bottom leak at its edge (0.06 W/K, 1.5x the bench's),
+    or the plate at a block's capacity (30 J/K, a sensor lag's stand-in), leaves windows: the data
+    tell them.  A held value is out of the search and stays where it was put."""
+    from tembayes.calibrate.run import load_run
+    from tembayes.data import load_batch
+    from tembayes.gap.evidence import held_out_windows
+    from tembayes.gap.which import refit
+
+    batch = load_batch(batch3)
+    module = batch.modules["TEM1"]
+    run = load_run(run3[0])
+    laws = ["R0_ohm", "R1_ohm_per_K", "S0_V_per_K", "S1_V_per_K2", "K_W_per_K"]
+    start = dict(zip(laws, np.median(run.draws("TEM1", laws), axis=0)))
+    opts = run.calibration_options()
+    bench = run3[2]["modules"]["TEM1"]["rig"]
+    base = refit(module, batch.datasheet, None, start=start, options=opts)
+
+    def held(**values):
+        return refit(module, batch.datasheet, None, start=base.mode(), options=opts, held=values)
+
+    def cells(rf):
+        return len(held_out_windows([rf], alpha=0.001).cells)
+
+    assert 4.0 <= bench["c_plate_cold"] < 5.0 and 1.2 < 0.06 / bench["leak_bottom"] < 2.0
+    edge = held(c_plate_cold=5.0)
+    assert "c_plate_cold" not in edge.names and edge.held == {"c_plate_cold": 5.0}
+    assert cells(base) == 0 and cells(edge) == 0
+    assert edge.chi2_total < 1.02 * base.chi2_total
+    for rf in (held(leak_bottom=0.06), held(c_plate_cold=30.0)):
+        assert cells(rf) > 0 and rf.chi2_total > 1.02 * base.chi2_total, (rf.held, cells(rf), rf.chi2_total)
+
+
 # --- the whole diagnosis: which, how far, the verdict -----------------------------------------------------
 def test_block_log_density_is_the_exact_ou_density():
     """The innovation decomposition equals the joint Gaussian density of an OU residual (known answer)."""

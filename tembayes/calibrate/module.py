@@ -536,13 +536,19 @@ def calibration_problem(experiment, datasheet, rig_config, opt, effects=()):
     return rig, data, model, model_space, space
 
 
-def laplace_fit(experiment, datasheet, *, rig_config=None, options=None, effects=(), start=None, max_nfev=60):
+def laplace_fit(
+    experiment, datasheet, *, rig_config=None, options=None, effects=(), start=None, max_nfev=60, held=None
+):
     """The calibration's problem on ``experiment``, its mode from ``start`` (:func:`start_point`), and the Laplace covariance.
 
-    ``effects`` are catalogue effects added to the model form (and ``options.effects``).
+    ``effects`` are catalogue effects added to the model form (and
+    ``options.effects``); ``held`` (``name -> value``, SI) takes sampled
+    parameters out of the search at those values.
     """
     opt = options or CalibrationOptions()
     _, data, model, space, _ = calibration_problem(experiment, datasheet, rig_config, opt, effects)
+    if held:
+        space = ParameterSpace(tuple(p for p in space.priors if p.name not in held), {**space.fixed, **held})
     with threadpool_limits(limits=1, user_api="blas"):
         x, _, sol = fit_map(model, space, data, start_point(space, start), max_nfev=max_nfev)
         r = (data.obs - model.predict(space.params(x[None]), strict=False)[0]) / data.noise[:, None]

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from tembayes.gap.conflicts import is_gap
 from tembayes.gap.evidence import HeldOut, block_se, elpd_blocks, held_out_gap, held_out_windows, rmse
 
 #: The held-out datasets, in the order the gap is reported on.
@@ -61,11 +62,11 @@ def window_rows(windows):
 
 
 def parameter_rows(conflicts):
-    """The rig parameters outside their range (``module -> range-conflict rows``) as where-rows, worst first."""
+    """The rig parameters outside their range that the data need (``module -> range-conflict rows``) as where-rows, worst first."""
     out = []
     for mid, rows in conflicts.items():
         for r in rows:
-            if r["conflict"]:
+            if is_gap(r):
                 out.append(
                     {
                         "channel": r["parameter"],
@@ -93,7 +94,8 @@ class Baseline:
     windows : dict
         Module id -> its refit's :class:`~tembayes.gap.evidence.WindowCheck` (with cells).
     conflicts : dict
-        Module id -> its rig parameters' range-conflict rows (those outside, or straddling, the range).
+        Module id -> its rig parameters' range-conflict rows (those outside, or straddling, the
+        range; a conflict's ``material`` from its range checks).
     where_validation, where_identification, parameter_gaps : list of dict
         The where-rows of the validation runs, the identification windows and the rig parameters.
     """
@@ -149,8 +151,8 @@ class Baseline:
         return HeldOut(elpd_blocks(self.evals), np.concatenate([self.refits[m].cv_lpd for m in self.ids]))
 
     def conflicting(self, module_id):
-        """The rig parameters of a module outside their range."""
-        return {r["parameter"] for r in self.conflicts[module_id] if r["conflict"]}
+        """The rig parameters of a module outside their range that the data need (:func:`~tembayes.gap.conflicts.is_gap`)."""
+        return {r["parameter"] for r in self.conflicts[module_id] if is_gap(r)}
 
     def lead(self):
         """The module with the largest gap: on the validation runs, else the windows, else the most conflicts."""
@@ -159,7 +161,7 @@ class Baseline:
         elif self.where_identification:
             score = {mid: self.windows[mid].gap for mid in self.ids}
         else:
-            score = {mid: sum(r["conflict"] for r in self.conflicts[mid]) for mid in self.ids}
+            score = {mid: sum(is_gap(r) for r in self.conflicts[mid]) for mid in self.ids}
         return max(self.ids, key=lambda m: score[m])
 
     def to_json(self):

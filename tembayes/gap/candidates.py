@@ -175,7 +175,7 @@ class Setting:
     screen_draws: int
     alpha: float
 
-    def refit(self, module, effect, start, window_noise):
+    def refit(self, module, effect, start, window_noise, held=None):
         """:func:`~tembayes.gap.which.refit` of ``module``'s identification run with the run's options."""
         from tembayes.gap.which import refit
 
@@ -187,10 +187,11 @@ class Setting:
             start=start,
             options=self.base,
             window_noise=window_noise,
+            held=held,
         )
 
 
-def refit_job(setting, module, effect, start, heldout, window_noise=None):
+def refit_job(setting, module, effect, start, heldout, window_noise=None, held=None):
     """One refit and, with ``heldout``, its Laplace posterior scored on the held-out runs (a worker's job).
 
     Parameters
@@ -204,6 +205,8 @@ def refit_job(setting, module, effect, start, heldout, window_noise=None):
     heldout : bool
     window_noise : WindowNoise, optional
         The base calibration's noise model, by which the held-out windows are judged.
+    held : dict, optional
+        Rig parameters held at a value (SI): a range check.
 
     Returns
     -------
@@ -219,7 +222,7 @@ def refit_job(setting, module, effect, start, heldout, window_noise=None):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # a wrong effect's refit may probe where the rig strains
         try:
-            out.refit = s.refit(module, effect, start, window_noise)
+            out.refit = s.refit(module, effect, start, window_noise, held)
             if heldout:
                 n = s.screen_draws
                 raw = out.refit.draws(stream(s.seed, module.id, "laplace", effect), LAPLACE_DRAWS_PER_DRAW * n)

@@ -10,8 +10,10 @@ For every calibrated module with held-out runs (``validation*.csv``):
    run, its step windows held out one at a time; and the rig parameters whose
    posterior sits outside the documented range (:mod:`~tembayes.gap.conflicts`;
    :func:`~tembayes.gap.conflicts.suspect_table` maps them to the effects they can
-   stand for).  No significant and material cell anywhere and no rig
-   parameter out of range: ``no_gap``, nothing screened.
+   stand for), each checked by a refit with it held at the range's edge: a
+   conflict counts only if that refit leaves a significant and material
+   held-out window.  No significant and material cell anywhere and no rig
+   parameter out of range that the data need: ``no_gap``, nothing screened.
 2. **Which** (:mod:`~tembayes.gap.screen`) -- on the module with the largest
    gap, the base model and every catalogue effect refitted on the
    identification run (posterior mode and Laplace approximation, all from the
@@ -52,8 +54,8 @@ from tembayes.constants import MODULE_PARAMETERS
 from tembayes.errors import DataError, ModelError
 from tembayes.gap.baseline import baseline
 from tembayes.gap.candidates import Setting, candidate_job, refit_job
-from tembayes.gap.conflicts import range_conflicts, suspect_start, suspects
-from tembayes.gap.evidence import ALPHA, N_DRAWS, evaluate_run
+from tembayes.gap.conflicts import judge_materiality, range_checks, range_conflicts, suspect_start, suspects
+from tembayes.gap.evidence import ALPHA, N_DRAWS, evaluate_run, held_out_windows
 from tembayes.gap.jobs import collect, default_jobs, executor, in_order, race, submit_all
 from tembayes.gap.ranking import LeadJudge, rank, verdict
 from tembayes.gap.result import GapDiagnosis
@@ -103,6 +105,26 @@ class _Plan:
         start = self.start(module_id, effect)
         args = (self.setting, self.batch.modules[module_id], effect, start, heldout, self.noises[module_id])
         return refit_job, args
+
+    def range_check(self, module_id, base_refit, held):
+        """A range check's refit job: the base model from its refit's mode, ``held`` (SI) out of the search."""
+        start = {k: v for k, v in base_refit.mode().items() if k not in held}
+        return refit_job, (
+            self.setting,
+            self.batch.modules[module_id],
+            None,
+            start,
+            False,
+            self.noises[module_id],
+            held,
+        )
+
+    def only_needed(self, outcome):
+        """A refit's or recalibration's outcome, its conflicts without those the base's range checks found immaterial."""
+        if outcome.conflicts is not None:
+            immaterial = {r["parameter"] for r in self.conflicts.get(outcome.module, ()) if r.get("material") is False}
+            outcome.conflicts = [n for n in outcome.conflicts if n not in immaterial]
+        return outcome
 
     def recalibration(self, module_id, effect, refitted=None):
         """A recalibration job's args (:func:`~tembayes.gap.candidates.candidate_job`)."""
@@ -168,6 +190,9 @@ def diagnose(
     plan = _plan(run, batch, exclude, n_draws, seed, options, jobs, cache, progress or (lambda msg: None))
     with executor(plan.jobs) as ex:
         base = _where(plan, ex)
+        plan = replace(
+            plan, conflicts=base.conflicts, suspects=suspects(base.conflicts, plan.rig, allowed=plan.allowed)
+        )
         if not base.has_gap:
             return _no_gap(plan, base, t_start)
         lead = base.lead()
@@ -279,7 +304,30 @@ def _where(plan, ex):
             f"the base model cannot be refitted on the identification run ({broken[0]})",
             "Check the run with tembayes inspect; the diagnosis needs the base model to simulate it.",
         )
-    return baseline(evals, {mid: refits[("refit", mid, None)].refit for mid in plan.ids}, plan.conflicts, alpha=s.alpha)
+    refits = {mid: refits[("refit", mid, None)].refit for mid in plan.ids}
+    return baseline(evals, refits, _materiality(plan, refits, ex), alpha=s.alpha)
+
+
+def _materiality(plan, refits, ex):
+    """Each module's range conflicts judged by refits with them held at the range's edge (:func:`~tembayes.gap.conflicts.judge_materiality`)."""
+    checks = {mid: range_checks(plan.conflicts[mid]) for mid in plan.ids}
+    jobs = {
+        _range_key(mid, held): plan.range_check(mid, refits[mid], held) for mid, hs in checks.items() for held in hs
+    }
+    if not jobs:
+        return plan.conflicts
+    plan.say(f"checking {len(jobs)} range conflict(s): the base model refitted with them held at their range's edge")
+    done = collect(submit_all(ex, jobs, cache=plan.cache), cache=plan.cache, say=plan.say, label="checked")
+
+    def cells(mid, held):
+        r = done[_range_key(mid, held)]
+        return None if r.failed else len(held_out_windows([r.refit], alpha=plan.setting.alpha).cells)
+
+    return {mid: judge_materiality(plan.conflicts[mid], [cells(mid, h) for h in checks[mid]]) for mid in plan.ids}
+
+
+def _range_key(mid, held):
+    return "range", mid, ", ".join(f"{k} at {v:.4g}" for k, v in sorted(held.items()))
 
 
 def _unsimulatable(plan, mid, exc) -> DataError:
@@ -301,7 +349,7 @@ def _no_gap(plan, base, t_start):
     """The diagnosis without a gap: nothing screened."""
     plan.say(
         "no gap: the held-out runs and step windows lie within the base model's bands and its rig "
-        "within the documented ranges"
+        "within the documented ranges, or outside only where the data do not need it"
     )
     return GapDiagnosis(
         verdict="no_gap",
@@ -325,6 +373,7 @@ def _screen(plan, base, lead, ex):
     plan.say(f"gap in {', '.join(gap_in)}; screening {len(plan.allowed)} effects on {lead}'s identification run")
     jobs = {("refit", lead, e): plan.refit(lead, e, heldout=True) for e in plan.allowed}
     outcomes = collect(submit_all(ex, jobs, cache=plan.cache), cache=plan.cache, say=plan.say, label="refitted")
+    outcomes = {k: plan.only_needed(o) for k, o in outcomes.items()}
     return screen_rows(outcomes, base=base.refits[lead], lead_base=base.held_out(lead))
 
 
@@ -352,7 +401,7 @@ def _race(plan, base, lead, screen, chosen, ex):
     first = [(m, e) for e in chosen for m in ([lead] + rest if len(chosen) == 1 else [lead])]
     results = race(
         first,
-        in_order(chosen, lead, judge),
+        in_order(chosen, lead, lambda r: judge(plan.only_needed(r))),
         lambda mid, e: plan.recalibration(mid, e, refitted.get(e) if mid == lead else None),
         work=candidate_job,
         jobs=plan.jobs,
@@ -363,7 +412,8 @@ def _race(plan, base, lead, screen, chosen, ex):
     dropped = {
         e: judge.why.get(e, f"lost the race on {lead}") for e in chosen if any((m, e) not in results for m in rest)
     }
-    return _RaceOutcome(results=list(results.values()), dropped=dropped)
+
+    return _RaceOutcome(results=[plan.only_needed(r) for r in results.values()], dropped=dropped)
 
 
 def _rank(plan, base, lead, screen, chosen, outcome, t_start):

@@ -158,6 +158,9 @@ class Refit:
     converged : bool
         The mode search stopped on a tolerance, not on :data:`MAX_NFEV`.
     seconds : float
+    held : dict or None
+        Rig parameters held at a value (SI) instead of refitted: a range check's refit
+        (:mod:`~tembayes.gap.conflicts`).
     """
 
     module_id: str
@@ -177,6 +180,7 @@ class Refit:
     nfev: int
     converged: bool
     seconds: float
+    held: dict | None = None
 
     @property
     def chi2_total(self):
@@ -233,7 +237,16 @@ class Refit:
 
 
 def refit(
-    module, datasheet, effect=None, *, rig_config=None, start=None, options=None, window_noise=None, max_nfev=MAX_NFEV
+    module,
+    datasheet,
+    effect=None,
+    *,
+    rig_config=None,
+    start=None,
+    options=None,
+    window_noise=None,
+    max_nfev=MAX_NFEV,
+    held=None,
 ):
     """Refit a module's identification run with the base model or one effect added.
 
@@ -255,6 +268,8 @@ def refit(
         The noise model the held-out windows are judged by (the base
         calibration's); default white noise at the measured level.
     max_nfev : int
+    held : dict, optional
+        ``name -> value`` (SI): parameters held there instead of refitted.
 
     Returns
     -------
@@ -272,6 +287,7 @@ def refit(
         effects=effects,
         start=start,
         max_nfev=max_nfev,
+        held=held,
     )
     data, space, x, cov, J, r = fit.data, fit.space, fit.x, fit.cov, fit.jac, fit.residuals
     data_cost = 0.5 * float(np.sum(r * r))
@@ -297,6 +313,7 @@ def refit(
         nfev=fit.nfev,
         converged=fit.converged,
         seconds=time.perf_counter() - t0,
+        held=dict(held) if held else None,
     )
 
 

@@ -474,9 +474,19 @@ def _gap(rep):
         if conf:
             out.append(
                 "<p>Prior–posterior conflicts: rig parameters calibrated outside the rig's documented "
-                "plausible range (an effect hiding in the base model's parameters):</p>"
+                "plausible range (an effect hiding in the base model's parameters). A conflict is "
+                "<em>needed</em> when the base model refitted with it held at the range's edge leaves a "
+                "significant and material held-out step window; one that is not counts as no gap.</p>"
                 + _table(
-                    ["module", "parameter", "posterior median", "90 % interval", "documented range", "outside by [sd]"],
+                    [
+                        "module",
+                        "parameter",
+                        "posterior median",
+                        "90 % interval",
+                        "documented range",
+                        "outside by [sd]",
+                        "needed by the data",
+                    ],
                     [
                         [
                             _e(mid),
@@ -485,6 +495,7 @@ def _gap(rep):
                             f"{c['q_low']:.4g} … {c['q_high']:.4g}",
                             f"{c['low']:.4g} … {c['high']:.4g}",
                             (_num(c.get("outside_sd"), "{:.1f}"), "fail" if c.get("conflict") else ""),
+                            _needed(c),
                         ]
                         for mid, c in conf
                     ],
@@ -496,6 +507,15 @@ def _gap(rep):
         out.append(_recalibrated(doc.get("recalibrated")))
         out.append("".join(_figure(rep, k) for k in g["figures"]))
     return "".join(out)
+
+
+def _needed(c):
+    """A conflict row's range-check column: whether the data need it, and the windows its check left."""
+    if "material" not in c:
+        return "–"
+    cells = c.get("held_cells")
+    left = "refit failed" if cells is None else f"{cells} window cell{'s' if cells != 1 else ''} left"
+    return ("yes" if c["material"] else "no") + f" ({left} at the edge)"
 
 
 def _recalibrated(rec):
