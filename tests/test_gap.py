@@ -275,42 +275,83 @@ def test_range_conflicts_flag_a_leak_far_above_the_enclosure_and_nothing_inside(
     assert np.isfinite(next(r for r in range_conflicts(draws, rig) if r["parameter"] == "tab_share")["outside_sd"])
 
 
-def test_a_conflict_counts_only_if_holding_it_at_its_edge_leaves_a_held_out_window():
-    """The range checks' rule: held together with no window cell left, no conflict is needed; otherwise
-    each is judged alone, and conflicts that stand in for each other (none needed alone) all are.  A
-    conflict found immaterial points at no suspect and moves no refit's start."""
-    from tembayes.gap.conflicts import is_gap, judge_materiality, range_checks, range_conflicts, suspect_start, suspects
+def _check_with(rows, leaves):
+    """Drive a RangeCheck with ``leaves(held names) -> new cells``; its rows and the held sets it asked for."""
+    from tembayes.gap.conflicts import RangeCheck
+
+    check, asked = RangeCheck(rows), []
+    while (held := check.next()) is not None:
+        asked.append(held)
+        check.record(leaves(frozenset(held)))
+    return {r["parameter"]: r for r in check.judged() if r["conflict"]}, asked
+
+
+def test_a_conflict_counts_only_if_holding_it_at_its_edge_leaves_a_new_held_out_window():
+    """The range checks' rule.  Held together at their edges with no new window cell: none is needed (one
+    refit).  Otherwise the held set grows from the least outside: a ridge that joins without a cell is
+    not needed; of two leaks that stand in for each other the second to join is; a failed refit counts
+    as cells.  A conflict found not needed points at no suspect and moves no refit's start."""
+    from tembayes.gap.conflicts import RangeCheck, is_gap, range_conflicts, suspect_start, suspects
     from tembayes.physics.rigread import rig_from_config
 
     rig = rig_from_config(None, 4, 3)
     rng = np.random.default_rng(1)
     draws = {k: v * np.exp(0.02 * rng.standard_normal(500)) for k, v in rig.nominal().items()}
     draws["leak_bottom"] = 0.14 * np.exp(0.05 * rng.standard_normal(500))
-    draws["c_plate_cold"] = 6.5 * np.exp(0.03 * rng.standard_normal(500))
+    draws["leak_top"] = 0.05 * np.exp(0.05 * rng.standard_normal(500))
+    draws["c_plate_cold"] = 5.3 * np.exp(0.01 * rng.standard_normal(500))
     rows = range_conflicts(draws, rig)
-    checks = range_checks(rows)
-    # together at their nearer edges, then each alone
-    assert checks == [{"c_plate_cold": 5.0, "leak_bottom": 0.06}, {"c_plate_cold": 5.0}, {"leak_bottom": 0.06}]
-    assert range_checks([r for r in rows if r["parameter"] == "leak_bottom"]) == [{"leak_bottom": 0.06}]
+    order = sorted((r for r in rows if r["conflict"]), key=lambda r: r["outside_sd"])
+    assert [r["parameter"] for r in order] == ["c_plate_cold", "leak_top", "leak_bottom"]
+    edges = {"c_plate_cold": 5.0, "leak_top": 0.03, "leak_bottom": 0.06}
+    allowed = ["ambient_leak", "sensor_lag", "contact_resistance"]
 
-    def judged(cells):
-        return {r["parameter"]: r["material"] for r in judge_materiality(rows, cells) if r["conflict"]}
+    judged, asked = _check_with(rows, lambda held: 0)
+    assert asked == [edges] and not any(r["material"] for r in judged.values())
+    assert all(r["held_cells_together"] == 0 and r["held_converged"] for r in judged.values())
+    assert suspects({"TEM1": list(judged.values())}, rig, allowed=allowed) == []
+    assert suspect_start("ambient_leak", list(judged.values()), rig) == {}
 
-    assert judged([0, 0, 0]) == {"c_plate_cold": False, "leak_bottom": False}
-    assert judged([12, 0, 9]) == {"c_plate_cold": False, "leak_bottom": True}
-    assert judged([12, 0, 0]) == {"c_plate_cold": True, "leak_bottom": True}  # they stand in for each other
-    assert judged([None, 0, None]) == {"c_plate_cold": False, "leak_bottom": True}  # a failed refit is a misfit
-    assert all("material" not in r for r in judge_materiality(rows, [12, 0, 9]) if not r["conflict"])
-
-    kept = judge_materiality(rows, [12, 0, 9])
-    assert [r["parameter"] for r in kept if is_gap(r)] == ["leak_bottom"]
-    assert suspects({"TEM1": kept}, rig, allowed=["ambient_leak", "sensor_lag", "contact_resistance"]) == [
-        "ambient_leak"
+    # either leak can carry the heat path the data need, the plate is a ridge
+    judged, asked = _check_with(rows, lambda held: 40 if {"leak_top", "leak_bottom"} <= held else 0)
+    assert asked == [
+        edges,
+        {"c_plate_cold": 5.0},
+        {"c_plate_cold": 5.0, "leak_top": 0.03},
+        {"c_plate_cold": 5.0, "leak_top": 0.03, "leak_bottom": 0.06},
     ]
-    none = judge_materiality(rows, [0, 0, 0])
-    assert suspects({"TEM1": none}, rig, allowed=["ambient_leak", "sensor_lag", "contact_resistance"]) == []
-    assert suspect_start("ambient_leak", none, rig) == {}
-    assert suspect_start("ambient_leak", kept, rig)["leak_bottom"] == 0.06
+    assert {k: r["material"] for k, r in judged.items()} == {
+        "c_plate_cold": False,
+        "leak_top": False,
+        "leak_bottom": True,
+    }
+    assert judged["leak_bottom"]["held_cells"] == 40 and judged["c_plate_cold"]["held_cells"] == 0
+    kept = [r for r in RangeCheck(rows).rows]  # unjudged rows count as gaps
+    assert [r["parameter"] for r in kept if is_gap(r)] == ["leak_bottom", "leak_top", "c_plate_cold"]
+    rows_judged = [judged.get(r["parameter"], r) for r in rows]
+    assert [r["parameter"] for r in rows_judged if is_gap(r)] == ["leak_bottom"]
+    assert suspects({"TEM1": rows_judged}, rig, allowed=allowed) == ["ambient_leak"]
+    start = suspect_start("ambient_leak", rows_judged, rig)
+    assert start["leak_bottom"] == 0.06 and "leak_top" not in start
+
+    # the plate's refit fails at its edge: a misfit, so needed
+    judged, _ = _check_with(rows, lambda held: None if held == {"c_plate_cold"} else (9 if "leak_top" in held else 0))
+    assert {k: r["material"] for k, r in judged.items()} == {
+        "c_plate_cold": True,
+        "leak_top": True,
+        "leak_bottom": False,
+    }
+    assert judged["c_plate_cold"]["held_cells"] is None
+
+    single = [r for r in rows if r["parameter"] != "leak_top" and r["parameter"] != "c_plate_cold"]
+    judged, asked = _check_with(single, lambda held: 3)
+    assert asked == [{"leak_bottom": 0.06}] and judged["leak_bottom"]["material"]
+    check = RangeCheck(single)
+    with pytest.raises(RuntimeError, match="still asked"):
+        check.judged()
+    check.record(0)
+    with pytest.raises(RuntimeError, match="judged already"):
+        check.record(0)
 
 
 def test_a_range_check_refit_holds_its_values_and_leaves_windows_only_where_the_data_disagree(batch3, run3):
@@ -709,28 +750,17 @@ def test_screen_puts_the_true_effect_first_at_the_noise_floor(lag_gap):
     assert all(r["chi2"] > 1.5 for r in screen[1:])
 
 
-def test_gap_is_quiet_without_an_effect_and_refuses_a_batch_without_held_out_runs(
-    batch3, run3, tmp_path, monkeypatch, capsys
-):
-    """Negative control: a correctly specified bench module (batch3's TEM1, calibrated with the base
-    model) with a fresh held-out run gets no_gap, nothing recalibrated.  batch3 itself has no
-    validation runs: refused, nothing written.  A module whose posterior the model cannot simulate
-    is refused by name, with what to do, nothing written."""
+@pytest.fixture(scope="module")
+def held3(batch3, run3, tmp_path_factory):
+    """batch3 with a fresh held-out run on TEM1 (45 min at 1 Hz, the bench's own module), no truth.json."""
     import shutil
 
     from tembayes.bench import bench as B
     from tembayes.bench import hifi
     from tembayes.bench.protocols import validation_cycle
-    from tembayes.calibrate.run import load_run
-    from tembayes.cli import main
-    from tembayes.data import load_batch
     from tembayes.data.write import write_experiment_csv
-    from tembayes.gap.diagnose import diagnose
 
-    out = tmp_path / "refused"
-    assert main(["gap", str(run3[0]), str(batch3), "--out", str(out)]) != 0
-    assert not out.exists()
-    held = tmp_path / "batch"
+    held = tmp_path_factory.mktemp("held3") / "batch"
     shutil.copytree(batch3, held, ignore=shutil.ignore_patterns("truth.json"))
     rng = np.random.default_rng(12)
     exp = B.run_experiment(
@@ -743,6 +773,25 @@ def test_gap_is_quiet_without_an_effect_and_refuses_a_batch_without_held_out_run
         t0=30.0,
     )
     write_experiment_csv(held / "TEM1" / "validation.csv", exp)
+    return held
+
+
+def test_gap_is_quiet_without_an_effect_and_refuses_a_batch_without_held_out_runs(
+    batch3, run3, held3, tmp_path, monkeypatch, capsys
+):
+    """Negative control: a correctly specified bench module (batch3's TEM1, calibrated with the base
+    model) with a fresh held-out run gets no_gap, nothing recalibrated.  batch3 itself has no
+    validation runs: refused, nothing written.  A module whose posterior the model cannot simulate
+    is refused by name, with what to do, nothing written."""
+    from tembayes.calibrate.run import load_run
+    from tembayes.cli import main
+    from tembayes.data import load_batch
+    from tembayes.gap.diagnose import diagnose
+
+    out = tmp_path / "refused"
+    assert main(["gap", str(run3[0]), str(batch3), "--out", str(out)]) != 0
+    assert not out.exists()
+    held = held3
     d = diagnose(load_run(run3[0]), load_batch(held), n_draws=80)
     assert d.verdict == "no_gap" and d.best is None and d.where == []
     assert d.ranking == [] and d.screen == []  # nothing screened without a gap
@@ -765,6 +814,60 @@ def test_gap_is_quiet_without_an_effect_and_refuses_a_batch_without_held_out_run
     err = capsys.readouterr().err
     assert "TEM1: the base posterior cannot be simulated" in err and "--effect" in err
     assert not out.exists()
+
+
+def test_a_range_conflict_the_data_do_not_need_raises_no_alarm_and_one_they_need_does(run3, held3, monkeypatch):
+    """The range checks wired into the diagnosis, on batch3's correctly specified TEM1 with its posterior
+    made to put rig values outside their ranges (the predictions untouched).  The cold plate's capacity
+    at 5.3 J/K (range 4-5, told only by transients): held at 5 J/K the refit leaves no new window, so
+    no_gap, the conflict kept with ``material`` false, no suspect.  With the bottom leak also at
+    0.14 W/K (range 0.02-0.06; the bench's ~0.04): held at 0.06 W/K the refit leaves windows, so the
+    leak is the gap, ambient_leak its suspect, and a candidate's conflicts lose the plate's (the
+    diagnosis stopped before its screen)."""
+    import importlib
+
+    from tembayes.calibrate.run import load_run
+    from tembayes.data import load_batch
+    from tembayes.gap.candidates import RefitOutcome
+
+    G = importlib.import_module("tembayes.gap.diagnose")
+    real, moved = G.range_conflicts, {}
+
+    def conflicted(draws, rig, **kw):
+        rng = np.random.default_rng(5)
+        return real({**draws, **{k: v * np.exp(0.01 * rng.standard_normal(500)) for k, v in moved.items()}}, rig, **kw)
+
+    monkeypatch.setattr(G, "range_conflicts", conflicted)
+    run, batch, cache = load_run(run3[0]), load_batch(held3), {}
+
+    moved["c_plate_cold"] = 5.3
+    d = G.diagnose(run, batch, n_draws=80, jobs=1, cache=cache)
+    plate = next(r for r in d.conflicts["TEM1"] if r["parameter"] == "c_plate_cold")
+    assert d.verdict == "no_gap" and d.suspects == [] and d.where == []
+    assert plate["conflict"] and plate["material"] is False and plate["held_cells"] == 0
+    assert [k for k in cache if k[0] == "range"] == [("range", "TEM1", "c_plate_cold at 5")]
+
+    class Screened(Exception):
+        pass
+
+    def stop(plan, base, lead, ex):
+        raise Screened(plan, base)
+
+    monkeypatch.setattr(G, "_screen", stop)
+    moved["leak_bottom"] = 0.14
+    with pytest.raises(Screened) as caught:
+        G.diagnose(run, batch, n_draws=80, jobs=1, cache=cache)
+    plan, base = caught.value.args
+    rows = {r["parameter"]: r for r in plan.conflicts["TEM1"] if r["conflict"]}
+    assert rows["leak_bottom"]["material"] and not rows["c_plate_cold"]["material"]
+    assert rows["leak_bottom"]["held_cells"] > 0 and rows["leak_bottom"]["held_cells_together"] > 0
+    assert plan.suspects == ["ambient_leak"] and base.conflicting("TEM1") == {"leak_bottom"}
+    assert [w["channel"] for w in base.parameter_gaps] == ["leak_bottom"]
+    outcome = RefitOutcome(module="TEM1", effect="ambient_leak", conflicts=["c_plate_cold", "leak_bottom"])
+    assert plan.only_needed(outcome).conflicts == ["leak_bottom"] and outcome.conflicts == [
+        "c_plate_cold",
+        "leak_bottom",
+    ]
 
 
 def lag_gap_batch(out):

@@ -548,6 +548,9 @@ def laplace_fit(
     opt = options or CalibrationOptions()
     _, data, model, space, _ = calibration_problem(experiment, datasheet, rig_config, opt, effects)
     if held:
+        unknown = sorted(set(held) - set(space.names) - set(space.fixed))
+        if unknown:
+            raise ValueError(f"laplace_fit: held parameters {unknown} are not in the model's parameter space")
         space = ParameterSpace(tuple(p for p in space.priors if p.name not in held), {**space.fixed, **held})
     with threadpool_limits(limits=1, user_api="blas"):
         x, _, sol = fit_map(model, space, data, start_point(space, start), max_nfev=max_nfev)

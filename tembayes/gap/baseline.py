@@ -6,7 +6,7 @@ its step windows one at a time (:func:`~tembayes.gap.evidence.held_out_windows`)
 and the rig parameters are checked against their documented ranges
 (:mod:`~tembayes.gap.conflicts`).  A gap is wherever either held-out dataset
 shows a significant and material cell, or a rig parameter lies outside its
-range; :class:`Baseline` holds all three and what the diagnosis reads off
+range where the data need it (:class:`~tembayes.gap.conflicts.RangeCheck`); :class:`Baseline` holds all three and what the diagnosis reads off
 them: which datasets show a gap, and the module with the largest.
 """
 
@@ -115,7 +115,7 @@ class Baseline:
 
     @property
     def has_gap(self):
-        """A significant and material cell on either held-out dataset, or a rig parameter out of range."""
+        """A significant and material cell on either held-out dataset, or a rig parameter out of range the data need."""
         return bool(self.where_validation or self.where_identification or self.parameter_gaps)
 
     @property

@@ -13,17 +13,17 @@ the range, in units of the prior's log-sd (the range spans +-2 of them), and
 a conflict is declared when the posterior's central 90 % interval lies
 entirely outside the range.
 
-A conflict is a gap only if the data need it (:func:`range_checks`,
-:func:`judge_materiality`): the base model is refitted with the conflicting
-values held at the range's edge, and the conflict is *material* when that
-refit leaves a significant and material held-out step window -- the
-yardstick the rest of the diagnosis uses.  Parameters the data tell only
+A conflict is a gap only if the data need it (:class:`RangeCheck`): the base
+model is refitted with the conflicting values held at the range's edge, and
+the conflict is *material* when that refit leaves a significant and material
+held-out step window the base refit does not -- the yardstick the rest of
+the diagnosis uses.  Parameters the data tell only
 through transients trade along ridges (on a two-sensor rig a thermistor's
 depth, the plates' capacities and the pastes): there the posterior can sit
 outside a range while the documented rig fits the held-out windows as well.
 Measured on reference-faces' out-of-model null batches: holding a plate
 capacity at its edge raised the misfit by 25-100 nats over 2e5 residuals and
-left no window cell; holding a leak the bench really exceeds left 50 cells.
+left no window cell; holding a leak the bench really exceeds left 50-96 cells.
 
 :func:`suspect_table` maps a conflict to the effects it can stand for, by
 the parameter's role in the rig's network (:func:`suspects`); a suspect's
@@ -92,52 +92,86 @@ def is_gap(row):
     return bool(row["conflict"] and row.get("material", True))
 
 
-def range_checks(rows):
-    """The refits that check a module's conflicts: ``[{parameter: edge}]`` (SI).
+class RangeCheck:
+    """Which of a module's range conflicts the data need: refits with them held at their range's edges.
 
-    Every conflict held at the nearer edge of its range together, then, with
-    more than one, each alone (:func:`judge_materiality` reads them in this order).
-    """
-    edges = {r["parameter"]: (r["high"] if r["median"] > r["high"] else r["low"]) for r in rows if r["conflict"]}
-    if not edges:
-        return []
-    return [edges] + ([{k: v} for k, v in edges.items()] if len(edges) > 1 else [])
+    Every conflict is first held at the nearer edge of its range together with
+    the others.  If that refit leaves no new window cell (one the base refit
+    does not leave), none is needed.  Otherwise the held set is grown one
+    conflict at a time, the least outside first: a conflict that joins without
+    a new cell is not needed, one that brings cells is.  So of two conflicts
+    that stand in for each other (two leaks, either of which can carry a
+    missing heat path) the second to join is needed, and a ridge beside them
+    (a plate's capacity) is not.  A refit that fails counts as cells.
 
-
-def judge_materiality(rows, cells):
-    """The conflict rows with ``material`` and ``held_cells`` set from their range checks' refits.
+    Drive it with :meth:`next` (the held values to refit with, or None when
+    done) and :meth:`record`; :meth:`judged` gives the rows.
 
     Parameters
     ----------
     rows : list of dict
         A module's :func:`range_conflicts` rows.
-    cells : list of int or None
-        Per refit of :func:`range_checks` (same order): the significant and
-        material held-out window cells it leaves (None: the model could not
-        be refitted there, which counts as a misfit).
-
-    Returns
-    -------
-    list of dict
-        New rows.  Held together, no cell: none is material.  Otherwise a
-        conflict is material if holding it alone leaves a cell; if none does
-        alone (they stand in for each other), all are.
     """
-    checks = range_checks(rows)
-    if not checks:
-        return [dict(r) for r in rows]
-    left = [10**9 if c is None else int(c) for c in cells]
-    alone = {next(iter(h)): n for h, n in zip(checks[1:], left[1:])}
-    joint = left[0]
-    out = []
-    for r in rows:
-        r = dict(r)
-        if r["conflict"]:
-            own = alone.get(r["parameter"], joint)
-            r["held_cells"] = own if own < 10**9 else None
-            r["material"] = joint > 0 and (own > 0 or not any(alone.values()))
-        out.append(r)
-    return out
+
+    def __init__(self, rows):
+        self.rows = [dict(r) for r in rows]
+        conflicts = sorted((r for r in self.rows if r["conflict"]), key=lambda r: r["outside_sd"])
+        self._edges = {r["parameter"]: (r["high"] if r["median"] > r["high"] else r["low"]) for r in conflicts}
+        self._order = list(self._edges)  # the greedy order, least outside first
+        self._kept = {}  # held without a new cell
+        self._verdicts = {}  # parameter -> (material, cells, converged)
+        self._together = None
+        self._pending = dict(self._edges) if self._edges else None
+
+    def next(self):
+        """The held values (``name -> SI``) of the next refit; None when every conflict is judged."""
+        return None if self._pending is None else dict(self._pending)
+
+    def record(self, cells, converged=True):
+        """The result of the refit :meth:`next` asked for.
+
+        Parameters
+        ----------
+        cells : int or None
+            Significant and material held-out window cells it leaves that the
+            base refit does not (None: it could not be refitted there).
+        converged : bool
+            Its mode search stopped on a tolerance.
+        """
+        if self._pending is None:
+            raise RuntimeError("RangeCheck.record: every conflict is judged already")
+        new = None if cells is None else int(cells)
+        if self._together is None:
+            self._together = new
+            if new == 0 or len(self._order) == 1:
+                for name in self._order:
+                    self._verdicts[name] = (new != 0, new, converged)
+                self._pending = None
+                return
+        else:
+            name = next(n for n in self._order if n not in self._verdicts)
+            self._verdicts[name] = (new != 0, new, converged)
+            if new == 0:
+                self._kept[name] = self._edges[name]
+        left = [n for n in self._order if n not in self._verdicts]
+        self._pending = {**self._kept, left[0]: self._edges[left[0]]} if left else None
+
+    def judged(self):
+        """The rows, each conflict with ``material``, ``held_cells``, ``held_cells_together`` and ``held_converged``."""
+        if self._pending is not None:
+            raise RuntimeError("RangeCheck.judged: a refit is still asked for")
+        out = []
+        for r in self.rows:
+            if r["conflict"]:
+                material, cells, converged = self._verdicts[r["parameter"]]
+                r |= {
+                    "material": material,
+                    "held_cells": cells,
+                    "held_cells_together": self._together,
+                    "held_converged": converged,
+                }
+            out.append(r)
+        return out
 
 
 def suspect_table(rig):

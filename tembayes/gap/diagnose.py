@@ -54,7 +54,7 @@ from tembayes.constants import MODULE_PARAMETERS
 from tembayes.errors import DataError, ModelError
 from tembayes.gap.baseline import baseline
 from tembayes.gap.candidates import Setting, candidate_job, refit_job
-from tembayes.gap.conflicts import judge_materiality, range_checks, range_conflicts, suspect_start, suspects
+from tembayes.gap.conflicts import RangeCheck, range_conflicts, suspect_start, suspects
 from tembayes.gap.evidence import ALPHA, N_DRAWS, evaluate_run, held_out_windows
 from tembayes.gap.jobs import collect, default_jobs, executor, in_order, race, submit_all
 from tembayes.gap.ranking import LeadJudge, rank, verdict
@@ -120,11 +120,11 @@ class _Plan:
         )
 
     def only_needed(self, outcome):
-        """A refit's or recalibration's outcome, its conflicts without those the base's range checks found immaterial."""
-        if outcome.conflicts is not None:
-            immaterial = {r["parameter"] for r in self.conflicts.get(outcome.module, ()) if r.get("material") is False}
-            outcome.conflicts = [n for n in outcome.conflicts if n not in immaterial]
-        return outcome
+        """A copy of a refit's or recalibration's outcome, its conflicts without those the base's range checks found immaterial."""
+        if outcome.conflicts is None:
+            return outcome
+        immaterial = {r["parameter"] for r in self.conflicts.get(outcome.module, ()) if r.get("material") is False}
+        return replace(outcome, conflicts=[n for n in outcome.conflicts if n not in immaterial])
 
     def recalibration(self, module_id, effect, refitted=None):
         """A recalibration job's args (:func:`~tembayes.gap.candidates.candidate_job`)."""
@@ -178,9 +178,9 @@ def diagnose(
     progress : callable, optional
     cache : dict, optional
         Refits and recalibrations kept between calls on the same run, batch,
-        seed and settings, keyed by ``("refit", module_id, effect)`` and
-        ``(module_id, effect)``: a diagnosis with an effect withheld reuses
-        the others' (filled in place).
+        seed and settings, keyed by ``("refit", module_id, effect)``,
+        ``("range", module_id, held values)`` and ``(module_id, effect)``: a
+        diagnosis with an effect withheld reuses the others' (filled in place).
 
     Returns
     -------
@@ -309,21 +309,38 @@ def _where(plan, ex):
 
 
 def _materiality(plan, refits, ex):
-    """Each module's range conflicts judged by refits with them held at the range's edge (:func:`~tembayes.gap.conflicts.judge_materiality`)."""
-    checks = {mid: range_checks(plan.conflicts[mid]) for mid in plan.ids}
-    jobs = {
-        _range_key(mid, held): plan.range_check(mid, refits[mid], held) for mid, hs in checks.items() for held in hs
+    """Each module's range conflicts judged by refits with them held at their range's edge (:class:`~tembayes.gap.conflicts.RangeCheck`).
+
+    The modules' checks step together, each step's refits at once.
+    """
+    checks = {mid: RangeCheck(plan.conflicts[mid]) for mid in plan.ids}
+    base = {
+        mid: {_cell_id(c) for c in held_out_windows([refits[mid]], alpha=plan.setting.alpha).cells} for mid in plan.ids
     }
-    if not jobs:
-        return plan.conflicts
-    plan.say(f"checking {len(jobs)} range conflict(s): the base model refitted with them held at their range's edge")
-    done = collect(submit_all(ex, jobs, cache=plan.cache), cache=plan.cache, say=plan.say, label="checked")
+    asking = [mid for mid, c in checks.items() if c.next() is not None]
+    if asking:
+        plan.say(
+            f"checking the range conflicts of {', '.join(asking)}: the base model refitted with them at their edge"
+        )
+    while asking:
+        jobs = {
+            _range_key(mid, checks[mid].next()): plan.range_check(mid, refits[mid], checks[mid].next())
+            for mid in asking
+        }
+        done = collect(submit_all(ex, jobs, cache=plan.cache), cache=plan.cache, say=plan.say, label="checked")
+        for mid in asking:
+            r = done[_range_key(mid, checks[mid].next())]
+            if r.failed:
+                checks[mid].record(None)
+            else:
+                cells = held_out_windows([r.refit], alpha=plan.setting.alpha).cells
+                checks[mid].record(sum(_cell_id(c) not in base[mid] for c in cells), converged=r.refit.converged)
+        asking = [mid for mid in asking if checks[mid].next() is not None]
+    return {mid: c.judged() for mid, c in checks.items()}
 
-    def cells(mid, held):
-        r = done[_range_key(mid, held)]
-        return None if r.failed else len(held_out_windows([r.refit], alpha=plan.setting.alpha).cells)
 
-    return {mid: judge_materiality(plan.conflicts[mid], [cells(mid, h) for h in checks[mid]]) for mid in plan.ids}
+def _cell_id(cell):
+    return cell["channel"], cell["family"], cell["regime"]
 
 
 def _range_key(mid, held):

@@ -198,16 +198,17 @@ class Refit:
         from tembayes.calibrate.parameters import ParameterSpace
         from tembayes.calibrate.priors import ParameterPrior
 
-        return ParameterSpace(tuple(ParameterPrior(k, **self.priors[k]) for k in self.names))
+        return ParameterSpace(tuple(ParameterPrior(k, **self.priors[k]) for k in self.names), dict(self.held or {}))
 
     def mode(self):
-        """``name -> value`` (SI) at the mode."""
-        return {k: float(v[0]) for k, v in self.space.values(self.x[None]).items()}
+        """``name -> value`` (SI) at the mode, the held values with it."""
+        return {**(self.held or {}), **{k: float(v[0]) for k, v in self.space.values(self.x[None]).items()}}
 
     def draws(self, rng, n):
-        """``name -> (n,)`` draws (SI) of the Laplace posterior (bounded coordinates clipped)."""
+        """``name -> (n,)`` draws (SI) of the Laplace posterior (bounded coordinates clipped), the held values with them."""
         space = self.space
-        return space.values(space.clip(rng.multivariate_normal(self.x, self.cov, size=n, method="eigh")))
+        X = space.clip(rng.multivariate_normal(self.x, self.cov, size=n, method="eigh"))
+        return {**{k: np.full(n, v) for k, v in (self.held or {}).items()}, **space.values(X)}
 
     def size(self):
         """The effect's parameters at the mode: ``{name: {"mode", "sd", "unit"}}`` (SI); empty for the base."""

@@ -494,7 +494,7 @@ def _gap(rep):
                             f"{c['median']:.4g} {_e(c.get('unit', ''))}",
                             f"{c['q_low']:.4g} … {c['q_high']:.4g}",
                             f"{c['low']:.4g} … {c['high']:.4g}",
-                            (_num(c.get("outside_sd"), "{:.1f}"), "fail" if c.get("conflict") else ""),
+                            (_num(c.get("outside_sd"), "{:.1f}"), _conflict_class(c)),
                             _needed(c),
                         ]
                         for mid, c in conf
@@ -509,13 +509,26 @@ def _gap(rep):
     return "".join(out)
 
 
+def _conflict_class(c):
+    """A conflict row's badge: ``fail`` where it is a gap, ``warn`` where the data do not need it."""
+    if not c.get("conflict"):
+        return ""
+    return "warn" if c.get("material") is False else "fail"
+
+
 def _needed(c):
-    """A conflict row's range-check column: whether the data need it, and the windows its check left."""
+    """A conflict row's range-check column: whether the data need it, and the new windows its checks left."""
     if "material" not in c:
         return "–"
-    cells = c.get("held_cells")
-    left = "refit failed" if cells is None else f"{cells} window cell{'s' if cells != 1 else ''} left"
-    return ("yes" if c["material"] else "no") + f" ({left} at the edge)"
+
+    def cells(n):
+        return "refit failed" if n is None else f"{n} new window cell{'s' if n != 1 else ''}"
+
+    alone, together = c.get("held_cells"), c.get("held_cells_together")
+    said = f"{cells(alone)} at the edge"
+    if together != alone:
+        said += f"; {cells(together)} with every conflict there"
+    return ("yes" if c["material"] else "no") + f" ({said})"
 
 
 def _recalibrated(rec):
