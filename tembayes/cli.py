@@ -750,6 +750,13 @@ def _cmd_gap(args):
         print(f"  the data cannot tell apart: {', '.join(diag.best_group)}")
     for w in diag.where[:5]:
         print(f"  where: {w['channel']}, {w['regime']} (score {w['score']:.2f})")
+    for mid, rows in diag.conflicts.items():
+        for c in rows:
+            if c["conflict"] and c.get("material") is False:
+                print(
+                    f"  does not matter: {mid} {c['parameter']} {c['median']:.4g} {c['unit']} (documented "
+                    f"{c['low']:.4g}-{c['high']:.4g}; held at its edge, the held-out windows and the laws stay)"
+                )
     if diag.gap_in:
         print(f"  gap in: {', '.join(diag.gap_in)}")
     for r in diag.screen[:3]:

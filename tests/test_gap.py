@@ -282,15 +282,17 @@ def _check_with(rows, leaves):
     check, asked = RangeCheck(rows), []
     while (held := check.next()) is not None:
         asked.append(held)
-        check.record(leaves(frozenset(held)))
+        left = leaves(frozenset(held))
+        check.record(*(left if isinstance(left, tuple) else (left,)))
     return {r["parameter"]: r for r in check.judged() if r["conflict"]}, asked
 
 
 def test_a_conflict_counts_only_if_holding_it_at_its_edge_leaves_a_new_held_out_window():
-    """The range checks' rule.  Held together at their edges with no new window cell: none is needed (one
-    refit).  Otherwise the held set grows from the least outside: a ridge that joins without a cell is
-    not needed; of two leaks that stand in for each other the second to join is; a failed refit counts
-    as cells.  A conflict found not needed points at no suspect and moves no refit's start."""
+    """The range checks' rule.  Held together at their edges with no new window cell and no law moved
+    beyond 1.645 posterior sds: none is needed (one refit).  Otherwise the held set grows from the least
+    outside: a ridge that joins without either is not needed; of two leaks that stand in for each other
+    the second to join is; a conflict that moves the laws is, without a window cell; a failed refit
+    counts as cells.  A conflict found not needed points at no suspect and moves no refit's start."""
     from tembayes.gap.conflicts import RangeCheck, is_gap, range_conflicts, suspect_start, suspects
     from tembayes.physics.rigread import rig_from_config
 
@@ -342,6 +344,16 @@ def test_a_conflict_counts_only_if_holding_it_at_its_edge_leaves_a_new_held_out_
         "leak_bottom": False,
     }
     assert judged["c_plate_cold"]["held_cells"] is None
+
+    # no window anywhere, but holding the plate moves a law by 2 sds: it matters
+    judged, _ = _check_with(rows, lambda held: (0, 2.0 if "c_plate_cold" in held else 1.6))
+    assert {k: r["material"] for k, r in judged.items()} == {
+        "c_plate_cold": True,
+        "leak_top": False,
+        "leak_bottom": False,
+    }
+    assert judged["c_plate_cold"]["held_law_shift"] == 2.0 and judged["leak_top"]["held_law_shift"] == 1.6
+    assert judged["leak_top"]["held_law_shift_together"] == 2.0
 
     single = [r for r in rows if r["parameter"] != "leak_top" and r["parameter"] != "c_plate_cold"]
     judged, asked = _check_with(single, lambda held: 3)
@@ -845,6 +857,7 @@ def test_a_range_conflict_the_data_do_not_need_raises_no_alarm_and_one_they_need
     plate = next(r for r in d.conflicts["TEM1"] if r["parameter"] == "c_plate_cold")
     assert d.verdict == "no_gap" and d.suspects == [] and d.where == []
     assert plate["conflict"] and plate["material"] is False and plate["held_cells"] == 0
+    assert plate["held_law_shift"] < 1.645
     assert [k for k in cache if k[0] == "range"] == [("range", "TEM1", "c_plate_cold at 5")]
 
     class Screened(Exception):

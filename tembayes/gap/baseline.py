@@ -6,7 +6,7 @@ its step windows one at a time (:func:`~tembayes.gap.evidence.held_out_windows`)
 and the rig parameters are checked against their documented ranges
 (:mod:`~tembayes.gap.conflicts`).  A gap is wherever either held-out dataset
 shows a significant and material cell, or a rig parameter lies outside its
-range where the data need it (:class:`~tembayes.gap.conflicts.RangeCheck`); :class:`Baseline` holds all three and what the diagnosis reads off
+range where it matters (:class:`~tembayes.gap.conflicts.RangeCheck`); :class:`Baseline` holds all three and what the diagnosis reads off
 them: which datasets show a gap, and the module with the largest.
 """
 
@@ -62,7 +62,7 @@ def window_rows(windows):
 
 
 def parameter_rows(conflicts):
-    """The rig parameters outside their range that the data need (``module -> range-conflict rows``) as where-rows, worst first."""
+    """The rig parameters outside their range that matter (``module -> range-conflict rows``) as where-rows, worst first."""
     out = []
     for mid, rows in conflicts.items():
         for r in rows:
@@ -115,7 +115,7 @@ class Baseline:
 
     @property
     def has_gap(self):
-        """A significant and material cell on either held-out dataset, or a rig parameter out of range the data need."""
+        """A significant and material cell on either held-out dataset, or a rig parameter out of range that matters."""
         return bool(self.where_validation or self.where_identification or self.parameter_gaps)
 
     @property
@@ -151,7 +151,7 @@ class Baseline:
         return HeldOut(elpd_blocks(self.evals), np.concatenate([self.refits[m].cv_lpd for m in self.ids]))
 
     def conflicting(self, module_id):
-        """The rig parameters of a module outside their range that the data need (:func:`~tembayes.gap.conflicts.is_gap`)."""
+        """The rig parameters of a module outside their range that matter (:func:`~tembayes.gap.conflicts.is_gap`)."""
         return {r["parameter"] for r in self.conflicts[module_id] if is_gap(r)}
 
     def lead(self):

@@ -13,17 +13,19 @@ the range, in units of the prior's log-sd (the range spans +-2 of them), and
 a conflict is declared when the posterior's central 90 % interval lies
 entirely outside the range.
 
-A conflict is a gap only if the data need it (:class:`RangeCheck`): the base
+A conflict is a gap only if it matters (:class:`RangeCheck`): the base
 model is refitted with the conflicting values held at the range's edge, and
 the conflict is *material* when that refit leaves a significant and material
 held-out step window the base refit does not -- the yardstick the rest of
-the diagnosis uses.  Parameters the data tell only
-through transients trade along ridges (on a two-sensor rig a thermistor's
-depth, the plates' capacities and the pastes): there the posterior can sit
-outside a range while the documented rig fits the held-out windows as well.
-Measured on reference-faces' out-of-model null batches: holding a plate
-capacity at its edge raised the misfit by 25-100 nats over 2e5 residuals and
-left no window cell; holding a leak the bench really exceeds left 50-96 cells.
+the diagnosis uses -- or moves a law by more than :data:`LAW_SHIFT_MAX` of
+its posterior sds.  Parameters the data tell only through transients trade
+along ridges (on a two-sensor rig a thermistor's depth, the plates'
+capacities and the pastes): there the posterior can sit outside a range
+while the documented rig fits the held-out windows as well and gives the
+same laws.  The windows alone are not enough: a contact resistance the
+base model puts into a paste below its range (in-model, the reference rig)
+is refitted at the paste's edge with no window cell (the rest of the rig
+takes it up) but moves the laws by 2.6-4.3 sds.
 
 :func:`suspect_table` maps a conflict to the effects it can stand for, by
 the parameter's role in the rig's network (:func:`suspects`); a suspect's
@@ -87,19 +89,25 @@ def parameter_roles(rig):
     return {name: (role, sides.pop() if len(sides) == 1 else None) for name, (role, sides) in found.items()}
 
 
+#: Largest shift of a law [its posterior sds] that a conflict held at its documented edge may
+#: cause and still not matter: the half-width of the laws' 90 % intervals.
+LAW_SHIFT_MAX = 1.645
+
+
 def is_gap(row):
     """A range-conflict row that counts as a gap: outside the range and, where checked, needed by the data."""
     return bool(row["conflict"] and row.get("material", True))
 
 
 class RangeCheck:
-    """Which of a module's range conflicts the data need: refits with them held at their range's edges.
+    """Which of a module's range conflicts matter: refits with them held at their range's edges.
 
     Every conflict is first held at the nearer edge of its range together with
     the others.  If that refit leaves no new window cell (one the base refit
-    does not leave), none is needed.  Otherwise the held set is grown one
+    does not leave) and moves no law by more than :data:`LAW_SHIFT_MAX`
+    posterior sds, none is needed.  Otherwise the held set is grown one
     conflict at a time, the least outside first: a conflict that joins without
-    a new cell is not needed, one that brings cells is.  So of two conflicts
+    either is not needed, one that brings either is.  So of two conflicts
     that stand in for each other (two leaks, either of which can carry a
     missing heat path) the second to join is needed, and a ridge beside them
     (a plate's capacity) is not.  A refit that fails counts as cells.
@@ -127,7 +135,7 @@ class RangeCheck:
         """The held values (``name -> SI``) of the next refit; None when every conflict is judged."""
         return None if self._pending is None else dict(self._pending)
 
-    def record(self, cells, converged=True):
+    def record(self, cells, law_shift=0.0, converged=True):
         """The result of the refit :meth:`next` asked for.
 
         Parameters
@@ -135,39 +143,46 @@ class RangeCheck:
         cells : int or None
             Significant and material held-out window cells it leaves that the
             base refit does not (None: it could not be refitted there).
+        law_shift : float
+            The largest shift of a law's mode from the base refit's, in the
+            law's posterior sds.
         converged : bool
             Its mode search stopped on a tolerance.
         """
         if self._pending is None:
             raise RuntimeError("RangeCheck.record: every conflict is judged already")
         new = None if cells is None else int(cells)
+        shift = None if new is None else float(law_shift)
+        matters = new != 0 or shift > LAW_SHIFT_MAX
         if self._together is None:
-            self._together = new
-            if new == 0 or len(self._order) == 1:
+            self._together = (new, shift)
+            if not matters or len(self._order) == 1:
                 for name in self._order:
-                    self._verdicts[name] = (new != 0, new, converged)
+                    self._verdicts[name] = (matters, new, shift, converged)
                 self._pending = None
                 return
         else:
             name = next(n for n in self._order if n not in self._verdicts)
-            self._verdicts[name] = (new != 0, new, converged)
-            if new == 0:
+            self._verdicts[name] = (matters, new, shift, converged)
+            if not matters:
                 self._kept[name] = self._edges[name]
         left = [n for n in self._order if n not in self._verdicts]
         self._pending = {**self._kept, left[0]: self._edges[left[0]]} if left else None
 
     def judged(self):
-        """The rows, each conflict with ``material``, ``held_cells``, ``held_cells_together`` and ``held_converged``."""
+        """The rows, each conflict with ``material``, ``held_cells``, ``held_law_shift``, their ``_together`` and ``held_converged``."""
         if self._pending is not None:
             raise RuntimeError("RangeCheck.judged: a refit is still asked for")
         out = []
         for r in self.rows:
             if r["conflict"]:
-                material, cells, converged = self._verdicts[r["parameter"]]
+                material, cells, shift, converged = self._verdicts[r["parameter"]]
                 r |= {
                     "material": material,
                     "held_cells": cells,
-                    "held_cells_together": self._together,
+                    "held_law_shift": shift,
+                    "held_cells_together": self._together[0],
+                    "held_law_shift_together": self._together[1],
                     "held_converged": converged,
                 }
             out.append(r)

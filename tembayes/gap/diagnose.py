@@ -12,8 +12,8 @@ For every calibrated module with held-out runs (``validation*.csv``):
    :func:`~tembayes.gap.conflicts.suspect_table` maps them to the effects they can
    stand for), each checked by a refit with it held at the range's edge: a
    conflict counts only if that refit leaves a significant and material
-   held-out window.  No significant and material cell anywhere and no rig
-   parameter out of range that the data need: ``no_gap``, nothing screened.
+   held-out window or moves a law beyond its 90 % interval's half-width.  No significant and material cell anywhere and no rig
+   parameter out of range that matters: ``no_gap``, nothing screened.
 2. **Which** (:mod:`~tembayes.gap.screen`) -- on the module with the largest
    gap, the base model and every catalogue effect refitted on the
    identification run (posterior mode and Laplace approximation, all from the
@@ -317,6 +317,12 @@ def _materiality(plan, refits, ex):
     base = {
         mid: {_cell_id(c) for c in held_out_windows([refits[mid]], alpha=plan.setting.alpha).cells} for mid in plan.ids
     }
+    sds = {mid: {k: float(np.std(plan.raws[mid][k])) for k in MODULE_PARAMETERS} for mid in plan.ids}
+
+    def law_shift(mid, rf):
+        at, held = refits[mid].mode(), rf.mode()
+        return max(abs(held[k] - at[k]) / sds[mid][k] for k in MODULE_PARAMETERS)
+
     asking = [mid for mid, c in checks.items() if c.next() is not None]
     if asking:
         plan.say(
@@ -334,7 +340,8 @@ def _materiality(plan, refits, ex):
                 checks[mid].record(None)
             else:
                 cells = held_out_windows([r.refit], alpha=plan.setting.alpha).cells
-                checks[mid].record(sum(_cell_id(c) not in base[mid] for c in cells), converged=r.refit.converged)
+                new = sum(_cell_id(c) not in base[mid] for c in cells)
+                checks[mid].record(new, law_shift(mid, r.refit), converged=r.refit.converged)
         asking = [mid for mid in asking if checks[mid].next() is not None]
     return {mid: c.judged() for mid, c in checks.items()}
 
@@ -366,7 +373,7 @@ def _no_gap(plan, base, t_start):
     """The diagnosis without a gap: nothing screened."""
     plan.say(
         "no gap: the held-out runs and step windows lie within the base model's bands and its rig "
-        "within the documented ranges, or outside only where the data do not need it"
+        "within the documented ranges, or outside only where it does not matter"
     )
     return GapDiagnosis(
         verdict="no_gap",

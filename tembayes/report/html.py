@@ -476,7 +476,8 @@ def _gap(rep):
                 "<p>Prior–posterior conflicts: rig parameters calibrated outside the rig's documented "
                 "plausible range (an effect hiding in the base model's parameters). A conflict is "
                 "<em>needed</em> when the base model refitted with it held at the range's edge leaves a "
-                "significant and material held-out step window; one that is not counts as no gap.</p>"
+                "significant and material held-out step window or moves a law by more than 1.645 posterior "
+                "sds; one that is not counts as no gap.</p>"
                 + _table(
                     [
                         "module",
@@ -510,24 +511,27 @@ def _gap(rep):
 
 
 def _conflict_class(c):
-    """A conflict row's badge: ``fail`` where it is a gap, ``warn`` where the data do not need it."""
+    """A conflict row's badge: ``fail`` where it is a gap, ``warn`` where it does not matter."""
     if not c.get("conflict"):
         return ""
     return "warn" if c.get("material") is False else "fail"
 
 
 def _needed(c):
-    """A conflict row's range-check column: whether the data need it, and the new windows its checks left."""
+    """A conflict row's range-check column: whether it matters, and the new windows and law shifts its checks left."""
     if "material" not in c:
         return "–"
 
     def cells(n):
         return "refit failed" if n is None else f"{n} new window cell{'s' if n != 1 else ''}"
 
+    def shift(x):
+        return "" if x is None else f", laws moved {x:.1f} sd"
+
     alone, together = c.get("held_cells"), c.get("held_cells_together")
-    said = f"{cells(alone)} at the edge"
-    if together != alone:
-        said += f"; {cells(together)} with every conflict there"
+    said = f"{cells(alone)}{shift(c.get('held_law_shift'))} at the edge"
+    if together != alone or c.get("held_law_shift_together") != c.get("held_law_shift"):
+        said += f"; {cells(together)}{shift(c.get('held_law_shift_together'))} with every conflict there"
     return ("yes" if c["material"] else "no") + f" ({said})"
 
 
