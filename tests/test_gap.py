@@ -881,6 +881,9 @@ def test_a_range_conflict_the_data_do_not_need_raises_no_alarm_and_one_they_need
         "c_plate_cold",
         "leak_bottom",
     ]
+    # the first step alone, as the range-check study runs it: the same where, nothing screened
+    located = G.locate(run, batch, n_draws=80, jobs=1, cache=cache)
+    assert located.has_gap and [w["channel"] for w in located.parameter_gaps] == ["leak_bottom"]
 
 
 def lag_gap_batch(out):

@@ -65,7 +65,7 @@ from tembayes.physics import effects as E
 from tembayes.predict.predictive import module_raw_draws, posterior_draws
 from tembayes.predict.runmodel import RunModel
 
-__all__ = ["diagnose"]
+__all__ = ["diagnose", "locate"]
 
 #: Sampler budget of a recalibration [steps]: a candidate's posterior need
 #: not be reported to R-hat 1.01 to predict the held-out runs (measured: a
@@ -203,6 +203,20 @@ def diagnose(
         for msg in r.warnings:
             warnings.warn(f"recalibration with {r.effect}: {msg}", RuntimeWarning, stacklevel=2)
     return _rank(plan, base, lead, screen, chosen, outcome, t_start)
+
+
+def locate(run, batch, *, n_draws=N_DRAWS, seed=0, jobs=None, progress=None, cache=None):
+    """Only the diagnosis's first step, where (its range checks included), without screening an effect.
+
+    For studies of where the gap is; the arguments are :func:`diagnose`'s.
+
+    Returns
+    -------
+    Baseline
+    """
+    plan = _plan(run, batch, (), n_draws, seed, None, jobs, cache, progress or (lambda msg: None))
+    with executor(plan.jobs) as ex:
+        return _where(plan, ex)
 
 
 def _plan(run, batch, exclude, n_draws, seed, options, jobs, cache, say):
