@@ -93,7 +93,7 @@ def markdown(rows, command):
         "",
         f"`{command}`",
         "",
-        "| case | held-out cells (validation, windows) | conflict: median (range), new cells, law shift [sd], matters |"
+        "| case | held-out cells (validation, windows) | conflict: median (range), new cells, law shift [sd], matters"
         " | alarm | max abs law z |",
         "|---|---|---|---|---|",
     ]

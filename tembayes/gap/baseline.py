@@ -6,7 +6,8 @@ its step windows one at a time (:func:`~tembayes.gap.evidence.held_out_windows`)
 and the rig parameters are checked against their documented ranges
 (:mod:`~tembayes.gap.conflicts`).  A gap is wherever either held-out dataset
 shows a significant and material cell, or a rig parameter lies outside its
-range where it matters (:class:`~tembayes.gap.conflicts.RangeCheck`); :class:`Baseline` holds all three and what the diagnosis reads off
+range where it matters (:class:`~tembayes.gap.conflicts.RangeCheck`);
+:class:`Baseline` holds all three and what the diagnosis reads off
 them: which datasets show a gap, and the module with the largest.
 """
 
@@ -62,7 +63,7 @@ def window_rows(windows):
 
 
 def parameter_rows(conflicts):
-    """The rig parameters outside their range that matter (``module -> range-conflict rows``) as where-rows, worst first."""
+    """The rig parameters outside their range that matter (``module -> conflict rows``) as where-rows, worst first."""
     out = []
     for mid, rows in conflicts.items():
         for r in rows:

@@ -25,7 +25,7 @@ while the documented rig fits the held-out windows as well and gives the
 same laws.  The windows alone are not enough: a contact resistance the
 base model puts into a paste below its range (in-model, the reference rig)
 is refitted at the paste's edge with no window cell (the rest of the rig
-takes it up) but moves the laws by 2.6-4.3 sds.
+takes it up) but moves a law by 4.4 sds.
 
 :func:`suspect_table` maps a conflict to the effects it can stand for, by
 the parameter's role in the rig's network (:func:`suspects`); a suspect's
@@ -170,7 +170,11 @@ class RangeCheck:
         self._pending = {**self._kept, left[0]: self._edges[left[0]]} if left else None
 
     def judged(self):
-        """The rows, each conflict with ``material``, ``held_cells``, ``held_law_shift``, their ``_together`` and ``held_converged``."""
+        """The rows, each conflict's with ``material``, ``held_cells``, ``held_law_shift`` and ``held_converged``.
+
+        ``held_cells_together`` and ``held_law_shift_together`` are those of the refit with every
+        conflict held.
+        """
         if self._pending is not None:
             raise RuntimeError("RangeCheck.judged: a refit is still asked for")
         out = []

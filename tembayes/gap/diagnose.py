@@ -12,8 +12,9 @@ For every calibrated module with held-out runs (``validation*.csv``):
    :func:`~tembayes.gap.conflicts.suspect_table` maps them to the effects they can
    stand for), each checked by a refit with it held at the range's edge: a
    conflict counts only if that refit leaves a significant and material
-   held-out window or moves a law beyond its 90 % interval's half-width.  No significant and material cell anywhere and no rig
-   parameter out of range that matters: ``no_gap``, nothing screened.
+   held-out window or moves a law beyond its 90 % interval's half-width.
+   No significant and material cell anywhere and no rig parameter out of
+   range that matters: ``no_gap``, nothing screened.
 2. **Which** (:mod:`~tembayes.gap.screen`) -- on the module with the largest
    gap, the base model and every catalogue effect refitted on the
    identification run (posterior mode and Laplace approximation, all from the
@@ -120,7 +121,7 @@ class _Plan:
         )
 
     def only_needed(self, outcome):
-        """A copy of a refit's or recalibration's outcome, its conflicts without those the base's range checks found immaterial."""
+        """A copy of a refit's or recalibration's outcome without the conflicts its range checks found immaterial."""
         if outcome.conflicts is None:
             return outcome
         immaterial = {r["parameter"] for r in self.conflicts.get(outcome.module, ()) if r.get("material") is False}
@@ -323,7 +324,7 @@ def _where(plan, ex):
 
 
 def _materiality(plan, refits, ex):
-    """Each module's range conflicts judged by refits with them held at their range's edge (:class:`~tembayes.gap.conflicts.RangeCheck`).
+    """Each module's range conflicts judged by refits held at the edge (:class:`~tembayes.gap.conflicts.RangeCheck`).
 
     The modules' checks step together, each step's refits at once.
     """

@@ -205,7 +205,7 @@ class Refit:
         return {**(self.held or {}), **{k: float(v[0]) for k, v in self.space.values(self.x[None]).items()}}
 
     def draws(self, rng, n):
-        """``name -> (n,)`` draws (SI) of the Laplace posterior (bounded coordinates clipped), the held values with them."""
+        """``name -> (n,)`` draws (SI) of the Laplace posterior (bounded coordinates clipped), held values included."""
         space = self.space
         X = space.clip(rng.multivariate_normal(self.x, self.cov, size=n, method="eigh"))
         return {**{k: np.full(n, v) for k, v in (self.held or {}).items()}, **space.values(X)}
