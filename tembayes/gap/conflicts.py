@@ -126,8 +126,8 @@ class RangeCheck:
         conflicts = sorted((r for r in self.rows if r["conflict"]), key=lambda r: r["outside_sd"])
         self._edges = {r["parameter"]: (r["high"] if r["median"] > r["high"] else r["low"]) for r in conflicts}
         self._order = list(self._edges)  # the greedy order, least outside first
-        self._kept = {}  # held without a new cell
-        self._verdicts = {}  # parameter -> (material, cells, converged)
+        self._kept = {}  # held without mattering, kept held for the next
+        self._verdicts = {}  # parameter -> (material, new cells, law shift, converged)
         self._together = None
         self._pending = dict(self._edges) if self._edges else None
 
