@@ -731,6 +731,7 @@ def _cmd_gap(args):
     )
     from tembayes.data import write_json
     from tembayes.data.write import atomic_directory
+    from tembayes.gap.conflicts import is_immaterial
     from tembayes.gap.ranking import RECALIBRATED
     from tembayes.gap.recalibrated import write_recalibrated_run
     from tembayes.plots.gap import save_gap_figures
@@ -752,7 +753,7 @@ def _cmd_gap(args):
         print(f"  where: {w['channel']}, {w['regime']} (score {w['score']:.2f})")
     for mid, rows in diag.conflicts.items():
         for c in rows:
-            if c["conflict"] and c.get("material") is False:
+            if is_immaterial(c):
                 print(
                     f"  does not matter: {mid} {c['parameter']} {c['median']:.4g} {c['unit']} (documented "
                     f"{c['low']:.4g}-{c['high']:.4g}; held at its edge, the held-out windows and the laws stay)"

@@ -99,6 +99,11 @@ def is_gap(row):
     return bool(row["conflict"] and row.get("material", True))
 
 
+def is_immaterial(row):
+    """A range-conflict row outside the range that its range checks found not to matter."""
+    return bool(row["conflict"] and row.get("material") is False)
+
+
 class RangeCheck:
     """Which of a module's range conflicts matter: refits with them held at their range's edges.
 

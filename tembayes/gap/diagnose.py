@@ -55,7 +55,7 @@ from tembayes.constants import MODULE_PARAMETERS
 from tembayes.errors import DataError, ModelError
 from tembayes.gap.baseline import baseline
 from tembayes.gap.candidates import Setting, candidate_job, refit_job
-from tembayes.gap.conflicts import RangeCheck, range_conflicts, suspect_start, suspects
+from tembayes.gap.conflicts import RangeCheck, is_immaterial, range_conflicts, suspect_start, suspects
 from tembayes.gap.evidence import ALPHA, N_DRAWS, evaluate_run, held_out_windows
 from tembayes.gap.jobs import collect, default_jobs, executor, in_order, race, submit_all
 from tembayes.gap.ranking import LeadJudge, rank, verdict
@@ -124,7 +124,7 @@ class _Plan:
         """A copy of a refit's or recalibration's outcome without the conflicts its range checks found immaterial."""
         if outcome.conflicts is None:
             return outcome
-        immaterial = {r["parameter"] for r in self.conflicts.get(outcome.module, ()) if r.get("material") is False}
+        immaterial = {r["parameter"] for r in self.conflicts.get(outcome.module, ()) if is_immaterial(r)}
         return replace(outcome, conflicts=[n for n in outcome.conflicts if n not in immaterial])
 
     def recalibration(self, module_id, effect, refitted=None):
@@ -344,13 +344,11 @@ def _materiality(plan, refits, ex):
             f"checking the range conflicts of {', '.join(asking)}: the base model refitted with them at their edge"
         )
     while asking:
-        jobs = {
-            _range_key(mid, checks[mid].next()): plan.range_check(mid, refits[mid], checks[mid].next())
-            for mid in asking
-        }
+        held = {mid: checks[mid].next() for mid in asking}
+        jobs = {_range_key(mid, h): plan.range_check(mid, refits[mid], h) for mid, h in held.items()}
         done = collect(submit_all(ex, jobs, cache=plan.cache), cache=plan.cache, say=plan.say, label="checked")
-        for mid in asking:
-            r = done[_range_key(mid, checks[mid].next())]
+        for mid, h in held.items():
+            r = done[_range_key(mid, h)]
             if r.failed:
                 checks[mid].record(None)
             else:

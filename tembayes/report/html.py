@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 from tembayes.calibrate import sampler as smp
 from tembayes.calibrate.diagnostics import PSIS_K_MAX
 from tembayes.constants import MODULE_PARAMETERS
+from tembayes.gap.conflicts import is_immaterial
 
 if TYPE_CHECKING:
     from pathlib import Path
@@ -514,7 +515,7 @@ def _conflict_class(c):
     """A conflict row's badge: ``fail`` where it is a gap, ``warn`` where it does not matter."""
     if not c.get("conflict"):
         return ""
-    return "warn" if c.get("material") is False else "fail"
+    return "warn" if is_immaterial(c) else "fail"
 
 
 def _needed(c):
