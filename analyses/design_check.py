@@ -25,6 +25,7 @@ R0 and S0 reach 0.5 % (sd), the issue's target for a new unit of a known type.
 
     python analyses/design_check.py --rig heatsink-al --designs 0.2:600 0.2:240 0.2:100
     python analyses/design_check.py --designs 0.2:240 0.2:240:2 --suffix rate   (STEP:HOLD:RATE, RATE in Hz; default 5)
+    python analyses/design_check.py --designs 0.2:100:5:0.8:-1.8 --suffix span   (STEP:HOLD:RATE:TOP:BOTTOM, turning levels in A)
 
 Writes analyses/results/design_check_<fidelity>[_<rig>][_<type>][_unit-prior][_<suffix>].{json,md} (no rig suffix for
 the reference rig, no type suffix for TEC1-12706).
@@ -50,18 +51,28 @@ DEFAULT_DESIGNS = ("0.2:600", "0.2:120", "0.8:240")
 
 
 def _designs(texts):
-    """``STEP:HOLD[:RATE]`` -> ``(step, hold, rate)``, the rate [Hz] the reference rig's unless given."""
+    """``STEP:HOLD[:RATE[:TOP:BOTTOM]]`` -> ``(step, hold, rate, top, bottom)``: the rate [Hz] the reference
+    rig's and the turning levels [A, reference module] the reference staircase's unless given."""
+    from tembayes.design.search import TURNS_A
+
     out = []
     for t in texts:
         v = t.split(":")
-        if len(v) not in (2, 3):
-            raise SystemExit(f"--designs {t}: write STEP:HOLD or STEP:HOLD:RATE, e.g. 0.2:240 or 0.2:240:2")
-        out.append((*(float(x) for x in v), RATE_HZ)[:3])
+        if len(v) not in (2, 3, 5):
+            raise SystemExit(
+                f"--designs {t}: write STEP:HOLD, STEP:HOLD:RATE or STEP:HOLD:RATE:TOP:BOTTOM, e.g. 0.2:240:5:0.8:-1.8"
+            )
+        v = [float(x) for x in v]
+        rate = v[2] if len(v) > 2 else RATE_HZ
+        out.append((v[0], v[1], rate, *(v[3:] or TURNS_A[0])))
     return out
 
 
-def _name(step, hold, rate):
-    return f"s{step:g}-h{hold:g}" + ("" if rate == RATE_HZ else f"-r{rate:g}")
+def _name(step, hold, rate, top, bottom):
+    from tembayes.design.search import TURNS_A
+
+    turns = "" if (top, bottom) == TURNS_A[0] else f"-t{top:g}_{bottom:g}"
+    return f"s{step:g}-h{hold:g}" + ("" if rate == RATE_HZ else f"-r{rate:g}") + turns
 
 
 def _datasheet(work, t):
@@ -89,14 +100,14 @@ def predicted(designs, ds, n_draws, population=None, rig="reference"):
     return {_name(*c): e for c, e in zip(designs, d.evaluate(designs))}, d
 
 
-def one(work, args, t, dsfile, designer, step, hold, rate, b):
+def one(work, args, t, dsfile, designer, step, hold, rate, top, bottom, b):
     """Simulate and calibrate batch ``b`` of type ``t`` under one staircase sampled at ``rate`` [Hz]; the run folder."""
     from tembayes.design.protocol import write_protocol
 
-    name = _name(step, hold, rate)
+    name = _name(step, hold, rate, top, bottom)
     proto = work / f"{t}-{name}.csv" if args.rig == "reference" else work / f"{t}-{name}-{_bench(args)}.csv"
     if not proto.exists():
-        write_protocol(proto, designer.protocol(step, hold))
+        write_protocol(proto, designer.protocol(step, hold, top, bottom))
     bdir = work / "batches" / _bench(args) / name / f"{t}-b{b}"
     if not (bdir / "truth.json").exists():
         seed = 1000 * (list(TYPES).index(t) + 1) + b
@@ -279,7 +290,7 @@ def markdown(res, args):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--designs", nargs="+", default=list(DEFAULT_DESIGNS), metavar="STEP:HOLD")
+    ap.add_argument("--designs", nargs="+", default=list(DEFAULT_DESIGNS), metavar="STEP:HOLD[:RATE[:TOP:BOTTOM]]")
     ap.add_argument("--batches", type=int, default=5)
     ap.add_argument("--modules", type=int, default=4)
     ap.add_argument("--type", default="TEC1-12706", choices=list(TYPES))

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import tembayes
 from tembayes.common.heap import keep_short_lived_blocks_on_the_heap
-from tembayes.constants import RATE_HZ
-from tembayes.errors import DataError, TembayesError
+from tembayes.constants import KELVIN, RATE_HZ
+from tembayes.errors import DataError, ModelError, TembayesError
 
 _EPILOG_SIMULATE = """\
 examples:
@@ -542,13 +542,24 @@ def _cmd_rig(args):
     return 0
 
 
+def _check_temperature_limits(low_C, high_C):
+    """Refuse ``--min-temperature`` / ``--max-temperature`` that are not numbers or not in order [degC]."""
+    for name, v in (("--min-temperature", low_C), ("--max-temperature", high_C)):
+        if v is not None and not -KELVIN < v < 500.0:
+            raise ModelError(f"{name} {v:g}: give a sensor temperature in degC, e.g. {name} 12")
+    if low_C is not None and high_C is not None and not low_C < high_C:
+        raise ModelError(f"--min-temperature {low_C:g} is not below --max-temperature {high_C:g}")
+
+
 def _cmd_design(args):
+    from tembayes.bench.protocols import REFERENCE_IMAX
     from tembayes.data import load_batch_toml
     from tembayes.data.outputs import check_output
     from tembayes.design.search import Designer, design, design_json, parse_target
     from tembayes.physics.rigread import rig_source
 
     targets = [parse_target(t) for t in args.target]  # refused input: nothing is written
+    _check_temperature_limits(args.min_temperature, args.max_temperature)
     datasheet, rig_config = load_batch_toml(args.batch_or_toml)
     if args.rig:
         rig_config = rig_source(args.rig)
@@ -568,7 +579,14 @@ def _cmd_design(args):
         law_prior=law_prior,
         rate_hz=args.rate,
     )
-    d = design(designer, targets or None, max_hours=args.max_hours, min_hold_s=args.min_hold)
+    d = design(
+        designer,
+        targets or None,
+        max_hours=args.max_hours,
+        min_hold_s=args.min_hold,
+        min_temperature_K=None if args.min_temperature is None else args.min_temperature + KELVIN,
+        max_temperature_K=None if args.max_temperature is None else args.max_temperature + KELVIN,
+    )
 
     def files(tmp):
         from tembayes.design.protocol import write_protocol
@@ -579,10 +597,13 @@ def _cmd_design(args):
 
     _write_result(args, "design.json", design_json(d, designer), files)
     best, ref = d.best, d.reference
+    turns = "/".join(f"{v * datasheet.imax / REFERENCE_IMAX:+.3g}" for v in (best.top_A, best.bottom_A))
+    lo, hi = (t - KELVIN for t in best.sensor_range_K)
     print(
-        f"design: {len(best.protocol.levels)} levels, step {best.step_for(datasheet.imax):.3g} A, "
-        f"hold {best.hold_s:g} s, sampled at {best.rate_Hz:g} Hz: {best.duration_s / 3600:.2f} h against the "
-        f"reference's {ref.duration_s / 3600:.2f} h at {ref.rate_Hz:g} Hz"
+        f"design: {len(best.protocol.levels)} levels, step {best.step_for(datasheet.imax):.3g} A, turning at "
+        f"{turns} A, hold {best.hold_s:g} s, sampled at {best.rate_Hz:g} Hz: {best.duration_s / 3600:.2f} h against "
+        f"the reference's {ref.duration_s / 3600:.2f} h at {ref.rate_Hz:g} Hz; sensors {lo:.1f}-{hi:.1f} degC "
+        f"(limits {d.limits_K[0] - KELVIN:.1f}-{d.limits_K[1] - KELVIN:.1f})"
     )
     for k, v in best.sd_rel().items():
         print(f"  {k:<14s} expected sd {100 * v:.3f} %  (reference {100 * ref.sd_rel()[k]:.3f} %)")
@@ -1234,13 +1255,16 @@ examples:
   tembayes design data/example --out runs/design --target R0_ohm=0.3% --target K_W_per_K=0.5% --max-hours 2
   tembayes simulate runs/short --protocol runs/design/protocol.csv --rate 2 --fidelity high   # then try it (its rate)
   tembayes design data/example --out runs/slow-logger --rate 1       # a rig logged at 1 Hz
+  tembayes design data/example --out runs/narrow --target R0_ohm=0.21% --max-temperature 75   # a wider span, kept below 75 degC
   tembayes design data/example --out runs/unit-design --population runs/lot42 --target R0_ohm=0.5% --target S0_V_per_K=0.5% --max-hours 0.75
   tembayes calibrate spares/unit7 --out runs/unit7 --unit-prior runs/lot42   # that unit, under lot 42's population
 
 Targets are posterior sds, relative (PARAM=SD%) or absolute in SI (PARAM=SD).  The expected widths
 come from modules the bench draws from the type, each run simulated and linearised as the calibration
 would (Laplace, plus the rig parameters the calibration holds fixed).  The shortest staircase found
-is sampled as slowly as the targets allow (design.json: staircase.sampling_rate_Hz); docs/design.md.
+is sampled as slowly as the targets allow (design.json: staircase.sampling_rate_Hz).  A wider span
+of currents narrows the laws more than longer holds do, but heats the module further: no candidate's
+sensors leave the limits (default: the reference staircase's own range, within 1 K); docs/design.md.
 """
 
 
@@ -1249,9 +1273,9 @@ def _add_design(sub):
     p = sub.add_parser(
         "design",
         help="the shortest identification staircase that reaches target posterior widths",
-        description="Search current staircases (the hold at the reference's step; every level inside the span stepped to from both "
-        "sides, as the "
-        "hysteresis check needs) for the shortest that reaches the target posterior sds of the laws, and write "
+        description="Search current staircases (the hold and the turning levels at the reference's step; every "
+        "level inside the span stepped to from both sides, as the hysteresis check needs; no sensor colder or "
+        "hotter than the limits) for the shortest that reaches the target posterior sds of the laws, and write "
         "protocol.csv (the current program), design.json (its duration and expected widths, and the reference "
         "staircase's) and design.png.",
         epilog=_EPILOG_DESIGN,
@@ -1283,6 +1307,14 @@ def _add_design(sub):
         metavar="S",
         help="hold every level at least S seconds (e.g. 600 where short holds bias the slopes; docs/design.md)",
     )
+    for side, word in (("min", "colder"), ("max", "hotter")):
+        p.add_argument(
+            f"--{side}-temperature",
+            type=float,
+            metavar="C",
+            help=f"no sensor {word} than C degC during the test (default: as the reference staircase goes, "
+            "within 1 K; e.g. --min-temperature 12 above the dew point)",
+        )
     p.add_argument(
         "--rate",
         type=float,

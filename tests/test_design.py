@@ -135,10 +135,11 @@ def test_the_search_picks_the_shortest_candidate_that_meets_the_targets_and_refu
     assert d.best.duration_s == min(e.duration_s for e in d.evaluated)
     meeting = [e for e in d.evaluated if e.duration_s <= 3600 and e.meets(d.targets)]
     assert d.best is meeting[0]
-    with pytest.raises(ModelError, match=r"no staircase within 1 h reaches R0_ohm=1e-06%.*reaches R0_ohm"):
+    with pytest.raises(ModelError, match=r"no staircase within 1 h and .* degC reaches R0_ohm=1e-06%.*reaches R0_ohm"):
         design(designer, (Target("R0_ohm", 1e-8, True),), max_hours=1.0)
     # a target some staircase reaches and no shorter one does: refused below its duration, chosen above
-    ranked = design(designer, loose, max_hours=8.0).evaluated  # shortest first
+    full = design(designer, loose, max_hours=8.0)
+    ranked = [e for e in full.evaluated if e.within(full.limits_K)]  # shortest first
     found = [
         (k, e, min(x.sd_rel()[k] for x in ranked[:i]), ranked[i - 1].duration_s)
         for k in MODULE_PARAMETERS
@@ -161,8 +162,53 @@ def test_the_search_picks_the_shortest_candidate_that_meets_the_targets_and_refu
         design(designer, loose, min_hold_s=2000.0)
 
 
+def test_a_wider_span_of_currents_narrows_the_laws_and_is_taken_only_within_the_temperature_limits(
+    designer, monkeypatch
+):
+    """The turning levels are searched with the holds.  At one hold a wider span heats the module further
+    (Joule heat grows with the square of the current) and narrows every level's width; +0.8/-1.8 A at 100 s
+    is shorter than the reference's span at 120 s and narrower on R0, S0 and K, which no hold of the
+    reference's span buys.  So a tight target is met by the wider span, but only while its sensors stay
+    within the limits: by default the reference staircase's own range, within 1 K."""
+    from tembayes.bench.protocols import REFERENCE_TURNS_A
+    from tembayes.design import search
+
+    monkeypatch.setattr(search, "HOLDS_S", (100.0, 120.0))
+    monkeypatch.setattr(search, "RATES_HZ", ())
+    # the wider span was withdrawn for its out-of-model coverage on one type; the search is tested with it
+    monkeypatch.setattr(search, "TURNS_A", (REFERENCE_TURNS_A, (0.8, -1.8)))
+    loose = design(designer, (Target("R0_ohm", 0.05, True),))
+    lo, hi = loose.reference.sensor_range_K
+    assert loose.limits_K == pytest.approx((lo - search.RANGE_SLACK_K, hi + search.RANGE_SLACK_K))
+    at100 = {(e.top_A, e.bottom_A): e for e in loose.evaluated if e.hold_s == 100.0}
+    assert set(at100) == set(search.TURNS_A)
+    spans = sorted(at100.values(), key=lambda e: e.top_A - e.bottom_A)  # narrowest first
+    assert [e.sensor_range_K[1] for e in spans] == sorted(e.sensor_range_K[1] for e in spans)
+    levels = ("R0_ohm", "S0_V_per_K", "K_W_per_K")
+    for k in levels:
+        assert [e.sd_rel()[k] for e in spans] == sorted((e.sd_rel()[k] for e in spans), reverse=True), k
+    assert loose.best is spans[0]  # a loose target: the shortest program, the narrowest span
+    wide = at100[(0.8, -1.8)]
+    ref120 = next(e for e in loose.evaluated if e.hold_s == 120.0 and (e.top_A, e.bottom_A) == REFERENCE_TURNS_A)
+    assert wide.duration_s < ref120.duration_s and all(wide.sd_rel()[k] < ref120.sd_rel()[k] for k in levels)
+    # a target only the wider span reaches: taken within the default limits, refused below its hottest sensor
+    others = [e for e in loose.evaluated if (e.top_A, e.bottom_A) != (0.8, -1.8)]
+    best_other = min(e.sd_rel()["R0_ohm"] for e in others)
+    assert wide.sd_rel()["R0_ohm"] < best_other and wide.within(loose.limits_K)
+    target = (Target("R0_ohm", 0.5 * (wide.sd_rel()["R0_ohm"] + best_other), True),)
+    assert design(designer, target).best is wide
+    with pytest.raises(ModelError, match=r"no staircase within 8 h and [0-9.]+-[0-9.]+ degC reaches R0_ohm.*"):
+        design(designer, target, max_temperature_K=wide.sensor_range_K[1] - 0.5)
+    # limits no candidate keeps: refused, saying what the mildest reaches
+    with pytest.raises(ModelError, match=r"no staircase keeps its sensors within .*: the mildest reaches"):
+        design(designer, target, min_temperature_K=hi)
+    with pytest.raises(ValueError, match="not"):
+        designer.key((0.2, 100.0, 5.0, 0.8))  # a top without a bottom
+
+
 def _rates_at_the_best_hold(d):
-    return sorted((e for e in d.evaluated if e.hold_s == d.best.hold_s), key=lambda e: e.rate_Hz)
+    same = [e for e in d.evaluated if (e.hold_s, e.top_A, e.bottom_A) == (d.best.hold_s, d.best.top_A, d.best.bottom_A)]
+    return sorted(same, key=lambda e: e.rate_Hz)
 
 
 def test_the_design_samples_its_staircase_as_slowly_as_the_targets_allow(designer, monkeypatch):
@@ -194,10 +240,15 @@ def test_design_writes_the_program_the_widths_and_the_figure(tmp_path, monkeypat
 
     monkeypatch.setattr(search, "HOLDS_S", (120.0,))
     out = tmp_path / "d"
-    argv = ["design", EXAMPLE, "--out", str(out), "--target", "R0_ohm=5%", "--draws", "1", "--jobs", "1"]
-    assert main(argv) == 0
+    toml = tmp_path / "type.toml"  # a 3.9 A type: the levels scale by 3.9 / 6.4
+    toml.write_text(
+        '[module_type]\nname = "3ohm-3.9A"\nth_C = 25.0\nimax_A = 3.9\nvmax_V = 15.4\ndtmax_K = 68.0\nqmax_W = 34.0\n'
+    )
+    argv = ["design", str(toml), "--out", str(out), "--target", "R0_ohm=5%", "--draws", "1", "--jobs", "1"]
+    assert main([*argv, "--max-temperature", "63"]) == 0
     doc = json.loads((out / "design.json").read_text())
     proto = read_protocol(out / "protocol.csv")
+    # a loose target: the narrowest span, the reference's 0 -> +0.8 -> -1.6 -> 0 A in 0.2 A steps, 25 levels
     assert doc["duration_s"] == pytest.approx(proto.duration) == pytest.approx(25 * 120.0)
     assert set(doc["predicted"]) == set(MODULE_PARAMETERS) and set(doc["predicted"]["R0_ohm"]) == {"sd", "sd_rel"}
     assert doc["reference"]["duration_s"] == pytest.approx(25 * 600.0)
@@ -206,8 +257,17 @@ def test_design_writes_the_program_the_widths_and_the_figure(tmp_path, monkeypat
     assert doc["staircase"]["sampling_rate_Hz"] == min(search.RATES_HZ)
     assert doc["staircase"]["rig_sampling_rate_Hz"] == 5.0
     assert {c["sampling_rate_Hz"] for c in doc["evaluated"]} == {5.0, *search.RATES_HZ}
-    # a refused target or rate writes nothing
+    # the span chosen, as the program runs it, and the temperatures it reaches within the limits asked for
+    assert doc["staircase"]["turning_levels_A"] == pytest.approx([proto.levels.max(), proto.levels.min()])
+    assert doc["staircase"]["turning_levels_A"] == pytest.approx([0.8 * 3.9 / 6.4, -1.6 * 3.9 / 6.4])
+    lo, hi = doc["temperature_limits_C"]
+    assert hi == pytest.approx(63.0)  # the wider span at 120 s reaches 67 degC on this type: beyond
+    assert lo <= doc["staircase"]["sensor_range_C"][0] < doc["staircase"]["sensor_range_C"][1] <= hi
+    assert any(not c["within_limits"] for c in doc["evaluated"])
+    # a refused target, rate or temperature limit writes nothing
     assert main(["design", EXAMPLE, "--out", str(tmp_path / "e"), "--target", "R0=1%"]) != 0
+    for limits in (["--max-temperature", "nan"], ["--min-temperature", "40", "--max-temperature", "30"]):
+        assert main(["design", EXAMPLE, "--out", str(tmp_path / "e"), *limits]) != 0
     for rate in ("0", "inf"):
         assert main(["design", EXAMPLE, "--out", str(tmp_path / "e"), "--rate", rate]) != 0
     assert not (tmp_path / "e").exists()
@@ -230,6 +290,10 @@ def test_a_design_on_plates_that_hold_both_faces_writes_their_setpoints(tmp_path
     assert lines[0] == "time_s,current_A,plate_C" and len(lines) == 1 + len(PLATE_SETPOINTS_C) * 13 + 1
     proto = read_protocol(out / "protocol.csv")
     np.testing.assert_allclose(proto.setpoints - 273.15, np.repeat(PLATE_SETPOINTS_C, 13))
+    # the plate staircase turns where the reference does: no other span is evaluated, or simulated
+    assert {tuple(c["turning_levels_A_reference_module"]) for c in doc["evaluated"]} == {(0.8, -1.6)}
+    with pytest.raises(ModelError, match="on plates"):
+        Designer(TEC1_12706, {"preset": "liquid-plates"}, n_draws=1, jobs=1).protocol(0.4, 240.0, 0.8, -1.8)
 
 
 def test_the_designer_simulates_the_rig_it_is_given_and_steps_the_plates_that_hold_both_faces(tmp_path):

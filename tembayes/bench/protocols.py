@@ -23,6 +23,8 @@ if TYPE_CHECKING:
     from collections.abc import Sequence
 
 REFERENCE_IMAX = 6.4  # [A] the module the reference levels were written for
+#: The reference staircase's turning levels (top, bottom) for the reference module [A].
+REFERENCE_TURNS_A = (0.8, -1.6)
 #: Plate temperatures of :func:`plate_staircase` [degC]: a 40 K span of the mean temperature,
 #: about the reference staircase's on the reference rig.
 PLATE_SETPOINTS_C = (15.0, 35.0, 55.0)
@@ -95,7 +97,11 @@ class Protocol:
 
 
 def identification_staircase(
-    imax: float = REFERENCE_IMAX, hold: float = 600.0, step: float = 0.2, top: float = 0.8, bottom: float = -1.6
+    imax: float = REFERENCE_IMAX,
+    hold: float = 600.0,
+    step: float = 0.2,
+    top: float = REFERENCE_TURNS_A[0],
+    bottom: float = REFERENCE_TURNS_A[1],
 ) -> Protocol:
     """The identification staircase: every level visited by an up- and a down-step.
 

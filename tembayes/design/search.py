@@ -1,21 +1,28 @@
 """The shortest identification staircase that reaches the target widths.
 
-A candidate is the reference staircase's shape -- 0 up to +0.8 A, down to
--1.6 A and back to 0 (reference module's levels, scaled by the type's Imax),
-every level inside the span reached from below and from above (the turning
-levels from one side) so the hysteresis check keeps both directions -- with holds of 100-900 s
-(coarser steps were measured biased out-of-model, :data:`STEPS_A`).  Its expected
+A candidate is the reference staircase's shape -- 0 up to a top level, down
+to a bottom level and back to 0 in 0.2 A steps (reference module's levels,
+scaled by the type's Imax), every level inside the span reached from below and
+from above (the turning levels from one side) so the hysteresis check keeps
+both directions -- with holds of 100-900 s (coarser steps were measured biased
+out-of-model, :data:`STEPS_A`) and one of the spans of :data:`TURNS_A`.  A
+wider span costs levels but heats the module further: the Joule heat grows
+with the square of the current, and the laws' information with the range of
+mean temperature the run covers.  So a candidate counts only if every sensor
+stays within the temperature limits (default: the range the reference
+staircase reaches on the same drawn modules, within :data:`RANGE_SLACK_K`;
+``--min-temperature``, ``--max-temperature``).  Its expected
 widths (:mod:`.widths`) are averaged over modules the standard bench draws
 from the type (the rig's nominal spread of values, the type's unit spread),
 each run simulated on the bench (the same noise stream for every candidate)
 and its Laplace covariance taken at the mode a short search from its truth finds.  Every candidate of the grid
-:data:`STEPS_A` x :data:`HOLDS_S` within the time allowed is evaluated: the
+:data:`STEPS_A` x :data:`HOLDS_S` x :data:`TURNS_A` within the time allowed is evaluated: the
 widths need not fall monotonically with the holds (on the reference rig they
 are set mostly by the rig parameters the calibration holds fixed, which a
 longer run does not remove), so no candidate is skipped on the assumption.
 On plates that hold both module faces a candidate is the rig's plate staircase
 (the current staircase at each plate temperature, :func:`~tembayes.bench.protocols.plate_staircase`)
-with its own step (:data:`PLATE_STEPS_A`) and the holds of :data:`PLATE_HOLDS_S`.
+with its own step (:data:`PLATE_STEPS_A`), the holds of :data:`PLATE_HOLDS_S` and the reference's turns.
 The shortest candidate that meets every target wins, sampled at the rig's
 rate; that staircase is then tried at the slower rates of :data:`RATES_HZ`,
 and the design takes the slowest rate at which it and every faster one still
@@ -36,11 +43,12 @@ import numpy as np
 from tembayes.bench.protocols import (
     PLATE_STEP_A,
     REFERENCE_IMAX,
+    REFERENCE_TURNS_A,
     Protocol,
     identification_staircase,
     plate_staircase,
 )
-from tembayes.constants import MODULE_PARAMETERS, RATE_HZ
+from tembayes.constants import KELVIN, MODULE_PARAMETERS, RATE_HZ
 from tembayes.errors import ModelError
 
 #: Step sizes of the candidates, for the reference module (Imax REFERENCE_IMAX) [A].  Only the
@@ -50,6 +58,18 @@ from tembayes.errors import ModelError
 #: intervals of R0, S0 and K covered 0.60-0.80; with 0.2 A steps and holds of 120 s or more they
 #: covered 0.80-1.00 on two module types (analyses/design_check.py).
 STEPS_A = (0.2,)
+#: The candidates' turning levels (top, bottom) for the reference module [A]: a span is offered once shown
+#: honest on the out-of-model bench on two module types (analyses/design_check.py).  Only the reference's
+#: so far.  +0.8/-1.8 A at 100 s holds (0.75 h, within the reference's temperatures) narrowed the laws as
+#: predicted (realised sds 0.89-0.92 of the reference span's on the same modules) and was honest on the
+#: 3 ohm type (R0, S0, K coverage 1.00, 0.90, 0.90), but on 20 TEC1-12706 modules R0, S0, K covered 0.70,
+#: 0.75, 0.75, where the reference span at 100 s covered 0.85, 0.90, 0.90.  +0.6/-1.2 A (0.53 h) covered
+#: 0.85, 0.80, 0.75 there at mean z +0.50, -0.59, -0.69.  +1.0/-2.0 A reaches 82 degC at 100 s holds.
+TURNS_A = (REFERENCE_TURNS_A,)
+#: How far a candidate's sensors may pass the reference staircase's range before it counts as hotter
+#: or colder than the reference test [K].  Less than units differ: on the example type's two drawn
+#: modules the reference's hottest sensor differs by 1.75 K (71.0 and 72.8 degC).
+RANGE_SLACK_K = 1.0
 #: Hold lengths of the candidates [s].  The shortest, 100 s, is the shortest shown honest on the
 #: out-of-model bench (0.69 h: R0, S0, K coverage 0.85-0.90 on 20 TEC1-12706 modules and 0.95-1.00 on
 #: 20 of a 3 ohm, 3.9 A type; analyses/design_check.py).
@@ -128,7 +148,11 @@ class Evaluated:
     hold_s : float
     rate_Hz : float
         Sampling rate of the run [Hz].
+    top_A, bottom_A : float
+        The turning levels for the reference module [A].
     protocol : Protocol
+    sensor_range_K : tuple of float
+        The coldest and the hottest sensor sample over the drawn modules' runs [K].
     sd, mean : dict
         Law name -> expected posterior sd and the mean of the drawn modules' modes [SI].
     sd_laplace : dict
@@ -139,7 +163,10 @@ class Evaluated:
     step_A: float
     hold_s: float
     rate_Hz: float
+    top_A: float
+    bottom_A: float
     protocol: Protocol
+    sensor_range_K: tuple
     sd: dict
     mean: dict
     sd_laplace: dict
@@ -161,6 +188,14 @@ class Evaluated:
     def meets(self, targets) -> bool:
         """Whether every target is reached."""
         return all(t.of(self) <= t.value for t in targets)
+
+    def within(self, limits_K) -> bool:
+        """Whether every sensor stays inside ``limits_K`` (coldest, hottest) [K]."""
+        return self.beyond(limits_K) == 0.0
+
+    def beyond(self, limits_K) -> float:
+        """How far the sensors pass ``limits_K`` (coldest, hottest) on the worse side [K]; 0 within them."""
+        return max(limits_K[0] - self.sensor_range_K[0], self.sensor_range_K[1] - limits_K[1], 0.0)
 
     def predicted(self) -> dict:
         """``design.json``'s ``predicted``: law name -> ``{"sd", "sd_rel"}``."""
@@ -184,7 +219,8 @@ def _one_width(args):
     # the truth of every coordinate the calibration samples that the bench knows (the step phase does not matter)
     start = {**setup.effects, **module.get("rig", {}), **{k: module[k] for k in MODULE_PARAMETERS}}
     w = expected_widths(exp, datasheet, rig_config=rig_config, options=_ACTIVE.options, start=start, max_nfev=3)
-    return w.sd, w.mode, w.sd_laplace
+    sensors = np.asarray(exp.sensors)
+    return w.sd, w.mode, w.sd_laplace, (float(sensors.min()), float(sensors.max()))
 
 
 class Designer:
@@ -239,36 +275,63 @@ class Designer:
         """The candidates' holds [s] on this rig (read at call time)."""
         return PLATE_HOLDS_S if self.plates else HOLDS_S
 
-    def protocol(self, step: float, hold: float) -> Protocol:
-        """The candidate staircase of step ``step`` (reference module's A) and hold ``hold`` [s] for this type.
+    @property
+    def turns(self) -> tuple:
+        """The candidates' turning levels (top, bottom) [A, reference module]: on plates the plate staircase's."""
+        return (REFERENCE_TURNS_A,) if self.plates else TURNS_A
 
-        On plates that hold both faces, that staircase at each plate temperature.
+    def protocol(
+        self, step: float, hold: float, top: float = REFERENCE_TURNS_A[0], bottom: float = REFERENCE_TURNS_A[1]
+    ) -> Protocol:
+        """The candidate staircase of step ``step``, hold ``hold`` [s] and turning levels ``top``, ``bottom``.
+
+        Steps and levels are the reference module's [A], scaled to this type.  On plates that
+        hold both faces, the plate staircase (the reference turns) at each plate temperature.
+
+        Raises
+        ------
+        ModelError
+            Other turns on plates that hold both faces.
         """
+        if self.plates and (top, bottom) != REFERENCE_TURNS_A:
+            raise ModelError(f"turning levels {top:+g}/{bottom:+g} A: on plates the staircase turns at the reference's")
         if self.plates:
             return plate_staircase(self.datasheet.imax, hold=hold, step=step)
-        return identification_staircase(self.datasheet.imax, hold=hold, step=step)
+        return identification_staircase(self.datasheet.imax, hold=hold, step=step, top=top, bottom=bottom)
+
+    def key(self, candidate) -> tuple:
+        """``(step_A, hold_s, rate_Hz, top_A, bottom_A)`` of ``(step_A, hold_s[, rate_Hz[, top_A, bottom_A]])``.
+
+        The rig's rate and the reference's turns unless given.
+        """
+        c = tuple(float(v) for v in candidate)
+        if len(c) not in (2, 3, 5):
+            raise ValueError(f"a candidate is (step, hold[, rate[, top, bottom]]), not {candidate}")
+        rate = c[2] if len(c) > 2 else self.rate_hz
+        return (c[0], c[1], rate, *(c[3:5] if len(c) == 5 else REFERENCE_TURNS_A))
 
     def evaluate(self, candidates) -> list[Evaluated]:
-        """The :class:`Evaluated` of every ``(step_A, hold_s[, rate_Hz])`` (the rig's rate unless given).
+        """The :class:`Evaluated` of every candidate (:meth:`key`).
 
         The same modules and noise streams for each; a slower rate's widths as simulated
         (:func:`design` keeps the rig rate's held-rig part, :func:`_at_slower_rate`).
         """
-        keys = [tuple(float(v) for v in (c if len(c) == 3 else (*c, self.rate_hz))) for c in candidates]
+        keys = [self.key(c) for c in candidates]
         todo = [k for k in dict.fromkeys(keys) if k not in self.cache]
         if todo:
             self.say(f"design: {len(todo)} staircases x {self.n_modules} modules")
             # common random numbers: module m runs on the same noise stream under every candidate
-            protocols = {k: self.protocol(*k[:2]) for k in todo}
+            protocols = {k: self.protocol(k[0], k[1], *k[3:]) for k in todo}
             jobs = [(protocols[k], k[2], m, [self.seed, m]) for k in todo for m in range(self.n_modules)]
             out = self._run(jobs)
             n = self.n_modules
             for c, k in enumerate(todo):
-                part = out[c * n : (c + 1) * n]  # (sd, mode, sd_laplace) of each drawn module
+                part = out[c * n : (c + 1) * n]  # (sd, mode, sd_laplace, sensor range) of each drawn module
                 sd, mean, lap = (
                     {p: float(np.mean([r[q][p] for r in part])) for p in MODULE_PARAMETERS} for q in range(3)
                 )
-                self.cache[k] = Evaluated(*k, protocols[k], sd, mean, lap)
+                span = (min(r[3][0] for r in part), max(r[3][1] for r in part))
+                self.cache[k] = Evaluated(*k, protocols[k], span, sd, mean, lap)
         return [self.cache[k] for k in keys]
 
     def _run(self, jobs):
@@ -292,6 +355,8 @@ class Design:
     reference : Evaluated
         The reference staircase.
     targets : tuple of Target
+    limits_K : tuple of float
+        The coldest and hottest sensor temperature a candidate may reach [K].
     evaluated : tuple of Evaluated
         Every candidate evaluated, shortest first (the fastest rate first among equals).
     """
@@ -299,6 +364,7 @@ class Design:
     best: Evaluated
     reference: Evaluated
     targets: tuple
+    limits_K: tuple
     evaluated: tuple
 
 
@@ -314,49 +380,84 @@ def design(
     *,
     max_hours: float = 8.0,
     min_hold_s: float = 0.0,
+    min_temperature_K: float | None = None,
+    max_temperature_K: float | None = None,
 ) -> Design:
-    """The shortest candidate staircase meeting ``targets``, sampled as slowly as they allow.
+    """The shortest candidate staircase meeting ``targets`` within the temperature limits, sampled slowly.
 
-    ``targets`` None: the reference's R0, S0 and K widths.  No candidate holds a level for less
-    than ``min_hold_s`` [s] (``--min-hold``: on a rig where short holds bias the slopes).
+    The slowest rate at which it still meets them.  ``targets`` None: the reference's R0, S0
+    and K widths.  No candidate holds a level for less than ``min_hold_s`` [s] (``--min-hold``:
+    on a rig where short holds bias the slopes).  No candidate's sensors go colder than
+    ``min_temperature_K`` or hotter than ``max_temperature_K`` [K]; each limit None: the
+    reference staircase's own range on the drawn modules, within :data:`RANGE_SLACK_K`.
 
     Raises
     ------
     ModelError
-        No candidate within ``max_hours`` meets the targets; the message says
-        what the closest one (the smallest largest miss) reaches.
+        No candidate fits in ``max_hours``; none keeps its sensors within the limits (the message
+        says what the mildest reaches); or none within both meets the targets (the message says
+        what the closest one, the smallest largest miss, reaches).
     """
     max_s = 3600.0 * max_hours
     holds = [h for h in designer.holds if h >= min_hold_s]
     if not holds:
         longest = max(designer.holds)
         raise ModelError(f"--min-hold {min_hold_s:g}: no candidate holds that long (the longest holds {longest:g} s)")
-    everything = [(s, h) for s in designer.steps for h in holds]
-    grid = [c for c in everything if designer.protocol(*c).duration <= max_s]
-    if not grid:
-        shortest = min(designer.protocol(*c).duration for c in everything)
+    everything = [(s, h, designer.rate_hz, *t) for s in designer.steps for h in holds for t in designer.turns]
+    timed = [c for c in everything if designer.protocol(c[0], c[1], *c[3:]).duration <= max_s]
+    if not timed:
+        shortest = min(designer.protocol(c[0], c[1], *c[3:]).duration for c in everything)
         raise ModelError(
             f"no staircase fits in {max_hours:g} h: the shortest candidate takes {shortest / 3600:.2f} h. "
             "Allow more time (--max-hours)"
         )
-    reference, *candidates = designer.evaluate([designer.reference, *grid])
+    reference, *candidates = designer.evaluate([designer.reference, *timed])
+    limits = _limits(reference, min_temperature_K, max_temperature_K)
+    grid = [e for e in candidates if e.within(limits)]
+    if not grid:
+        mildest = min(candidates, key=lambda e: e.beyond(limits))
+        raise ModelError(
+            f"no staircase keeps its sensors within {_shown(limits)}: the mildest reaches "
+            f"{_shown(mildest.sensor_range_K)}. Widen the limits (--min-temperature, --max-temperature)"
+        )
     targets = tuple(targets) if targets else reference_targets(reference)
-    found = [e for e in _shortest_first(candidates) if e.meets(targets)]
+    found = [e for e in _shortest_first(grid) if e.meets(targets)]
     if not found:
-        best = min(candidates, key=lambda e: max(t.of(e) / t.value for t in targets))  # the smallest largest miss
+        best = min(grid, key=lambda e: max(t.of(e) / t.value for t in targets))  # the smallest largest miss
         reach = ", ".join(t.shown(best) for t in targets)
         raise ModelError(
-            f"no staircase within {max_hours:g} h reaches {', '.join(map(str, targets))}: the closest "
-            f"({best.duration_s / 3600:.2f} h, step {best.step_A:g} A, hold {best.hold_s:g} s) reaches {reach}. "
-            "Loosen the targets or allow more time (--max-hours)"
+            f"no staircase within {max_hours:g} h and {_shown(limits)} reaches {', '.join(map(str, targets))}: "
+            f"the closest ({best.duration_s / 3600:.2f} h, {_turns(best)}, hold {best.hold_s:g} s) reaches {reach}. "
+            "Loosen the targets or allow more time (--max-hours) or a wider temperature range (--min-temperature, "
+            "--max-temperature)"
         )
     fast = found[0]
     rates = sorted((r for r in RATES_HZ if r < designer.rate_hz), reverse=True)
-    slower = [_at_slower_rate(fast, e) for e in designer.evaluate([(fast.step_A, fast.hold_s, r) for r in rates])]
+    slower = designer.evaluate([(fast.step_A, fast.hold_s, r, fast.top_A, fast.bottom_A) for r in rates])
+    slower = [_at_slower_rate(fast, e) for e in slower]
     best = [fast, *takewhile(lambda e: e.meets(targets), slower)][-1]
     # the reference is a candidate too when its hold is; Evaluated holds dicts, so by identity
     evaluated = _shortest_first({id(e): e for e in (reference, *candidates, *slower)}.values())
-    return Design(best=best, reference=reference, targets=targets, evaluated=evaluated)
+    return Design(best=best, reference=reference, targets=targets, limits_K=limits, evaluated=evaluated)
+
+
+def _limits(reference: Evaluated, low_K, high_K) -> tuple:
+    """The sensor temperature limits [K].
+
+    Those given, else the reference staircase's range (within :data:`RANGE_SLACK_K`).
+    """
+    lo, hi = reference.sensor_range_K
+    return (lo - RANGE_SLACK_K if low_K is None else low_K, hi + RANGE_SLACK_K if high_K is None else high_K)
+
+
+def _shown(range_K) -> str:
+    """``"5.6-71.3 degC"``."""
+    return f"{range_K[0] - KELVIN:.1f}-{range_K[1] - KELVIN:.1f} degC"
+
+
+def _turns(e: Evaluated) -> str:
+    """``"0 -> +0.8 -> -1.6 -> 0 A"`` for the reference module."""
+    return f"0 -> {e.top_A:+g} -> {e.bottom_A:+g} -> 0 A"
 
 
 def _at_slower_rate(fast: Evaluated, slow: Evaluated) -> Evaluated:
@@ -371,7 +472,8 @@ def _at_slower_rate(fast: Evaluated, slow: Evaluated) -> Evaluated:
     sd = {
         k: float(np.sqrt(max(fast.sd[k] ** 2 - fast.sd_laplace[k] ** 2, 0.0) + lap[k] ** 2)) for k in MODULE_PARAMETERS
     }
-    return replace(slow, sd=sd, sd_laplace=lap)
+    # the same program heats the module alike at any rate: only the sensors' noise samples differ
+    return replace(slow, sd=sd, sd_laplace=lap, sensor_range_K=fast.sensor_range_K)
 
 
 def _shortest_first(evaluated) -> tuple:
@@ -386,6 +488,9 @@ def design_json(d: Design, designer: Designer) -> dict:
         return {
             "step_A": e.step_A,
             "hold_s": e.hold_s,
+            "turning_levels_A_reference_module": [e.top_A, e.bottom_A],
+            "sensor_range_C": [t - KELVIN for t in e.sensor_range_K],
+            "within_limits": e.within(d.limits_K),
             "sampling_rate_Hz": e.rate_Hz,
             "duration_s": e.duration_s,
             "predicted": e.predicted(),
@@ -397,9 +502,13 @@ def design_json(d: Design, designer: Designer) -> dict:
         "predicted": d.best.predicted(),
         "reference": {"duration_s": d.reference.duration_s, "predicted": d.reference.predicted()},
         "targets": {t.parameter: {"value": t.value, "relative": t.rel} for t in d.targets},
+        "temperature_limits_C": [t - KELVIN for t in d.limits_K],
         "staircase": {
             "step_A": d.best.step_for(designer.datasheet.imax),
             "step_A_reference_module": d.best.step_A,
+            "turning_levels_A": [v * designer.datasheet.imax / REFERENCE_IMAX for v in (d.best.top_A, d.best.bottom_A)],
+            "turning_levels_A_reference_module": [d.best.top_A, d.best.bottom_A],
+            "sensor_range_C": [t - KELVIN for t in d.best.sensor_range_K],
             "hold_s": d.best.hold_s,
             "levels": len(d.best.protocol.levels),
             "sampling_rate_Hz": d.best.rate_Hz,
