@@ -1255,16 +1255,16 @@ examples:
   tembayes design data/example --out runs/design --target R0_ohm=0.3% --target K_W_per_K=0.5% --max-hours 2
   tembayes simulate runs/short --protocol runs/design/protocol.csv --rate 2 --fidelity high   # then try it (its rate)
   tembayes design data/example --out runs/slow-logger --rate 1       # a rig logged at 1 Hz
-  tembayes design data/example --out runs/narrow --target R0_ohm=0.21% --max-temperature 75   # a wider span, kept below 75 degC
+  tembayes design data/example --out runs/cool --max-temperature 65   # no sensor above 65 degC during the test
   tembayes design data/example --out runs/unit-design --population runs/lot42 --target R0_ohm=0.5% --target S0_V_per_K=0.5% --max-hours 0.75
   tembayes calibrate spares/unit7 --out runs/unit7 --unit-prior runs/lot42   # that unit, under lot 42's population
 
 Targets are posterior sds, relative (PARAM=SD%) or absolute in SI (PARAM=SD).  The expected widths
 come from modules the bench draws from the type, each run simulated and linearised as the calibration
 would (Laplace, plus the rig parameters the calibration holds fixed).  The shortest staircase found
-is sampled as slowly as the targets allow (design.json: staircase.sampling_rate_Hz).  A wider span
-of currents narrows the laws more than longer holds do, but heats the module further: no candidate's
-sensors leave the limits (default: the reference staircase's own range, within 1 K); docs/design.md.
+is sampled as slowly as the targets allow (design.json: staircase.sampling_rate_Hz).  No candidate's
+sensors leave the temperature limits (default: the reference staircase's own range, within 1 K);
+docs/design.md.
 """
 
 
