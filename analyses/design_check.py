@@ -40,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
+from tembayes.bench.protocols import REFERENCE_TURNS_A
 from tembayes.constants import RATE_HZ
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -53,8 +54,6 @@ DEFAULT_DESIGNS = ("0.2:600", "0.2:120", "0.8:240")
 def _designs(texts):
     """``STEP:HOLD[:RATE[:TOP:BOTTOM]]`` -> ``(step, hold, rate, top, bottom)``: the rate [Hz] the reference
     rig's and the turning levels [A, reference module] the reference staircase's unless given."""
-    from tembayes.design.search import TURNS_A
-
     out = []
     for t in texts:
         v = t.split(":")
@@ -64,14 +63,12 @@ def _designs(texts):
             )
         v = [float(x) for x in v]
         rate = v[2] if len(v) > 2 else RATE_HZ
-        out.append((v[0], v[1], rate, *(v[3:] or TURNS_A[0])))
+        out.append((v[0], v[1], rate, *(v[3:] or REFERENCE_TURNS_A)))
     return out
 
 
 def _name(step, hold, rate, top, bottom):
-    from tembayes.design.search import TURNS_A
-
-    turns = "" if (top, bottom) == TURNS_A[0] else f"-t{top:g}_{bottom:g}"
+    turns = "" if (top, bottom) == REFERENCE_TURNS_A else f"-t{top:g}_{bottom:g}"
     return f"s{step:g}-h{hold:g}" + ("" if rate == RATE_HZ else f"-r{rate:g}") + turns
 
 

@@ -1307,13 +1307,13 @@ def _add_design(sub):
         metavar="S",
         help="hold every level at least S seconds (e.g. 600 where short holds bias the slopes; docs/design.md)",
     )
-    for side, word in (("min", "colder"), ("max", "hotter")):
+    for side, word, example in (("min", "colder", "12, above the dew point"), ("max", "hotter", "65")):
         p.add_argument(
             f"--{side}-temperature",
             type=float,
             metavar="C",
             help=f"no sensor {word} than C degC during the test (default: as the reference staircase goes, "
-            "within 1 K; e.g. --min-temperature 12 above the dew point)",
+            f"within 1 K; e.g. {example})",
         )
     p.add_argument(
         "--rate",

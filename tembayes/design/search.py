@@ -5,13 +5,14 @@ to a bottom level and back to 0 in 0.2 A steps (reference module's levels,
 scaled by the type's Imax), every level inside the span reached from below and
 from above (the turning levels from one side) so the hysteresis check keeps
 both directions -- with holds of 100-900 s (coarser steps were measured biased
-out-of-model, :data:`STEPS_A`) and one of the spans of :data:`TURNS_A`.  A
-wider span costs levels but heats the module further: the Joule heat grows
-with the square of the current, and the laws' information with the range of
-mean temperature the run covers.  So a candidate counts only if every sensor
-stays within the temperature limits (default: the range the reference
-staircase reaches on the same drawn modules, within :data:`RANGE_SLACK_K`;
-``--min-temperature``, ``--max-temperature``).  Its expected
+out-of-model, :data:`STEPS_A`) and one of the spans of :data:`TURNS_A` (those
+shown honest out-of-model).  A wider span takes more levels and narrows the
+laws, whose information grows with the range of mean temperature the run
+covers, but heats the module further: the Joule heat grows with the square of
+the current.  So a candidate counts only if every sensor stays within the
+temperature limits (default: the range the reference staircase reaches on the
+same drawn modules, within :data:`RANGE_SLACK_K`; ``--min-temperature``,
+``--max-temperature``).  Its expected
 widths (:mod:`.widths`) are averaged over modules the standard bench draws
 from the type (the rig's nominal spread of values, the type's unit spread),
 each run simulated on the bench (the same noise stream for every candidate)
