@@ -88,13 +88,19 @@ def _rig_config(rig):
 
 
 def predicted(designs, ds, n_draws, population=None, rig="reference"):
-    """``{design name: Evaluated}`` of the designer (the standard bench's drawn modules, seed 0)."""
+    """``{design name: Evaluated}`` of the designer (the standard bench's drawn modules, seed 0).
+
+    A design slower than the rig's rate is predicted as ``tembayes design`` promises it: the same
+    staircase at the rig's rate with only its data's part widened (:func:`~tembayes.design.search.at_slower_rate`).
+    """
     from tembayes.calibrate.earlier import unit_prior_of_run
-    from tembayes.design.search import Designer
+    from tembayes.design.search import Designer, at_slower_rate
 
     law_prior = None if population is None else unit_prior_of_run(population, ds.name)
     d = Designer(ds, _rig_config(rig), seed=0, n_draws=n_draws, jobs=1, say=print, law_prior=law_prior)
-    return {_name(*c): e for c, e in zip(designs, d.evaluate(designs))}, d
+    fast = d.evaluate([(c[0], c[1], d.rate_hz, *c[3:]) for c in designs])
+    out = [e if e.rate_Hz >= f.rate_Hz else at_slower_rate(f, e) for e, f in zip(d.evaluate(designs), fast)]
+    return {_name(*c): e for c, e in zip(designs, out)}, d
 
 
 def one(work, args, t, dsfile, designer, step, hold, rate, top, bottom, b):
