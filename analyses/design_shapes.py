@@ -22,7 +22,7 @@ import numpy as np
 
 from tembayes.bench import TEC1_12706
 from tembayes.bench.protocols import REFERENCE_IMAX, REFERENCE_TURNS_A, Protocol
-from tembayes.constants import KELVIN, MODULE_PARAMETERS
+from tembayes.constants import KELVIN, MODULE_PARAMETERS, RATE_HZ
 from tembayes.data.write import write_json
 from tembayes.design.search import Designer
 
@@ -39,21 +39,11 @@ def down_first(imax, hold, step=0.2, top=REFERENCE_TURNS_A[0], bottom=REFERENCE_
     return Protocol(levels, np.full(len(levels), float(hold)))
 
 
-def widths(designer, protocol):
-    """Mean expected sd (relative) over the designer's drawn modules, and the sensors' range [degC]."""
-    from tembayes.bench.bench import run_experiment
-    from tembayes.design.widths import expected_widths
+class DownFirst(Designer):
+    """The design's predictor on the down-first staircases (the same drawn modules and noise streams)."""
 
-    setup, rel, lo, hi = designer.setup, [], np.inf, -np.inf
-    for m, module in enumerate(setup.truth["modules"].values()):
-        exp = run_experiment(
-            protocol, module, setup.effects, np.random.default_rng([designer.seed, m]), rate=5.0, **setup.run
-        )
-        start = {**setup.effects, **module.get("rig", {}), **{k: module[k] for k in MODULE_PARAMETERS}}
-        w = expected_widths(exp, designer.datasheet, start=start, max_nfev=3)
-        rel.append({k: w.sd[k] / abs(w.mode[k]) for k in MODULE_PARAMETERS})
-        lo, hi = min(lo, float(np.min(exp.sensors))), max(hi, float(np.max(exp.sensors)))
-    return {k: float(np.mean([r[k] for r in rel])) for k in MODULE_PARAMETERS}, (lo - KELVIN, hi - KELVIN)
+    def protocol(self, step, hold, top=REFERENCE_TURNS_A[0], bottom=REFERENCE_TURNS_A[1]):
+        return down_first(self.datasheet.imax, hold, step, top, bottom)
 
 
 def main(argv=None):
@@ -62,18 +52,16 @@ def main(argv=None):
     ap.add_argument("--span-hold", type=float, default=100.0, help="the hold of the spans' table [s]")
     ap.add_argument("--order-holds", type=float, nargs="+", default=[120.0, 240.0, 600.0])
     args = ap.parse_args(argv)
-    d = Designer(TEC1_12706, None, seed=0, n_draws=args.draws, jobs=1)
+    up, down = (cls(TEC1_12706, None, seed=0, n_draws=args.draws, jobs=1) for cls in (Designer, DownFirst))
     res = {"draws": args.draws, "spans": [], "order": []}
-    for top, bottom in SPANS:
-        p = d.protocol(0.2, args.span_hold, top, bottom)
-        sd, rng = widths(d, p)
-        res["spans"].append({"turns_A": [top, bottom], "hold_s": args.span_hold, "levels": len(p.levels),
-                             "hours": p.duration / 3600, "sd_rel": sd, "sensor_range_C": rng})  # fmt: skip
+    for e in up.evaluate([(0.2, args.span_hold, RATE_HZ, *t) for t in SPANS]):
+        res["spans"].append({"turns_A": [e.top_A, e.bottom_A], "hold_s": e.hold_s, "levels": len(e.protocol.levels),
+                             "hours": e.duration_s / 3600, "sd_rel": e.sd_rel(),
+                             "sensor_range_C": [t - KELVIN for t in e.sensor_range_K]})  # fmt: skip
         print(res["spans"][-1], flush=True)
-    for hold in args.order_holds:
-        up, _ = widths(d, d.protocol(0.2, hold))
-        down, _ = widths(d, down_first(TEC1_12706.imax, hold))
-        res["order"].append({"hold_s": hold, "up_first": up, "down_first": down})
+    holds = [(0.2, h) for h in args.order_holds]
+    for u, d in zip(up.evaluate(holds), down.evaluate(holds)):
+        res["order"].append({"hold_s": u.hold_s, "up_first": u.sd_rel(), "down_first": d.sd_rel()})
         print(res["order"][-1], flush=True)
     write_json(RESULTS / "design_shapes.json", res)
     (RESULTS / "design_shapes.md").write_text(markdown(res))

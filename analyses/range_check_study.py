@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 import warnings
 from pathlib import Path
@@ -152,9 +153,7 @@ def main(argv=None):
                 f.write(json.dumps(done[key]) + "\n")
             print(f"[{key}] alarm {row['alarm']} ({row['seconds']:.0f} s)", flush=True)
         rows.append({**done[key], "case": c.name})
-    command = "python analyses/range_check_study.py " + " ".join(
-        argv if argv is not None else __import__("sys").argv[1:]
-    )
+    command = "python analyses/range_check_study.py " + " ".join(argv if argv is not None else sys.argv[1:])
     (RESULTS / f"range_checks_{args.label}.json").write_text(json.dumps(rows, indent=1))
     (RESULTS / f"range_checks_{args.label}.md").write_text(markdown(rows, command))
     print(markdown(rows, command))

@@ -552,7 +552,6 @@ def _check_temperature_limits(low_C, high_C):
 
 
 def _cmd_design(args):
-    from tembayes.bench.protocols import REFERENCE_IMAX
     from tembayes.data import load_batch_toml
     from tembayes.data.outputs import check_output
     from tembayes.design.search import Designer, design, design_json, parse_target
@@ -597,7 +596,7 @@ def _cmd_design(args):
 
     _write_result(args, "design.json", design_json(d, designer), files)
     best, ref = d.best, d.reference
-    turns = "/".join(f"{v * datasheet.imax / REFERENCE_IMAX:+.3g}" for v in (best.top_A, best.bottom_A))
+    turns = "/".join(f"{v:+.3g}" for v in best.turns_for(datasheet.imax))
     lo, hi = (t - KELVIN for t in best.sensor_range_K)
     print(
         f"design: {len(best.protocol.levels)} levels, step {best.step_for(datasheet.imax):.3g} A, turning at "

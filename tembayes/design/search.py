@@ -2,8 +2,8 @@
 
 A candidate is the reference staircase's shape -- 0 up to a top level, down
 to a bottom level and back to 0 in 0.2 A steps (reference module's levels,
-scaled by the type's Imax), every level inside the span reached from below and
-from above (the turning levels from one side) so the hysteresis check keeps
+scaled by the type's Imax), every level inside the span reached both from
+below and from above (the turning levels from one side) so the hysteresis check keeps
 both directions -- with holds of 100-900 s (coarser steps were measured biased
 out-of-model, :data:`STEPS_A`) and one of the spans of :data:`TURNS_A` (those
 shown honest out-of-model).  A wider span takes more levels and narrows the
@@ -187,6 +187,10 @@ class Evaluated:
     def step_for(self, imax: float) -> float:
         """The step [A] of a module type of Imax ``imax`` [A]."""
         return self.step_A * imax / REFERENCE_IMAX
+
+    def turns_for(self, imax: float) -> list:
+        """The turning levels ``[top, bottom]`` [A] of a module type of Imax ``imax`` [A]."""
+        return [v * imax / REFERENCE_IMAX for v in (self.top_A, self.bottom_A)]
 
     def meets(self, targets) -> bool:
         """Whether every target is reached."""
@@ -509,7 +513,7 @@ def design_json(d: Design, designer: Designer) -> dict:
         "staircase": {
             "step_A": d.best.step_for(designer.datasheet.imax),
             "step_A_reference_module": d.best.step_A,
-            "turning_levels_A": [v * designer.datasheet.imax / REFERENCE_IMAX for v in (d.best.top_A, d.best.bottom_A)],
+            "turning_levels_A": d.best.turns_for(designer.datasheet.imax),
             "turning_levels_A_reference_module": [d.best.top_A, d.best.bottom_A],
             "sensor_range_C": [t - KELVIN for t in d.best.sensor_range_K],
             "hold_s": d.best.hold_s,
