@@ -554,7 +554,14 @@ def _check_temperature_limits(low_C, high_C):
 def _cmd_design(args):
     from tembayes.data import load_batch_toml
     from tembayes.data.outputs import check_output
-    from tembayes.design.search import Designer, design, design_json, parse_target
+    from tembayes.design.search import (
+        REFERENCE_RATIO_ERROR,
+        REFERENCE_SLACK,
+        Designer,
+        design,
+        design_json,
+        parse_target,
+    )
     from tembayes.physics.rigread import rig_source
 
     targets = [parse_target(t) for t in args.target]  # refused input: nothing is written
@@ -606,6 +613,12 @@ def _cmd_design(args):
     )
     for k, v in best.sd_rel().items():
         print(f"  {k:<14s} expected sd {100 * v:.3f} %  (reference {100 * ref.sd_rel()[k]:.3f} %)")
+    if d.targets_are_the_reference:
+        print(
+            f"  as narrow as the reference within {100 * REFERENCE_SLACK:g} %, as predicted: out-of-model, a short "
+            f"staircase's widths against the reference's came out up to {100 * REFERENCE_RATIO_ERROR:g} % from the "
+            "prediction, either way (docs/design.md)"
+        )
     cfg = rig_config or {}
     rig = cfg.get("file") or cfg.get("preset")
     rig = None if rig == "reference" else rig  # simulate's default: the reference rig's own bench

@@ -155,6 +155,12 @@ def test_the_search_picks_the_shortest_candidate_that_meets_the_targets_and_refu
     assert design(designer, target, max_hours=8.0).best is best
     with pytest.raises(ModelError, match="no staircase fits in 0.5 h"):
         design(designer, loose, max_hours=0.5)
+    # no targets: the reference's R0, S0 and K widths within the slack, and the design says so
+    by_reference = design(designer, None, max_hours=8.0)
+    assert by_reference.targets_are_the_reference and not full.targets_are_the_reference
+    assert {t.parameter for t in by_reference.targets} == {"R0_ohm", "S0_V_per_K", "K_W_per_K"}
+    for t in by_reference.targets:
+        assert t.value == pytest.approx(by_reference.reference.sd_rel()[t.parameter] * (1 + search.REFERENCE_SLACK))
     # --min-hold: the shortest candidate holding every level that long, or a refusal
     held = design(designer, loose, max_hours=8.0, min_hold_s=420.0)
     assert held.best.hold_s == 420.0 and all(e.hold_s >= 420.0 for e in held.evaluated if e is not held.reference)
@@ -252,6 +258,7 @@ def test_design_writes_the_program_the_widths_and_the_figure(tmp_path, monkeypat
     assert doc["duration_s"] == pytest.approx(proto.duration) == pytest.approx(25 * 120.0)
     assert set(doc["predicted"]) == set(MODULE_PARAMETERS) and set(doc["predicted"]["R0_ohm"]) == {"sd", "sd_rel"}
     assert doc["reference"]["duration_s"] == pytest.approx(25 * 600.0)
+    assert doc["targets_are_the_reference"] is False  # a target given: no comparison with the reference claimed
     assert (out / "design.png").stat().st_size > 10_000
     # a 5 % target: the slowest rate tried, recorded beside the rig's
     assert doc["staircase"]["sampling_rate_Hz"] == min(search.RATES_HZ)
