@@ -615,9 +615,9 @@ def _cmd_design(args):
         print(f"  {k:<14s} expected sd {100 * v:.3f} %  (reference {100 * ref.sd_rel()[k]:.3f} %)")
     if d.targets_are_the_reference:
         print(
-            f"  as narrow as the reference within {100 * REFERENCE_SLACK:g} %, as predicted: out-of-model, a short "
-            f"staircase's widths against the reference's came out up to {100 * REFERENCE_RATIO_ERROR:g} % from the "
-            "prediction, either way (docs/design.md)"
+            f"  caution: 'as narrow as the reference (within {100 * REFERENCE_SLACK:g} %)' is a prediction; out-of-model, "
+            f"short holds came out up to {100 * REFERENCE_RATIO_ERROR:g} % wider against the reference than predicted. "
+            "Try the design (below) or hold longer (--min-hold 240); docs/design.md"
         )
     cfg = rig_config or {}
     rig = cfg.get("file") or cfg.get("preset")

@@ -161,6 +161,9 @@ def test_the_search_picks_the_shortest_candidate_that_meets_the_targets_and_refu
     assert {t.parameter for t in by_reference.targets} == {"R0_ohm", "S0_V_per_K", "K_W_per_K"}
     for t in by_reference.targets:
         assert t.value == pytest.approx(by_reference.reference.sd_rel()[t.parameter] * (1 + search.REFERENCE_SLACK))
+    doc = search.design_json(by_reference, designer)
+    assert doc["targets_are_the_reference"] is True
+    assert doc["method"]["reference_ratio_error_rel"] == search.REFERENCE_RATIO_ERROR
     # --min-hold: the shortest candidate holding every level that long, or a refusal
     held = design(designer, loose, max_hours=8.0, min_hold_s=420.0)
     assert held.best.hold_s == 420.0 and all(e.hold_s >= 420.0 for e in held.evaluated if e is not held.reference)

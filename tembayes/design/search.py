@@ -87,12 +87,12 @@ PLATE_REFERENCE = (PLATE_STEP_A, 600.0)
 #: Modules drawn per candidate: enough for the mean width to ~10 %, few enough for 2 minutes.
 N_DRAWS = 2
 #: The default targets' slack over the reference's widths, so that "as narrow as the reference" is not
-#: decided by the predictor's noise between candidates (3-4 % at 2 draws).
+#: decided by the predictor's noise between candidates (docs/design.md, the order of the levels).
 REFERENCE_SLACK = 0.05
 #: How far the realised ratio of a short staircase's widths to the reference's came out from the ratio the
 #: design predicts (its 2 draws), on the same out-of-model modules (analyses/design_check.py, 20 modules a
-#: type, 100 s holds, R0, S0, K): predicted 1.01-1.04 on both types, realised 0.96-1.00 on TEC1-12706 and
-#: 1.12-1.13 on a 3 ohm, 3.9 A type.  Stated with every design made for the reference's widths.
+#: type, 100 s holds, R0, S0, K): on TEC1-12706 predicted 1.01-1.04, realised 0.96-1.00; on a 3 ohm, 3.9 A
+#: type predicted 1.01-1.03, realised 1.12-1.13.  Stated with every design made for the reference's widths.
 REFERENCE_RATIO_ERROR = 0.11
 #: The slower sampling rates the shortest staircase is tried at [Hz].  Not 0.5 Hz: on 20 out-of-model
 #: TEC1-12706 modules (100 s holds) its intervals covered 0.85-1.00, but its realised sds came out 1.18-1.25
