@@ -310,6 +310,10 @@ class Designer:
             return plate_staircase(self.datasheet.imax, hold=hold, step=step)
         return identification_staircase(self.datasheet.imax, hold=hold, step=step, top=top, bottom=bottom)
 
+    def protocol_of(self, key) -> Protocol:
+        """The staircase of a candidate's ``(step_A, hold_s, rate_Hz, top_A, bottom_A)`` (:meth:`key`)."""
+        return self.protocol(key[0], key[1], *key[3:])
+
     def key(self, candidate) -> tuple:
         """``(step_A, hold_s, rate_Hz, top_A, bottom_A)`` of ``(step_A, hold_s[, rate_Hz[, top_A, bottom_A]])``.
 
@@ -332,7 +336,7 @@ class Designer:
         if todo:
             self.say(f"design: {len(todo)} staircases x {self.n_modules} modules")
             # common random numbers: module m runs on the same noise stream under every candidate
-            protocols = {k: self.protocol(k[0], k[1], *k[3:]) for k in todo}
+            protocols = {k: self.protocol_of(k) for k in todo}
             jobs = [(protocols[k], k[2], m, [self.seed, m]) for k in todo for m in range(self.n_modules)]
             out = self._run(jobs)
             n = self.n_modules
@@ -419,9 +423,9 @@ def design(
         longest = max(designer.holds)
         raise ModelError(f"--min-hold {min_hold_s:g}: no candidate holds that long (the longest holds {longest:g} s)")
     everything = [(s, h, designer.rate_hz, *t) for s in designer.steps for h in holds for t in designer.turns]
-    timed = [c for c in everything if designer.protocol(c[0], c[1], *c[3:]).duration <= max_s]
+    timed = [c for c in everything if designer.protocol_of(c).duration <= max_s]
     if not timed:
-        shortest = min(designer.protocol(c[0], c[1], *c[3:]).duration for c in everything)
+        shortest = min(designer.protocol_of(c).duration for c in everything)
         raise ModelError(
             f"no staircase fits in {max_hours:g} h: the shortest candidate takes {shortest / 3600:.2f} h. "
             "Allow more time (--max-hours)"
