@@ -20,6 +20,8 @@ have no run under ``--work`` are kept.
     python analyses/law_coverage.py --fidelity standard --physics full --model full --batches 13
     python analyses/law_coverage.py ... --summarise
     python analyses/law_coverage.py ... --tag s11 --summarise --compare-to high-paper-full-robust-nested
+    python analyses/law_coverage.py ... --calibration-rig analyses/rigs/reference-seats-sampled.toml --tag samp
+    python analyses/law_coverage.py ... --tag samp --summarise --against-recorded high-paper-full-robust-k
     python analyses/law_coverage.py --rig heatsink-al --fidelity standard --physics full --batches 4
 
 Writes analyses/results/law_coverage_<label>.{json,md}.
@@ -29,6 +31,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -40,6 +44,8 @@ ROOT = Path(__file__).resolve().parent.parent
 PARAMS = ("R0_ohm", "R1_ohm_per_K", "S0_V_per_K", "S1_V_per_K2", "K_W_per_K")
 #: The sd of a sensor's depth offset on the out-of-model bench (uniform within +-0.25 mm) [mm].
 DEPTH_SD_MM = 0.5 / np.sqrt(12.0)
+#: The thermistors' nominal depth below their block's nearer face on the reference rig [mm].
+NOMINAL_DEPTH_MM = 2.5
 #: The two module types: TEC1-12706 class and a 3 ohm, 3.9 A class.
 TYPES = {
     "TEC1-12706": '[module_type]\nname = "TEC1-12706"\nth_C = 25.0\nimax_A = 6.4\nvmax_V = 14.4\ndtmax_K = 66.0\n'
@@ -95,10 +101,13 @@ def one_batch(args, work, t, b):
         )
     rdir = work / "runs" / label(args) / name
     if not (rdir / "summary.json").exists():
+        cal = bdir
+        if args.calibration_rig:
+            cal = with_rig_file(bdir, args.calibration_rig, work / "calibration-rig" / label(args) / name)
         run(
             [
                 "calibrate",
-                bdir,
+                cal,
                 "--out",
                 rdir,
                 "--seed",
@@ -115,6 +124,25 @@ def one_batch(args, work, t, b):
             ]
         )
     return bdir, rdir
+
+
+def with_rig_file(bdir, rig_file, dest):
+    """A copy of the batch ``bdir`` at ``dest`` whose batch.toml calibrates with ``rig_file`` instead of its preset.
+
+    The bench stays the preset's; only the calibration's description of the
+    rig changes (e.g. a parameter sampled instead of held).
+    """
+    if not (dest / "batch.toml").exists():
+        text = (bdir / "batch.toml").read_text()
+        if not re.search(r'^preset = "[^"]+"$', text, flags=re.M):
+            raise SystemExit(f"{bdir / 'batch.toml'}: no [rig] preset to replace with --calibration-rig")
+        tmp = dest.with_name(dest.name + ".partial")
+        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.copytree(bdir, tmp, ignore=shutil.ignore_patterns("truth.json"))
+        shutil.copyfile(rig_file, tmp / "rig.toml")
+        (tmp / "batch.toml").write_text(re.sub(r'^preset = "[^"]+"$', 'file = "rig.toml"', text, flags=re.M))
+        tmp.rename(dest)
+    return dest
 
 
 def rows(work, args):
@@ -139,6 +167,9 @@ def rows(work, args):
                 dx_mm = 10.0 / 18
                 row["depth_offset_mm"] = {c: sides[c] * rb[f"v_{c}"] * dx_mm for c in ("T2", "T3")}
             bench = truth["modules"][mid]["rig_bench"]
+            seats = sensor_seats(m.get("nuisance") or {}, row.get("depth_offset_mm"), bench)
+            if seats:
+                row["depth_mm"] = seats
             if "g_lead" in bench:  # any rig's out-of-model bench: how far its sensors read towards the room
                 row["lead_share"] = bench["g_lead"] / bench["g_sensor"]
             held = (m["diagnostics"].get("discrepancy") or {}).get("held_sd_over_posterior_sd") or {}
@@ -156,6 +187,116 @@ def rows(work, args):
                     "inside": e["q05"] <= tv <= e["q95"],
                 }
             out.append(row)
+    return out
+
+
+def sensor_seats(nuisance, offset_mm, bench):
+    """The sampled thermistor depths against the bench's: ``{"T2": {"true", "mean", "sd"}, ...}`` [mm].
+
+    Only for the depths the calibration sampled (in ``nuisance``).  On the
+    out-of-model bench the true depth is the nominal one moved by the sensor's
+    offset towards the cooler's far side: shallower for T2 (its block's nearer
+    face is the module's, away from the cooler), deeper for T3; the in-model
+    bench records the depth itself.
+    """
+    out = {}
+    for c, away in (("T2", -1.0), ("T3", 1.0)):
+        post = nuisance.get(f"depth_{c}")
+        if post is None:
+            continue
+        if offset_mm is not None:
+            true = NOMINAL_DEPTH_MM + away * offset_mm[c]
+        elif f"depth_{c}" in bench:
+            true = 1e3 * bench[f"depth_{c}"]
+        else:
+            continue
+        out[c] = {"true": float(true), "mean": 1e3 * post["mean"], "sd": 1e3 * post["sd"]}
+    return out
+
+
+def seat_recovery(r):
+    """Per sampled depth: how well the runs found the bench's seats (rms error, median sd, the truths' spread) [mm]."""
+    out = {}
+    for c in ("T2", "T3"):
+        d = [x["depth_mm"][c] for x in r if c in x.get("depth_mm", {})]
+        if len(d) < 3:
+            continue
+        t, m, s = (np.array([x[k] for x in d]) for k in ("true", "mean", "sd"))
+        out[c] = {
+            "n": len(d),
+            "rms_error_mm": float(np.sqrt(np.mean((m - t) ** 2))),
+            "median_sd_mm": float(np.median(s)),
+            "sd_of_truths_mm": float(np.std(t)),
+            "corr": float(np.corrcoef(t, m)[0, 1]),
+        }
+    return out
+
+
+#: The per-law statistics :func:`against_recorded` compares: coverage, rms z, mean z, median |error| %, median width %.
+_PAIRED_STATS = (
+    lambda v, p: np.mean([x[p]["inside"] for x in v]),
+    lambda v, p: np.sqrt(np.mean([x[p]["z"] ** 2 for x in v])),
+    lambda v, p: np.mean([x[p]["z"] for x in v]),
+    lambda v, p: np.median([abs(x[p]["err_pct"]) for x in v]),
+    lambda v, p: np.median([x[p]["width_pct"] for x in v]),
+)
+
+
+def recorded_file(other):
+    """The results file of the label ``other``."""
+    return ROOT / "analyses" / "results" / f"law_coverage_{other}.json"
+
+
+def against_recorded(r, other):
+    """Module-by-module comparison with the recorded results of the label ``other`` (its results file).
+
+    For the studies whose runs are not under ``--work`` (made on another
+    machine): on the modules both have, per law the coverage there and here,
+    the rms and mean of z, the median |error| and the median 90 % width.
+    """
+    path = recorded_file(other)
+    old = {(x["batch"], x["module"]): x for x in json.loads(path.read_text())["modules"]}
+    here = [x for x in r if (x["batch"], x["module"]) in old]
+    there = [old[(x["batch"], x["module"])] for x in here]
+    lines = [
+        "",
+        f"Against the recorded `{other}` on the same {len(here)} modules (there / here):",
+        "",
+        "| | coverage 90 % | rms z | mean z | median abs error % | median 90 % width % |",
+        "|---|---|---|---|---|---|",
+    ]
+    for p in PARAMS:
+        cols = [f"{f(there, p):.3f} / {f(here, p):.3f}" for f in _PAIRED_STATS]
+        lines.append(f"| {p} | " + " | ".join(cols) + " |")
+    return lines
+
+
+#: The benches draw a rig value as a normal truncated to its documented range with sd = range / 6
+#: (``tembayes.bench.bench._draw_rig``); the calibration's prior takes the range as +-2 sd (sd = range / 4).
+BENCH_OVER_PRIOR_SD = 4.0 / 6.0
+
+
+def carried_at_bench_spread(r, held="g_ceramic", factor=BENCH_OVER_PRIOR_SD):
+    """Per law: the 90 % coverage, normal approximation, with ``held``'s carried share scaled by ``factor``.
+
+    What the coverage would be had the calibration carried ``held`` over at
+    the spread the bench draws its truths with (the mean is not moved by the
+    carry-over, only the sd: ``z = z_core / sqrt(1 + sum of shares^2)``).
+    Beside it the same approximation with the shares as carried, to show the
+    approximation reproduces the recorded coverage.
+    """
+    out = {}
+    for p in PARAMS:
+        zc = np.array([x[p]["z_core"] for x in r])
+
+        def cov(f, p=p, zc=zc):
+            tot = [
+                np.sqrt(1.0 + sum((v * (f if k == held else 1.0)) ** 2 for k, v in x[p]["held_share"].items()))
+                for x in r
+            ]
+            return float(np.mean(np.abs(zc / np.array(tot)) < 1.6448536))
+
+        out[p] = {"as_carried": cov(1.0), "at_bench_spread": cov(factor)}
     return out
 
 
@@ -210,6 +351,11 @@ def summarise(r):
         }
     if len(off) > 5 and all(x[PARAMS[0]]["held_share"] for x in off):
         doc["depth_response"] = depth_response(off)
+    if n and all(x[PARAMS[0]]["held_share"].get("g_ceramic") is not None for x in r):
+        doc["coverage90_ceramic_at_bench_spread"] = carried_at_bench_spread(r)
+    seats = seat_recovery(r)
+    if seats:
+        doc["sampled_depths"] = seats
     batches = sorted({x["batch"] for x in r})
     boot = np.random.default_rng(0).integers(0, len(batches), size=(2000, len(batches)))
     for p in PARAMS:
@@ -298,7 +444,23 @@ def main():
         help="also compare module by module with the runs of another label under --work (e.g. the same study "
         "before a change of the sampler)",
     )
+    ap.add_argument(
+        "--calibration-rig",
+        type=Path,
+        metavar="FILE",
+        help="calibrate with this rig file instead of the bench's preset (the bench is unchanged; needs --tag)",
+    )
+    ap.add_argument(
+        "--against-recorded",
+        metavar="LABEL",
+        help="also compare module by module with another label's recorded results file (its runs need not be "
+        "under --work)",
+    )
     args = ap.parse_args()
+    if args.calibration_rig and not args.tag:
+        ap.error("--calibration-rig needs a --tag to tell its runs from the preset's")
+    if args.against_recorded and not recorded_file(args.against_recorded).exists():
+        ap.error(f"--against-recorded: no results file {recorded_file(args.against_recorded)}; give a recorded label")
     args.work.mkdir(parents=True, exist_ok=True)
     if not args.summarise:
         k, n = (int(x) for x in args.shard.split("/"))
@@ -325,7 +487,7 @@ def main():
         f"# Law coverage: {label(args)}",
         "",
         f"{s['n_modules']} modules ({s['converged']} converged, {s['adequacy_fits'] if s['adequacy_fits'] is not None else 'no verdict:'} whose model fits), 90 % band "
-        f"[{s['band90'][0]:.3f}, {s['band90'][1]:.3f}]; median {s['median_seconds']} s per module",
+        f"[{s['band90'][0]:.3f}, {s['band90'][1]:.3f}]; median {s['median_seconds']:.0f} s per module",
         "",
         "| | coverage 90 % | its 95 % interval (batches resampled) | median abs error % | median 90 % width % "
         "| median abs z | max abs z |",
@@ -363,8 +525,33 @@ def main():
             f"| {d['held_ceramic']:.2f} | {d['sd_z_core']:.2f} | {d['resid_sd']:.2f} |"
             for p, d in s["depth_response"].items()
         ]
+    if "coverage90_ceramic_at_bench_spread" in s:
+        c = s["coverage90_ceramic_at_bench_spread"]
+        lines += [
+            "",
+            "Coverage 90 % (normal approximation) as carried, and with the ceramic carried at the spread the bench "
+            "draws it with (sd = range / 6; the calibration's prior: range / 4):",
+            "",
+            "| | as carried | ceramic at the bench's spread |",
+            "|---|---|---|",
+        ]
+        lines += [f"| {p} | {d['as_carried']:.3f} | {d['at_bench_spread']:.3f} |" for p, d in c.items()]
+    if "sampled_depths" in s:
+        lines += [
+            "",
+            "The thermistors' depths the runs sampled, against the bench's [mm]:",
+            "",
+            "| | modules | rms error | median posterior sd | sd of the bench's depths | correlation |",
+            "|---|---|---|---|---|---|",
+        ]
+        lines += [
+            f"| {c} | {d['n']} | {d['rms_error_mm']:.3f} | {d['median_sd_mm']:.3f} | {d['sd_of_truths_mm']:.3f} | {d['corr']:.2f} |"
+            for c, d in s["sampled_depths"].items()
+        ]
     if args.compare_to:
         lines += paired(args.work, args, args.compare_to)
+    if args.against_recorded:
+        lines += against_recorded(r, args.against_recorded)
     (res / f"law_coverage_{label(args)}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
