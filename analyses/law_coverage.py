@@ -40,6 +40,8 @@ from pathlib import Path
 import numpy as np
 from scipy.stats import binom
 
+from tembayes.physics.rigread import SHIPPED
+
 ROOT = Path(__file__).resolve().parent.parent
 PARAMS = ("R0_ohm", "R1_ohm_per_K", "S0_V_per_K", "S1_V_per_K2", "K_W_per_K")
 #: The sd of a sensor's depth offset on the out-of-model bench (uniform within +-0.25 mm) [mm].
@@ -103,7 +105,7 @@ def one_batch(args, work, t, b):
     if not (rdir / "summary.json").exists():
         cal = bdir
         if args.calibration_rig:
-            cal = with_rig_file(bdir, args.calibration_rig, work / "calibration-rig" / label(args) / name)
+            cal = with_rig_file(bdir, args.calibration_rig, work / "calibration-rig" / label(args) / name, args.rig)
         run(
             [
                 "calibrate",
@@ -126,22 +128,27 @@ def one_batch(args, work, t, b):
     return bdir, rdir
 
 
-def with_rig_file(bdir, rig_file, dest):
-    """A copy of the batch ``bdir`` at ``dest`` whose batch.toml calibrates with ``rig_file`` instead of its preset.
+def with_rig_file(bdir, rig_file, dest, preset):
+    """A copy of the batch ``bdir`` at ``dest`` whose batch.toml calibrates with ``rig_file`` instead of ``preset``.
 
     The bench stays the preset's; only the calibration's description of the
-    rig changes (e.g. a parameter sampled instead of held).
+    rig changes (e.g. a parameter sampled instead of held).  A copy made
+    before with another rig file is refused: its runs are of that file.
     """
-    if not (dest / "batch.toml").exists():
-        text = (bdir / "batch.toml").read_text()
-        if not re.search(r'^preset = "[^"]+"$', text, flags=re.M):
-            raise SystemExit(f"{bdir / 'batch.toml'}: no [rig] preset to replace with --calibration-rig")
-        tmp = dest.with_name(dest.name + ".partial")
-        shutil.rmtree(tmp, ignore_errors=True)
-        shutil.copytree(bdir, tmp, ignore=shutil.ignore_patterns("truth.json"))
-        shutil.copyfile(rig_file, tmp / "rig.toml")
-        (tmp / "batch.toml").write_text(re.sub(r'^preset = "[^"]+"$', 'file = "rig.toml"', text, flags=re.M))
-        tmp.rename(dest)
+    if (dest / "batch.toml").exists():
+        if (dest / "rig.toml").read_bytes() != Path(rig_file).read_bytes():
+            raise SystemExit(f"{dest}: made with another rig file than {rig_file}; give another --tag")
+        return dest
+    text = (bdir / "batch.toml").read_text()
+    line = f'preset = "{preset}"'
+    if not re.search(f"^{re.escape(line)}$", text, flags=re.M):
+        raise SystemExit(f"{bdir / 'batch.toml'}: no [rig] {line} to replace with --calibration-rig")
+    tmp = dest.with_name(dest.name + ".partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    shutil.copytree(bdir, tmp, ignore=shutil.ignore_patterns("truth.json"))
+    shutil.copyfile(rig_file, tmp / "rig.toml")
+    (tmp / "batch.toml").write_text(re.sub(f"^{re.escape(line)}$", 'file = "rig.toml"', text, flags=re.M))
+    tmp.rename(dest)
     return dest
 
 
@@ -459,6 +466,14 @@ def main():
     args = ap.parse_args()
     if args.calibration_rig and not args.tag:
         ap.error("--calibration-rig needs a --tag to tell its runs from the preset's")
+    if args.calibration_rig and not args.calibration_rig.is_file():
+        ap.error(f"--calibration-rig {args.calibration_rig}: no such file")
+    if args.calibration_rig and args.rig not in SHIPPED:
+        ap.error(
+            f"--calibration-rig replaces a shipped rig's preset; --rig {args.rig} is not one of {', '.join(SHIPPED)}"
+        )
+    if args.against_recorded == label(args):
+        ap.error(f"--against-recorded {args.against_recorded} is this run's own label; give another study's")
     if args.against_recorded and not recorded_file(args.against_recorded).exists():
         ap.error(f"--against-recorded: no results file {recorded_file(args.against_recorded)}; give a recorded label")
     args.work.mkdir(parents=True, exist_ok=True)
