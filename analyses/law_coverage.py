@@ -20,8 +20,8 @@ have no run under ``--work`` are kept.
     python analyses/law_coverage.py --fidelity standard --physics full --model full --batches 13
     python analyses/law_coverage.py ... --summarise
     python analyses/law_coverage.py ... --tag s11 --summarise --compare-to high-paper-full-robust-nested
-    python analyses/law_coverage.py ... --calibration-rig analyses/rigs/reference-seats-sampled.toml --tag samp
-    python analyses/law_coverage.py ... --tag samp --summarise --against-recorded high-paper-full-robust-k
+    python analyses/law_coverage.py ... --calibration-rig analyses/rigs/reference-seats-held.toml --tag held
+    python analyses/law_coverage.py ... --tag held --summarise --against-recorded high-paper-full-robust-samp
     python analyses/law_coverage.py --rig heatsink-al --fidelity standard --physics full --batches 4
 
 Writes analyses/results/law_coverage_<label>.{json,md}.

@@ -320,10 +320,10 @@ def test_another_module_type_needs_no_code_change(tmp_path):
     assert r.priors["R0_ohm"]["center"] == pytest.approx(ds.resistance())
     # robust (the default) keeps each draw's held values, the ones its laws were moved for: a held
     # parameter that adds f posterior sds to a law correlates with it by f / sqrt(1 + f^2)
-    assert set(r.held) == {"g_ceramic", "depth_T1", "depth_T2", "depth_T3", "depth_T4"}
+    assert set(r.held) == {"g_ceramic", "depth_T1", "depth_T4"}  # T2's and T3's seats are sampled
     share = r.diagnostics.discrepancy["held_sd_over_posterior_sd"]
-    strong = [(q, k, f) for q in r.held for k, f in share[q].items() if f > 1.0]
-    assert strong  # the depths move the laws by more than their posterior sd on this rig
+    strong = [(q, k, f) for q in r.held for k, f in share[q].items() if f > 0.5]
+    assert strong  # the ceramic moves the levels by about 0.75 of their posterior sd on this module
     for q, k, f in strong:
         rho = abs(np.corrcoef(np.log(r.draws[q].ravel()), r.draws[k].ravel())[0, 1])
         assert rho > 0.8 * f / np.sqrt(1.0 + f * f), (q, k, f, rho)

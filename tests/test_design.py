@@ -175,14 +175,14 @@ def test_a_wider_span_of_currents_narrows_the_laws_and_is_taken_only_within_the_
     designer, monkeypatch
 ):
     """The turning levels are searched with the holds.  At one hold a wider span heats the module further
-    (Joule heat grows with the square of the current) and narrows every level's width; +0.8/-1.8 A at 100 s
-    is shorter than the reference's span at 120 s and narrower on R0, S0 and K, which no hold of the
-    reference's span buys.  So a tight target is met by the wider span, but only while its sensors stay
-    within the limits: by default the reference staircase's own range, within 1 K."""
+    (Joule heat grows with the square of the current) and narrows every level's width: +0.8/-1.8 A at 100 s
+    is narrower on R0, S0 and K than the reference's span at 100 s.  So a tight target is met by the wider
+    span, but only while its sensors stay within the limits: by default the reference staircase's own range,
+    within 1 K."""
     from tembayes.bench.protocols import REFERENCE_TURNS_A
     from tembayes.design import search
 
-    monkeypatch.setattr(search, "HOLDS_S", (100.0, 120.0))
+    monkeypatch.setattr(search, "HOLDS_S", (100.0,))
     monkeypatch.setattr(search, "RATES_HZ", ())
     # the wider span was withdrawn for its out-of-model coverage on one type; the search is tested with it
     monkeypatch.setattr(search, "TURNS_A", (REFERENCE_TURNS_A, (0.8, -1.8)))
@@ -198,11 +198,10 @@ def test_a_wider_span_of_currents_narrows_the_laws_and_is_taken_only_within_the_
         assert [e.sd_rel()[k] for e in spans] == sorted((e.sd_rel()[k] for e in spans), reverse=True), k
     assert loose.best is spans[0]  # a loose target: the shortest program, the narrowest span
     wide = at100[(0.8, -1.8)]
-    ref120 = next(e for e in loose.evaluated if e.hold_s == 120.0 and (e.top_A, e.bottom_A) == REFERENCE_TURNS_A)
-    assert wide.duration_s < ref120.duration_s and all(wide.sd_rel()[k] < ref120.sd_rel()[k] for k in levels)
-    # a target only the wider span reaches: taken within the default limits, refused below its hottest sensor
-    others = [e for e in loose.evaluated if (e.top_A, e.bottom_A) != (0.8, -1.8)]
-    best_other = min(e.sd_rel()["R0_ohm"] for e in others)
+    assert wide.duration_s > at100[REFERENCE_TURNS_A].duration_s  # two more levels
+    # a target only the wider span reaches at 100 s (the reference's 600 s holds reach it too, in 5.6 times
+    # as long): taken within the default limits, refused below the wider span's hottest sensor
+    best_other = at100[REFERENCE_TURNS_A].sd_rel()["R0_ohm"]
     assert wide.sd_rel()["R0_ohm"] < best_other and wide.within(loose.limits_K)
     target = (Target("R0_ohm", 0.5 * (wide.sd_rel()["R0_ohm"] + best_other), True),)
     assert design(designer, target).best is wide

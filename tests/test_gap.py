@@ -830,12 +830,15 @@ def test_gap_is_quiet_without_an_effect_and_refuses_a_batch_without_held_out_run
 
 def test_a_range_conflict_the_data_do_not_need_raises_no_alarm_and_one_they_need_does(run3, held3, monkeypatch):
     """The range checks wired into the diagnosis, on batch3's correctly specified TEM1 with its posterior
-    made to put rig values outside their ranges (the predictions untouched).  The cold plate's capacity
-    at 5.3 J/K (range 4-5, told only by transients): held at 5 J/K the refit leaves no new window, so
-    no_gap, the conflict kept with ``material`` false, no suspect.  With the bottom leak also at
-    0.14 W/K (range 0.02-0.06; the bench's ~0.04): held at 0.06 W/K the refit leaves windows, so the
-    leak is the gap, ambient_leak its suspect, and a candidate's conflicts lose the plate's (the
-    diagnosis stopped before its screen)."""
+    made to put rig values outside their ranges (the predictions untouched).  The hot plate's capacity
+    at 3.9 J/K (range 4-5, told only by transients; the data leave it at 4.41 +- 0.16 J/K): held at
+    4 J/K the refit leaves no new window and moves the laws by about 0.9 sd, so no_gap, the conflict
+    kept with ``material`` false, no suspect.  (Not the cold plate: since T2's and T3's seats are
+    sampled, the data pin it to 1 %, and held at its range's edge, 5 sds off, it moves the laws by
+    1.8 sd: a conflict that matters.)  With the
+    bottom leak also at 0.14 W/K (range 0.02-0.06; the bench's ~0.04): held at 0.06 W/K the refit
+    leaves windows, so the leak is the gap, ambient_leak its suspect, and a candidate's conflicts lose
+    the plate's (the diagnosis stopped before its screen)."""
     import importlib
 
     from tembayes.calibrate.run import load_run
@@ -852,13 +855,13 @@ def test_a_range_conflict_the_data_do_not_need_raises_no_alarm_and_one_they_need
     monkeypatch.setattr(G, "range_conflicts", conflicted)
     run, batch, cache = load_run(run3[0]), load_batch(held3), {}
 
-    moved["c_plate_cold"] = 5.3
+    moved["c_plate_hot"] = 3.9
     d = G.diagnose(run, batch, n_draws=80, jobs=1, cache=cache)
-    plate = next(r for r in d.conflicts["TEM1"] if r["parameter"] == "c_plate_cold")
+    plate = next(r for r in d.conflicts["TEM1"] if r["parameter"] == "c_plate_hot")
     assert d.verdict == "no_gap" and d.suspects == [] and d.where == []
     assert plate["conflict"] and plate["material"] is False and plate["held_cells"] == 0
     assert plate["held_law_shift"] < 1.645
-    assert [k for k in cache if k[0] == "range"] == [("range", "TEM1", "c_plate_cold at 5")]
+    assert [k for k in cache if k[0] == "range"] == [("range", "TEM1", "c_plate_hot at 4")]
 
     class Screened(Exception):
         pass
@@ -872,13 +875,13 @@ def test_a_range_conflict_the_data_do_not_need_raises_no_alarm_and_one_they_need
         G.diagnose(run, batch, n_draws=80, jobs=1, cache=cache)
     plan, base = caught.value.args
     rows = {r["parameter"]: r for r in plan.conflicts["TEM1"] if r["conflict"]}
-    assert rows["leak_bottom"]["material"] and not rows["c_plate_cold"]["material"]
+    assert rows["leak_bottom"]["material"] and not rows["c_plate_hot"]["material"]
     assert rows["leak_bottom"]["held_cells"] > 0 and rows["leak_bottom"]["held_cells_together"] > 0
     assert plan.suspects == ["ambient_leak"] and base.conflicting("TEM1") == {"leak_bottom"}
     assert [w["channel"] for w in base.parameter_gaps] == ["leak_bottom"]
-    outcome = RefitOutcome(module="TEM1", effect="ambient_leak", conflicts=["c_plate_cold", "leak_bottom"])
+    outcome = RefitOutcome(module="TEM1", effect="ambient_leak", conflicts=["c_plate_hot", "leak_bottom"])
     assert plan.only_needed(outcome).conflicts == ["leak_bottom"] and outcome.conflicts == [
-        "c_plate_cold",
+        "c_plate_hot",
         "leak_bottom",
     ]
     # the first step alone, as the range-check study runs it: the same where, nothing screened

@@ -23,9 +23,15 @@ def test_an_earlier_runs_population_becomes_the_unit_prior_and_other_runs_are_re
     """The prior is the population-predictive draws' log moments (R0, S0, K) or moments (R1, S1).
 
     Against the population block's mean and sd: a log-normal's mean ``c e^(s^2/2)`` matches
-    to 0.1 %; its sd ``mean sqrt(e^(s^2) - 1)`` only as far as the draws are log-normal --
-    a predictive from three modules has heavier tails, measured 3 % apart on this batch.
+    to 0.1 %; its sd ``mean sqrt(e^(s^2) - 1)`` only as far as the draws are log-normal.  A
+    predictive from three modules has heavy tails (the logs' excess kurtosis 9-76 on this
+    batch, the sds up to 7.5 % apart), so the sd is checked against what the logs' skewness
+    g and excess kurtosis k make of it: to second order in s, the draws' variance is
+    (c s)^2 (1 + g s + 7/12 k s^2 + 1.5 s^2), a log-normal's (c s)^2 (1 + 1.5 s^2); on this
+    batch the expansion gives the ratio to 1 %.
     """
+    from scipy.stats import kurtosis, skew
+
     from tembayes.calibrate.run import load_run
 
     out, summ, _ = run3
@@ -40,7 +46,9 @@ def test_an_earlier_runs_population_becomes_the_unit_prior_and_other_runs_are_re
             assert (np.log(p.center), p.scale) == pytest.approx((logs.mean(), logs.std(ddof=1)), rel=1e-9)
             m = p.center * np.exp(0.5 * p.scale**2)
             assert m == pytest.approx(mean, rel=1e-3)
-            assert m * np.sqrt(np.expm1(p.scale**2)) == pytest.approx(sd, rel=0.06)
+            g, k, s2 = skew(logs), kurtosis(logs), p.scale**2
+            expected = np.sqrt((1 + 1.5 * s2) / (1 + g * p.scale + 7 / 12 * k * s2 + 1.5 * s2))
+            assert m * np.sqrt(np.expm1(s2)) / sd == pytest.approx(expected, rel=0.02)
         else:
             assert (p.center, p.scale) == pytest.approx((mean, sd), rel=1e-3)
     assert str(out.resolve()) in lp.source
