@@ -614,10 +614,12 @@ def _cmd_design(args):
     for k, v in best.sd_rel().items():
         print(f"  {k:<14s} expected sd {100 * v:.3f} %  (reference {100 * ref.sd_rel()[k]:.3f} %)")
     if d.targets_are_the_reference:
+        longer = sorted({e.hold_s for e in d.evaluated if best.hold_s < e.hold_s < ref.hold_s})
+        hold_longer = f" or hold longer (--min-hold {longer[0]:g})" if longer else ""
         print(
             f"  caution: 'as narrow as the reference (within {100 * REFERENCE_SLACK:g} %)' is a prediction; out-of-model, "
             f"short holds came out up to {100 * REFERENCE_RATIO_ERROR:g} % wider against the reference than predicted. "
-            "Try the design (below) or hold longer (--min-hold 240); docs/design.md"
+            f"Try the design (below){hold_longer}; docs/design.md"
         )
     cfg = rig_config or {}
     rig = cfg.get("file") or cfg.get("preset")
