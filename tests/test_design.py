@@ -198,7 +198,6 @@ def test_a_wider_span_of_currents_narrows_the_laws_and_is_taken_only_within_the_
         assert [e.sd_rel()[k] for e in spans] == sorted((e.sd_rel()[k] for e in spans), reverse=True), k
     assert loose.best is spans[0]  # a loose target: the shortest program, the narrowest span
     wide = at100[(0.8, -1.8)]
-    assert wide.duration_s > at100[REFERENCE_TURNS_A].duration_s  # two more levels
     # a target only the wider span reaches at 100 s (the reference's 600 s holds reach it too, in 5.6 times
     # as long): taken within the default limits, refused below the wider span's hottest sensor
     best_other = at100[REFERENCE_TURNS_A].sd_rel()["R0_ohm"]

@@ -36,7 +36,7 @@ AREA = 0.040 * 0.040  # block and module footprint [m^2]
 RHO_C = 7900.0 * 500.0  # volumetric heat capacity of the steel [J/(m^3 K)]
 #: Nominal depth of every sensor below its block's nearer face [m].
 SENSOR_DEPTH = 2.5e-3
-#: The reference rig's sensor depths (held by a calibration, drawn by the bench).
+#: The reference rig's sensor depths (T1 and T4 held by a calibration, T2 and T3 sampled; drawn by the bench).
 DEPTHS = tuple(p for p in REFERENCE.parameters if p.name.startswith("depth_"))
 
 #: Bench rig parameters that the reference rig has too (same name, meaning

@@ -25,8 +25,8 @@ correctly specified module keeps its posterior up to a few percent.
 
 The windows can agree on a wrong value, though: a rig parameter the
 calibration holds fixed (the ceramic's conductance, held because sampling it
-does not converge; the sensors' depths, which the data cannot tell from the
-junctions' temperature difference) moves every window the same way.  Its
+does not converge; on the reference rig the depths of T1 and T4, a block away
+from the module) moves every window the same way.  Its
 documented range is carried over to the posterior to first order
 (:func:`held_nuisance_spread`): every draw moves by the mode's response to
 a draw of the held parameter.
