@@ -107,6 +107,9 @@ def loglikes(lik):
 
 def fit(draws, seed=0, **kw):
     kw.setdefault("convergence", FAST)
+    # the smallest deviation a small batch flags draws after the result's own draws, so leaving it out
+    # changes no other number; it costs most of a three-module fit and is checked where it is asserted
+    kw.setdefault("design_reach", False)
     return fit_population(draws, DS, rng=np.random.default_rng(seed), **kw)
 
 
@@ -390,7 +393,7 @@ def test_two_modules_degenerate_but_defined():
 
 def test_same_seed_same_numbers():
     draws, _, _ = make_batch(8, 3)
-    a, b = fit(draws, seed=42), fit(draws, seed=42)
+    a, b = fit(draws, seed=42, design_reach=True), fit(draws, seed=42, design_reach=True)
     assert a.outlier_prob == b.outlier_prob
     assert a.odd_one_prob == b.odd_one_prob and a.p_any_outlier == b.p_any_outlier
     assert a.deviation == b.deviation and a.outlier_vs_spread.to_json() == b.outlier_vs_spread.to_json()
