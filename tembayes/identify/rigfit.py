@@ -42,7 +42,8 @@ def fit_parameters(rig: RigDescription) -> tuple[str, ...]:
     Those whose range spans more than :data:`FIT_RANGE_RATIO`, not held, not
     shares, not the module's own ``c_legs`` (it sits with K); the rest stays
     nominal (on the reference rig: the steel's geometry and heat capacity are
-    known to a few per cent, the sensors' depths held).
+    known to a few per cent, the depths of T1 and T4 held; the seats of T2 and
+    T3, which the step transients tell, are fitted).
     """
     return ("K_W_per_K",) + tuple(
         p.name
