@@ -614,8 +614,11 @@ def _cmd_design(args):
     for k, v in best.sd_rel().items():
         print(f"  {k:<14s} expected sd {100 * v:.3f} %  (reference {100 * ref.sd_rel()[k]:.3f} %)")
     if d.targets_are_the_reference:
-        longer = sorted({e.hold_s for e in d.evaluated if best.hold_s < e.hold_s < ref.hold_s and e.within(d.limits_K)})
-        hold_longer = f" or hold longer (--min-hold {longer[0]:g})" if longer else ""
+        longer = min(
+            (e.hold_s for e in d.evaluated if best.hold_s < e.hold_s < ref.hold_s and e.within(d.limits_K)),
+            default=None,
+        )
+        hold_longer = f" or hold longer (--min-hold {longer:g})" if longer else ""
         print(
             f"  caution: 'as narrow as the reference (within {100 * REFERENCE_SLACK:g} %)' is a prediction; out-of-model, "
             f"short holds came out up to {100 * REFERENCE_RATIO_ERROR:g} % wider against the reference than predicted. "

@@ -391,3 +391,23 @@ def test_a_node_joined_only_to_a_boundary_is_drawn(tmp_path):
 
     fig = plot_rig(summary)
     assert any("spare" in t.get_text() for t in fig.axes[0].texts)
+
+
+def test_the_held_seats_copy_differs_from_the_shipped_reference_rig_only_in_its_name_and_two_flags():
+    """analyses/rigs/reference-seats-held.toml is the reference rig as it shipped with all four seats held
+    (the comparison the law-coverage records use); it must not drift from the shipped file."""
+    from dataclasses import replace
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    shipped = read_rig_file(root / "tembayes" / "rigs" / "reference.toml")
+    held = read_rig_file(root / "analyses" / "rigs" / "reference-seats-held.toml")
+    seats = {"depth_T2", "depth_T3"}
+    assert held.name == "reference-seats-held"
+    assert [p.name for p in held.parameters] == [p.name for p in shipped.parameters]
+    assert {p.name for p in shipped.parameters if not p.held} >= seats
+    assert all(p.held for p in held.parameters if p.name in seats)
+    unflagged = tuple(replace(p, held=False) if p.name in seats else p for p in held.parameters)
+    assert unflagged == shipped.parameters
+    for field in ("description", "hot", "cold", "boundaries", "nodes", "links", "blocks", "sensors"):
+        assert getattr(held, field) == getattr(shipped, field), field
