@@ -21,7 +21,7 @@ visibly worse at T-bar far from 35 degC.
 
 Results: ``analyses/results/predict_study.json`` and ``predict_study.md``.
 
-Another rig (``--rig``): the law-coverage study's calibrations of that rig
+A rig (``--rig``, the reference rig too): the law-coverage study's calibrations of that rig
 (``analyses/law_coverage.py --rig RIG --fidelity F --physics full``,
 model ``full``, discrepancy ``robust``): batches under
 ``WORK/batches/RIG-F-full``, runs under
@@ -44,6 +44,11 @@ issue's): RMSE <= 0.1 K on each temperature channel, 90 % coverage in
     python analyses/predict_study.py --work /work/lawcov_anyrig --rig heatsink-al --jobs 1
     python analyses/predict_study.py --work /work/lawcov_anyrig --rig reference-faces --jobs 1
     python analyses/predict_study.py --work /work/lawcov_leads --rig heatsink-al --fidelity high --jobs 1
+    python analyses/predict_study.py --work WORK --rig reference --fidelity high --jobs 2
+
+(``law_coverage.py`` writes the reference rig's folders as ``batches/<fidelity>-<physics>`` and
+``runs/<label>``, without the rig's name: link them as ``WORK/batches/reference-F-full`` and
+``WORK/runs/reference-F-full-full-robust``.)
 
 Results: ``analyses/results/predict_study_RIG.json`` and ``predict_study_RIG.md``
 (``predict_study_RIG-high.*`` out-of-model); the validation runs are cached under
@@ -76,7 +81,7 @@ def _validation(truth_module, datasheet, seed, path, truth=None, layout=None):
     as :func:`tembayes.bench.bench.simulate_batch` ran it; otherwise the reference hifi rig.
     """
     from tembayes.bench import bench as B
-    from tembayes.bench import hifi
+    from tembayes.bench import hifi, outside
     from tembayes.bench.protocols import validation_cycle
     from tembayes.data import load_experiment
     from tembayes.data.write import write_experiment_csv
@@ -96,7 +101,11 @@ def _validation(truth_module, datasheet, seed, path, truth=None, layout=None):
                 fidelity=gen["fidelity"],
                 datasheet=datasheet,
             )
-            rig, physics = B.bench_rig_of(config), dict(truth["bench_layout"]["physics"])
+            if high and gen["bench_rig"] == "bench-outside":  # the reference rig's own out-of-model bench
+                rig = outside.outside_rig(truth["bench_layout"]["depth_sides"])
+            else:
+                rig = B.bench_rig_of(config)
+            physics = dict(truth["bench_layout"]["physics"])
             slow = B.SLOW_NOISE if high else None
         exp = B.run_experiment(
             proto,
@@ -128,7 +137,7 @@ def _new_unit(truth, rng):
 
 
 def _dirs(work, rig, name, fidelity="standard"):
-    """The batch, run and validation folders of batch ``name`` (``rig`` None: the reference study's)."""
+    """The batch, run and validation folders of batch ``name`` (``rig`` None: the calibration study's)."""
     if rig is None:
         return work / "batches" / name, work / "runs" / name, work / "validations" / name
     bench = f"{rig}-{fidelity}-full"
@@ -249,17 +258,17 @@ def main(argv=None):
     ap.add_argument(
         "--rig",
         default=None,
-        help="another rig: its law-coverage calibrations under WORK (batches/RIG-standard-full, "
-        "runs/RIG-standard-full-full-robust); module predictions only",
+        help="a rig's law-coverage calibrations under WORK (batches/RIG-standard-full, "
+        "runs/RIG-standard-full-full-robust; 'reference' too); module predictions only",
     )
     ap.add_argument("--constant", action="store_true", help="with --rig: the constant-law comparison too")
     ap.add_argument(
         "--fidelity", choices=("standard", "high"), default="standard", help="with --rig: the bench of the calibrations"
     )
     args = ap.parse_args(argv)
-    rig = None if args.rig in (None, "reference") else args.rig
+    rig = args.rig
     if rig is None and args.fidelity != "standard":
-        sys.exit("--fidelity high needs --rig (the reference study's calibrations are in-model)")
+        sys.exit("--fidelity high needs --rig (the calibration study's batches are in-model)")
     runs = args.work / "runs" if rig is None else _dirs(args.work, rig, "", args.fidelity)[1]
     names = sorted(p.name for p in runs.iterdir() if (p / "summary.json").is_file()) if runs.is_dir() else []
     if not names:

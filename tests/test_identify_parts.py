@@ -52,6 +52,32 @@ def test_spike_and_split_step():
     steps = detect_steps(t, i)
     assert len(steps) == 1
     assert steps[0].dI == pytest.approx(0.4, abs=0.002)
+    assert steps[0].index == k + 1  # the half-way sample is not yet the new level
+
+
+def test_a_noise_excursion_after_a_step_does_not_move_the_step_one_sample_late():
+    # as the benches' rest-start batch 6 had it (step 17: 2.1 mA short, then 3.0 mA over), here
+    # 3 mA short and 4 mA over at 1 mA noise: a second same-sign difference of 7 mA, above half
+    # the 10 mA threshold, that used to read as a sample caught mid-transition
+    rng = np.random.default_rng(3)
+    t, i = _staircase(rng, [-1.6, -1.4, -1.4])
+    k = np.searchsorted(t, 60.0)
+    i[k], i[k + 1] = -1.403, -1.396
+    (step,) = detect_steps(t, i)
+    assert step.index == k
+    assert abs(step.t - 60.0) <= step.t_window + 1e-9
+
+
+def test_a_split_step_into_a_short_hold_is_placed_by_that_holds_own_level():
+    # 0.5 Hz, a half-way sample, then 5 samples (10 s) at 0.4 A and back to 0: the level the
+    # half-way sample is compared with must not take in the next hold
+    t = np.arange(0.0, 60.0, 2.0)
+    i = np.zeros_like(t)
+    k = 10
+    i[k] = 0.2
+    i[k + 1 : k + 6] = 0.4
+    up, down = detect_steps(t, i)
+    assert (up.index, down.index) == (k + 1, k + 6)
 
 
 def test_no_staircase_refused_by_the_pipeline(tmp_path):

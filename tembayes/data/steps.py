@@ -68,6 +68,27 @@ def current_noise(current: np.ndarray) -> float:
     return float(_MAD_TO_SD * np.median(np.abs(d - np.median(d))) / np.sqrt(2.0))
 
 
+#: Samples after a step whose median is the new level a split step's samples are compared with.
+LEVEL_SAMPLES = 10
+
+
+def _first_at_new_level(i, group, tol, stop):
+    """The first sample of a step's differences ``group`` within ``tol`` [A] of the level after it.
+
+    A pair of same-sign differences is a sample caught mid-transition, or a step followed by a
+    noise excursion of the same sign; only in the first case does the middle sample sit away from
+    the new level, so the boundary is the first sample that does not.  The level is the median
+    of up to :data:`LEVEL_SAMPLES` samples after the group, none at or beyond ``stop`` (the next
+    group's first sample past its jump), so a short hold's level is its own.
+    """
+    last = group[-1] + 1
+    level = np.median(i[last : min(last + LEVEL_SAMPLES, stop)])
+    for j in range(group[0] + 1, last):
+        if abs(i[j] - level) <= tol:
+            return j
+    return last
+
+
 def detect_steps(
     time: np.ndarray, current: np.ndarray, *, min_step: float | None = None, min_hold: float = 5.0
 ) -> list[Step]:
@@ -104,7 +125,8 @@ def detect_steps(
         else:
             groups.append([k])
     # boundaries between holds: the first sample at the new level
-    bounds = [g[-1] + 1 for g in groups if abs(d[g].sum()) > thr]
+    stops = [g[0] + 1 for g in groups[1:]] + [len(i)]
+    bounds = [_first_at_new_level(i, g, 0.5 * thr, stop) for g, stop in zip(groups, stops) if abs(d[g].sum()) > thr]
     bounds = [b for b in bounds if 0 < b < len(i)]
     # drop holds shorter than min_hold
     edges = [0] + bounds + [len(i)]
