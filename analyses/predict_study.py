@@ -28,7 +28,7 @@ model ``full``, discrepancy ``robust``): batches under
 ``WORK/runs/RIG-F-full-full-robust`` (``--fidelity``: ``standard``, the
 in-model bench, or ``high``, the out-of-model one).  Every calibrated module gets a
 fresh validation run (the same protocol, 1 Hz) on the batch's own bench: the
-rig file at the bench's resolution (:func:`tembayes.bench.bench.bench_rig_of`;
+rig file at the bench's resolution (:func:`tembayes.bench.bench.batch_bench_rig`;
 out-of-model, with the sensor bodies, leads and edge leaks at the module's
 drawn values, and the slow sensor noise) with the bench's own physics
 (Thomson heat, K slope, sensor lag from ``truth.json``'s
@@ -81,7 +81,7 @@ def _validation(truth_module, datasheet, seed, path, truth=None, layout=None):
     as :func:`tembayes.bench.bench.simulate_batch` ran it; otherwise the reference hifi rig.
     """
     from tembayes.bench import bench as B
-    from tembayes.bench import hifi, outside
+    from tembayes.bench import hifi
     from tembayes.bench.protocols import validation_cycle
     from tembayes.data import load_experiment
     from tembayes.data.write import write_experiment_csv
@@ -101,11 +101,7 @@ def _validation(truth_module, datasheet, seed, path, truth=None, layout=None):
                 fidelity=gen["fidelity"],
                 datasheet=datasheet,
             )
-            if high and gen["bench_rig"] == "bench-outside":  # the reference rig's own out-of-model bench
-                rig = outside.outside_rig(truth["bench_layout"]["depth_sides"])
-            else:
-                rig = B.bench_rig_of(config)
-            physics = dict(truth["bench_layout"]["physics"])
+            rig, physics = B.batch_bench_rig(config, truth), dict(truth["bench_layout"]["physics"])
             slow = B.SLOW_NOISE if high else None
         exp = B.run_experiment(
             proto,

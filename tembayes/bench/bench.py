@@ -291,11 +291,23 @@ def _draw_truth_any_rig(config, rng, population):
     }
 
 
+def batch_bench_rig(config: BenchConfig, truth: Mapping) -> RigDescription:
+    """The network a batch's bench simulates.
+
+    :func:`bench_rig_of`, or on the reference rig's out-of-model bench the network with the
+    batch's drawn sensor depths (``truth`` as :func:`draw_truth` returns it, or a batch's
+    ``truth.json``).
+    """
+    if config.fidelity == "high" and config.rig is None:
+        return outside.outside_rig(truth["bench_layout"]["depth_sides"])
+    return bench_rig_of(config)
+
+
 def bench_rig_of(config: BenchConfig) -> RigDescription:
     """The network the bench simulates for ``config``.
 
     Not the reference rig's out-of-model bench, which needs its drawn sensor depths
-    (:func:`tembayes.bench.outside.outside_rig`).
+    (:func:`batch_bench_rig`).
     """
     if config.rig is None:
         return hifi.hifi_rig(layers=config.physics == "full")
@@ -460,11 +472,7 @@ def bench_setup(config: BenchConfig) -> BenchSetup:
     truth = draw_truth(config, np.random.default_rng(batch_ss))
     high = config.fidelity == "high"
     asked = {k: v for params in config.effects.values() for k, v in params.items()}
-    rig = (
-        outside.outside_rig(truth["bench_layout"]["depth_sides"])
-        if high and config.rig is None
-        else bench_rig_of(config)
-    )
+    rig = batch_bench_rig(config, truth)
     return BenchSetup(
         truth=truth,
         effects={**truth["bench_layout"]["physics"], **asked},
