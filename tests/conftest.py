@@ -103,6 +103,20 @@ def data_factory(tmp_path) -> DataFactory:
     return DataFactory(tmp_path)
 
 
+@pytest.fixture
+def population_without_reach(monkeypatch):
+    """The batch pipeline's population fits without the smallest deviation a small batch flags.
+
+    That search runs after the fit's own draws, from the same stream, so no other number of the
+    fit changes; it costs most of a three-module population fit.  ``run3`` keeps it, and the
+    tests that assert it use ``run3`` or fit it themselves.
+    """
+    from tembayes.calibrate import population
+
+    fit = population.fit_population
+    monkeypatch.setattr(population, "fit_population", lambda *a, **kw: fit(*a, **{**kw, "design_reach": False}))
+
+
 @pytest.fixture(scope="session")
 def batch3(tmp_path_factory):
     """A 3-module bench batch (300 s holds, TEM2 an outlier), no validation runs, the paper's physics: the

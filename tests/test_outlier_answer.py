@@ -200,7 +200,9 @@ def test_an_earlier_runs_spreads_and_its_refusals(tmp_path):
         )
 
 
-def test_population_prior_reaches_the_fit_and_a_clash_with_the_table_is_refused(run3, batch3, tmp_path):
+def test_population_prior_reaches_the_fit_and_a_clash_with_the_table_is_refused(
+    run3, batch3, tmp_path, population_without_reach
+):
     import shutil
 
     from tembayes.calibrate import CalibrationOptions, calibrate_batch

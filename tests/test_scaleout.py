@@ -195,8 +195,7 @@ def test_a_killed_worker_is_replaced_and_a_killed_run_resumes_with_the_missing_m
     _same_run(out_ref, out)
 
 
-def test_a_failing_or_unconverged_module_does_not_sink_the_batch(batch4, serial4, tmp_path):
-    out_ref, _ = serial4
+def test_a_failing_or_unconverged_module_does_not_sink_the_batch(batch4, tmp_path, population_without_reach):
     # a fifth module whose run has no current steps: its calibration raises
     b = tmp_path / "batch"
     shutil.copytree(batch4, b)
@@ -258,10 +257,10 @@ def test_exclusion_reason_names_every_failed_target():
     assert good.converged and exclusion_reason(good) is None
 
 
-def test_posterior_nc_streamed_module_by_module_equals_the_in_memory_one(serial4, tmp_path):
+def test_posterior_nc_streamed_module_by_module_equals_the_in_memory_one(run3, tmp_path):
     import arviz as az
 
-    out, _ = serial4
+    out, _, _ = run3
     rs = [res.read_module(out / "modules" / f"TEM{i}.nc") for i in (1, 2, 3)]
     # make the modules ragged: TEM2 loses its last 5 steps and their samples
     r = rs[1]
@@ -295,10 +294,10 @@ def test_posterior_nc_streamed_module_by_module_equals_the_in_memory_one(serial4
     assert set(MODULE_PARAMETERS) <= set(b.posterior.data_vars)
 
 
-def test_real_run_posterior_nc_has_units_and_a_prior_shaped_like_the_posterior(serial4):
+def test_real_run_posterior_nc_has_units_and_a_prior_shaped_like_the_posterior(run3):
     import arviz as az
 
-    out, _ = serial4
+    out, _, _ = run3
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         idata = az.from_netcdf(out / "posterior.nc", engine="h5netcdf")
