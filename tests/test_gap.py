@@ -366,6 +366,7 @@ def test_a_conflict_counts_only_if_holding_it_at_its_edge_leaves_a_new_held_out_
         check.record(0)
 
 
+@pytest.mark.slow  # a refit per held conflict (about 1 min); the verdict's test below stays in CI
 def test_a_range_check_refit_holds_its_values_and_leaves_windows_only_where_the_data_disagree(batch3, run3):
     """The yardstick of the range checks on a correctly specified module (batch3's TEM1, the paper's form).
     Held at its documented edge, the cold plate's capacity -- which the data tell only through the

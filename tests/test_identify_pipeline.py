@@ -51,7 +51,12 @@ def fresh(tmp_path_factory):
     return _identified(out)
 
 
-@pytest.mark.parametrize("which", ["example", "fresh"])
+# the fresh batch (a regular unit; the example's TEM1 is the outlier) identifies with the rig fit in
+# about 1.5 min: the slow tier's, like the other end-to-end checks (CI time)
+WHICH = ["example", pytest.param("fresh", marks=pytest.mark.slow)]
+
+
+@pytest.mark.parametrize("which", WHICH)
 def test_corrected_method_recovers_the_laws(which, request):
     batch, results, truth = request.getfixturevalue(which)
     for mid, r in results.items():
@@ -60,7 +65,7 @@ def test_corrected_method_recovers_the_laws(which, request):
             assert abs(err) <= TOL[k], f"{which} {mid} {k}: {100 * err:+.2f} %"
 
 
-@pytest.mark.parametrize("which", ["example", "fresh"])
+@pytest.mark.parametrize("which", WHICH)
 def test_biases_of_the_papers_recipe_point_the_way_physics_says(which, request):
     batch, results, truth = request.getfixturevalue(which)
     for _mid, r in results.items():
