@@ -2,9 +2,10 @@
 
 On the out-of-model bench every sensor is a body of its own in contact with
 the block cell it sits in and, by a share ``v_<column>`` of that contact, with
-the next cell deeper in (``tembayes.bench.anyrig``).  The two sensors then
-answer a step with different time constants, where the calibration model has
-one response time (``sensor_tau_s``) for both.  For every null batch of a
+the next cell deeper in (``tembayes.bench.anyrig``).  Two sensors with
+different shares then differ in their step response and in the depth they
+read, where the calibration model has one response time (``sensor_tau_s``)
+for both and each depth within its documented range.  For every null batch of a
 ``gap_benchmark.py`` work folder this prints what ``tembayes gap`` said, each
 plate's calibrated capacity against the bench's, both contact shares, and the
 calibrated thermistor depths, so that the alarms can be set against the
@@ -27,13 +28,13 @@ def rows(folder):
         if not (summary.exists() and gap.exists()):
             continue
         truth = json.loads((case / "batch" / "truth.json").read_text())["modules"]
-        modules = json.loads(summary.read_text())["modules"]
-        for mid, m in modules.items():
+        verdict = json.loads(gap.read_text())["verdict"]
+        for mid, m in json.loads(summary.read_text())["modules"].items():
             bench, post = truth[mid]["rig_bench"], m["nuisance"]
             yield {
                 "case": case.name,
                 "module": mid,
-                "verdict": json.loads(gap.read_text())["verdict"],
+                "verdict": verdict,
                 "c_plate_hot": (post["c_plate_hot"]["mean"], bench["c_plate_hot"]),
                 "c_plate_cold": (post["c_plate_cold"]["mean"], bench["c_plate_cold"]),
                 "v": (bench["v_T2_C"], bench["v_T3_C"]),
