@@ -104,17 +104,19 @@ def data_factory(tmp_path) -> DataFactory:
 
 
 @pytest.fixture
-def population_without_reach(monkeypatch):
-    """The batch pipeline's population fits without the smallest deviation a small batch flags.
+def quick_population(monkeypatch):
+    """The batch pipeline's population fits without the smallest deviation a small batch flags and
+    without the leave-one-out refits.
 
-    That search runs after the fit's own draws, from the same stream, so no other number of the
-    fit changes; it costs most of a three-module population fit.  ``run3`` keeps it, and the
-    tests that assert it use ``run3`` or fit it themselves.
+    Both draw after the fit's own draws or from streams of their own, so the batch's draws stay the
+    same; they cost most of a three-module population fit.  ``run3`` keeps them, and the tests
+    that assert them use ``run3`` or fit them themselves.
     """
     from tembayes.calibrate import population
 
     fit = population.fit_population
-    monkeypatch.setattr(population, "fit_population", lambda *a, **kw: fit(*a, **{**kw, "design_reach": False}))
+    quick = {"design_reach": False, "loo_refits": False}
+    monkeypatch.setattr(population, "fit_population", lambda *a, **kw: fit(*a, **{**kw, **quick}))
 
 
 @pytest.fixture(scope="session")

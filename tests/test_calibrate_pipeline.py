@@ -97,7 +97,7 @@ def test_the_outlier_of_three_how_far_and_what_the_batch_can_tell(run3):
     assert any("if it is at most" in line for line in lines) and "3 modules" in lines[-1]
 
 
-def test_population_table_reaches_the_population_stage(run3, batch3, tmp_path, population_without_reach):
+def test_population_table_reaches_the_population_stage(run3, batch3, tmp_path, quick_population):
     # the type's known spreads stated in batch.toml: the finished modules are
     # reused (--resume) and only the population is refitted under them
     import shutil

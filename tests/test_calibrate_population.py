@@ -406,6 +406,16 @@ def test_same_seed_same_numbers():
     assert not np.array_equal(a.predictive, c.predictive)
 
 
+def test_without_the_leave_one_out_refits_the_batchs_draws_are_the_same():
+    draws, _, _ = make_batch(12, 3)  # a module whose leave-one-out reweighting is unreliable: refitted by default
+    a, b = fit(draws, seed=5), fit(draws, seed=5, loo_refits=False)
+    assert a.diagnostics["deviation_refit"] and not b.diagnostics["deviation_refit"]
+    for k in HYPER_NAMES:
+        np.testing.assert_array_equal(a.hyper[k], b.hyper[k])
+    np.testing.assert_array_equal(a.predictive, b.predictive)
+    assert a.outlier_prob == b.outlier_prob
+
+
 def test_two_stage_agrees_with_joint_fit():
     """Gaussian likelihoods: two-stage and joint (exact) agree within Monte Carlo error."""
     draws, lik, _ = make_batch(9, 3, outlier=0, shift=0.05)
@@ -466,7 +476,10 @@ def test_result_contents(big_batch):
 def test_budget_exhausted_warns_and_says_so():
     draws, _, _ = make_batch(12, 3)
     with pytest.warns(PopulationConvergenceWarning, match="not converged"):
-        r = fit_population(draws, DS, rng=np.random.default_rng(0), max_steps=1000)
+        # what comes after the batch's draws (the refits, the design's reach) is not what is asserted here
+        r = fit_population(
+            draws, DS, rng=np.random.default_rng(0), max_steps=1000, design_reach=False, loo_refits=False
+        )
     assert r.diagnostics["converged"] is False and r.diagnostics["n_steps"] == 1000
 
 

@@ -92,8 +92,15 @@ def docs_workdir(tmp_path_factory):
         model="paper",
         discrepancy="none",
     )
-    with warnings.catch_warnings():
+    from tembayes.calibrate import population
+
+    fit = population.fit_population
+    # the snippets read the run's files, not its numbers: the population's fit need not converge either
+    quick = {"design_reach": False, "loo_refits": False, "max_steps": 4000}
+    with warnings.catch_warnings(), pytest.MonkeyPatch.context() as mp:
         warnings.simplefilter("ignore", RuntimeWarning)  # "not converged": the cheap budget
+        warnings.simplefilter("ignore", population.PopulationConvergenceWarning)
+        mp.setattr(population, "fit_population", lambda *a, **kw: fit(*a, **{**kw, **quick}))
         calibrate_batch(
             load_batch(batch), root / "runs" / "example", seed=0, options=cheap, workers=1, keep_unconverged=True
         )

@@ -899,7 +899,7 @@ def lag_gap_batch(out):
     return batch.glob("*/identification.csv")
 
 
-def test_a_recalibrated_run_is_a_run_that_predict_takes(run3, batch3, tmp_path, population_without_reach):
+def test_a_recalibrated_run_is_a_run_that_predict_takes(run3, batch3, tmp_path, quick_population):
     """write_recalibrated_run on known modules: a complete run folder, its effects recorded, the laws
     before and after, read back by load_run and predicted from."""
     from types import SimpleNamespace

@@ -203,7 +203,7 @@ def test_an_earlier_runs_spreads_and_its_refusals(tmp_path):
 @pytest.mark.slow  # a population refit (1-2 min); the stated spreads' refit (test_calibrate_pipeline) and
 # the refusals (test_an_earlier_runs_spreads_and_its_refusals) stay in CI
 def test_population_prior_reaches_the_fit_and_a_clash_with_the_table_is_refused(
-    run3, batch3, tmp_path, population_without_reach
+    run3, batch3, tmp_path, quick_population
 ):
     import shutil
 

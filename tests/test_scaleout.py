@@ -195,7 +195,7 @@ def test_a_killed_worker_is_replaced_and_a_killed_run_resumes_with_the_missing_m
     _same_run(out_ref, out)
 
 
-def test_a_failing_or_unconverged_module_does_not_sink_the_batch(batch4, tmp_path, population_without_reach):
+def test_a_failing_or_unconverged_module_does_not_sink_the_batch(batch4, tmp_path, quick_population, monkeypatch):
     # a fifth module whose run has no current steps: its calibration raises
     b = tmp_path / "batch"
     shutil.copytree(batch4, b)
@@ -223,7 +223,14 @@ def test_a_failing_or_unconverged_module_does_not_sink_the_batch(batch4, tmp_pat
         passed = (PsisCheck(stage=1, k_hat=0.3, weight_ess_fraction=0.9, max_logw_dev=1.0),)
         r = dataclasses.replace(r, diagnostics=dataclasses.replace(r.diagnostics, sampler_converged=True, psis=passed))
         res.write_netcdf(res.to_inference_data([r]), out / "modules" / f"{mid}.nc")
-    summ = finish_run(load_batch(b, lazy=True), out, seed=5, options=CHEAP)
+    # which modules enter the population is asserted, not its spreads: two cheap modules' fit need not converge
+    from tembayes.calibrate import population
+
+    fit = population.fit_population
+    monkeypatch.setattr(population, "fit_population", lambda *a, **kw: fit(*a, **{**kw, "max_steps": 4000}))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", population.PopulationConvergenceWarning)
+        summ = finish_run(load_batch(b, lazy=True), out, seed=5, options=CHEAP)
     assert set(summ.population_excluded) == {"TEM1", "TEM5"}
     assert summ.population is not None
     ops = {m: e.outlier_prob for m, e in summ.modules.items()}

@@ -111,7 +111,7 @@ def test_a_unit_prior_is_the_calibrations_prior_on_the_laws():
 
 @pytest.mark.slow  # a population refit (1-2 min); the unit prior's making and refusals stay in CI
 def test_a_run_under_a_unit_prior_records_it_and_its_population_divides_it_out(
-    run3, batch3, tmp_path, monkeypatch, population_without_reach
+    run3, batch3, tmp_path, monkeypatch, quick_population
 ):
     """summary.json names the prior, the run gives it back, the prior group draws from it, the population divides it;
     a resume under another prior than the modules were sampled under is refused."""

@@ -149,6 +149,7 @@ def fit_population(
     n_rao_blackwell=8192,
     convergence=POPULATION_TARGETS,
     design_reach=True,
+    loo_refits=True,
 ):
     """Population (batch-level) posterior from per-module posterior draws.
 
@@ -198,6 +199,12 @@ def fit_population(
     design_reach : bool
         For batches under :data:`SMALL_BATCH` modules, find the smallest
         deviation this design flags (:mod:`.detectable`; a few seconds).
+    loo_refits : bool
+        Sample the batch again without each module whose leave-one-out
+        reweighting is unreliable (Pareto k above 0.7).  False keeps the
+        reweighted deviation for it, its ``k_hat`` saying how far to trust
+        it (quicker: 10-40 s a refit in a batch of three).  The refits draw
+        from streams of their own, so the batch's draws stay the same.
     convergence : tembayes.calibrate.sampler.Targets
         Convergence targets; default :data:`~tembayes.calibrate.population.sampling.POPULATION_TARGETS`
         (the modules' rule on a chain of 150 autocorrelation times), looser for quick looks.
@@ -232,17 +239,21 @@ def fit_population(
     sampled = _sample(pop, summ, method, max_draws_per_module, run)
     members = batch_membership(pop, sampled.terms, sampled.kept, n_rao_blackwell)
 
-    refit = _refitter(
-        pop,
-        summ,
-        ids,
-        sampled.terms.name,
-        max_draws_per_module,
-        n_rao_blackwell,
-        seed=seed,
-        nwalkers=nwalkers,
-        budget=budget,
-        started=t0,
+    refit = (
+        _refitter(
+            pop,
+            summ,
+            ids,
+            sampled.terms.name,
+            max_draws_per_module,
+            n_rao_blackwell,
+            seed=seed,
+            nwalkers=nwalkers,
+            budget=budget,
+            started=t0,
+        )
+        if loo_refits
+        else None
     )
     deviation = loo_deviation(pop, summ.mean, summ.cov, members.hyper, members.log_like, refit)
     i, j = driver(members.odd_one_prob, deviation.p_loo)
