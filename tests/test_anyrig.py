@@ -108,9 +108,9 @@ def test_the_robust_carry_over_moves_a_lead_share_in_its_logit_and_a_resistance_
     from tembayes.calibrate.module import (
         CalibrationOptions,
         calibration_rig,
+        flat_coordinates,
         parameter_space,
         positive_coordinates,
-        share_coordinates,
     )
     from tembayes.calibrate.stepdata import step_data
 
@@ -118,7 +118,7 @@ def test_the_robust_carry_over_moves_a_lead_share_in_its_logit_and_a_resistance_
     rig = calibration_rig(batch.rig_config, CalibrationOptions())
     data = step_data(batch.modules["TEM1"].identification, face=rig.layout.face)
     space = parameter_space(rig, batch.datasheet, data, StepResponseModel(data, rig).shift_bound)[1]
-    positive, shares = positive_coordinates(space), share_coordinates(space, rig)
+    positive, shares = positive_coordinates(space), flat_coordinates(space, rig)
     assert space.index("g_sink") in positive and space.index("lead_share") not in positive
     assert list(shares) == [space.index("lead_share")]
     np.testing.assert_allclose(shares[space.index("lead_share")], (0.0001, 0.01))  # its documented range
@@ -175,6 +175,14 @@ def test_bench_copies_a_rig_file_into_the_batch(tmp_path):
     from tembayes.data.digest import batch_inputs, file_sha256
 
     assert batch_inputs(batch)["rig.toml"] == file_sha256(rig_file)
+
+
+def test_the_out_of_model_benchs_sensor_bodies_replace_a_rig_files_own_response_times():
+    """reference-faces' T2 and T3 lag by their own times in the rig file; on the out-of-model bench the
+    bodies (their heat capacity behind a contact) respond instead, and the times are neither drawn nor used."""
+    bench = outside_bench_rig(bench_rig(rig_file_of({"preset": "reference-faces"})))
+    assert not bench.lags and not {"tau_T2", "tau_T3"} & set(bench.parameter_names)
+    assert bench_rig(rig_file_of({"preset": "reference-faces"})).lag_parameters == {"tau_T2", "tau_T3"}
 
 
 def test_the_out_of_model_benchs_sensors_read_through_bodies_and_leads():
@@ -535,3 +543,27 @@ def test_a_held_rig_parameter_is_anchored_not_carried_as_a_given_draw(heatsink_b
     assert rig.parameter("g_ceramic").held
     a = posterior_draws(raw, {}, "TEM1", exp, rig)
     assert a.anchor["TEM1"]["updated"] == ["leak_face"] and "leak_face" in a.anchor["TEM1"]["posterior_sd"]
+
+
+def test_a_rig_whose_sensors_have_their_own_response_times_samples_those_and_not_the_common_one(batch3):
+    """reference-faces: T2's and T3's response times sampled flat over their documented range, kept inside it
+    by the carry-over, and no common ``sensor_tau_s``; the reference rig keeps the common one."""
+    from tembayes.calibrate.model import StepResponseModel
+    from tembayes.calibrate.module import CalibrationOptions, calibration_rig, flat_coordinates, parameter_space
+    from tembayes.calibrate.stepdata import step_data
+
+    ident = load_batch(batch3).modules["TEM1"].identification  # the reference rig's columns hold T2 and T3
+    names = {}
+    for preset in ("reference-faces", "reference"):
+        rig = calibration_rig({"preset": preset}, CalibrationOptions())
+        data = step_data(ident, face=rig.layout.face)
+        space = parameter_space(rig, load_batch(batch3).datasheet, data, StepResponseModel(data, rig).shift_bound)[0]
+        names[preset] = {p.name: p for p in space.priors}
+        if preset == "reference-faces":
+            flat = flat_coordinates(space, rig)
+            for tau in ("tau_T2", "tau_T3"):
+                p = names[preset][tau]
+                assert p.kind == "uniform" and (p.center - p.scale, p.center + p.scale) == pytest.approx((0.1, 3.0))
+                assert flat[space.index(tau)] == pytest.approx((0.1, 3.0))
+    assert "sensor_tau_s" not in names["reference-faces"]
+    assert "sensor_tau_s" in names["reference"] and not {"tau_T2", "tau_T3"} & set(names["reference"])

@@ -511,6 +511,34 @@ def test_sensor_lag_is_a_first_order_lag():
     np.testing.assert_allclose(Y[0, 0, late], expected, rtol=0, atol=1e-3)
 
 
+def test_a_sensor_with_its_own_response_time_lags_by_it_and_the_others_by_the_common_one():
+    # channel 0 its own 2 s, channel 1 the common 6 s, channel 2 its own 0 (no lag)
+    t = np.arange(0.0, 120.0, 0.5)
+    Y = np.tile(t, (1, 3, 1))
+    effects_mod.apply_sensors(t, Y, {"sensor_tau_s": 6.0}, np.array([[2.0, np.nan, 0.0]]))
+    for c, tau in ((0, 2.0), (1, 6.0)):
+        np.testing.assert_allclose(Y[0, c], t - tau * (1.0 - np.exp(-t / tau)), rtol=0, atol=1e-12)
+    assert np.array_equal(Y[0, 2], t)
+    assert effects_mod.has_sensor_effect({}, np.array([[np.nan, 0.5]]))
+    assert not effects_mod.has_sensor_effect({}, np.array([[np.nan, 0.0]]))
+
+
+def test_a_rig_files_sensor_lags_reach_the_simulation():
+    """reference-faces gives T2 and T3 their own response times: a slower T2 moves T2 alone."""
+    from tembayes.physics.rigread import shipped_rig
+
+    rig = shipped_rig("reference-faces").build()
+    t = np.arange(0.0, 600.0, 1.0)
+    current = np.where(t < 200.0, 1.0, 3.0)
+    bounds = np.vstack([np.full_like(t, 293.15), np.full_like(t, 295.15)])
+    base = {"R0_ohm": 1.6, "R1_ohm_per_K": 0.007, "S0_V_per_K": 0.049, "S1_V_per_K2": 1e-4, "K_W_per_K": 0.5}
+    fast = simulate(Inputs(t, current, bounds), {**base, "tau_T2": 0.5, "tau_T3": 0.5}, rig=rig)
+    slow = simulate(Inputs(t, current, bounds), {**base, "tau_T2": 3.0, "tau_T3": 0.5}, rig=rig)
+    assert np.array_equal(fast.sensors[0, 1], slow.sensors[0, 1])
+    after = (t > 200.0) & (t < 215.0)
+    assert np.all(slow.sensors[0, 0, after] < fast.sensors[0, 0, after] - 1e-4)  # T2 rises, later when slower
+
+
 def test_all_effects_at_zero_is_the_paper_model(short_base):
     inp, base = short_base
     zeros = {p: 0.0 for e in CATALOGUE.values() for p in e.parameter_names}

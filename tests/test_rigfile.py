@@ -164,6 +164,36 @@ def test_a_lead_share_no_sensor_names_is_unused(tmp_path):
     assert err.value.column == "parameters.lead_share"
 
 
+FACES_TOML = shipped_rig("reference-faces").path.read_text()
+LAG = 'spacing = 0.005, lag = "tau_T2"}'
+
+
+@pytest.mark.parametrize(
+    "new, words",
+    [
+        ('spacing = 0.005, lag = "tau_T"}', "unknown parameter 'tau_T'"),
+        ('spacing = 0.005, lag = "depth_T3"}', "a sensor's response time is in seconds"),
+        ("spacing = 0.005, lag = 1.0}", "must be a name in quotes"),
+    ],
+)
+def test_a_sensors_lag_must_name_a_time(tmp_path, new, words):
+    assert FACES_TOML.count(LAG) == 1
+    path = _write(tmp_path, FACES_TOML.replace(LAG, new))
+    with pytest.raises(DataError) as err:
+        read_rig_file(path)
+    assert err.value.column == "sensors.T2_C.lag"
+    assert words in str(err.value) and str(path) in str(err.value)
+
+
+def test_a_lag_no_sensor_names_is_unused_and_a_named_one_reaches_the_rig(tmp_path):
+    rig = shipped_rig("reference-faces").build()
+    assert dict(rig.lags) == {"T2_C": "tau_T2", "T3_C": "tau_T3"}
+    assert summarise_rig(shipped_rig("reference-faces")).to_json()["sensor_lags"] == dict(rig.lags)  # rig.json
+    with pytest.raises(DataError, match="never used") as err:
+        read_rig_file(_write(tmp_path, FACES_TOML.replace(LAG, "spacing = 0.005}")))
+    assert err.value.column == "parameters.tau_T2"
+
+
 def test_node_without_a_path_to_a_boundary_refused(tmp_path):
     # a node joined only to a second node that is joined to nothing else: no temperature is set for them
     text = REFERENCE_TOML.replace("[blocks.top]", 'island = "c_plate_hot"\nislet = "c_plate_cold"\n\n[blocks.top]')

@@ -80,11 +80,12 @@ def outside_bench_rig(rig: RigDescription) -> RigDescription:
 
     Block sensors lose their depth interpolation (and its depth parameters): a
     contact share with the next cell (``v_<column>``, held over
-    ``[0, DEPTH_SHARE_MAX]``) replaces it.  The rig file's lead shares (and
-    their parameters) give way to the bodies' own leads.
+    ``[0, DEPTH_SHARE_MAX]``) replaces it.  The rig file's lead shares and
+    sensors' own response times (and their parameters) give way to the
+    bodies' own leads and heat capacities.
     """
     room = rig.layout.leak_boundary
-    dropped = {d.parameter for d in rig.depths.values()} | rig.lead_parameters
+    dropped = {d.parameter for d in rig.depths.values()} | rig.lead_parameters | rig.lag_parameters
     nodes, links, sensors, shares = list(rig.nodes), list(rig.links), {}, []
     for column, node in rig.sensors.items():
         body = f"sensor_{column}"

@@ -155,8 +155,9 @@ class StepResponseModel:
         sensors = out[:, :, :2] + f[:, None, :] * (out[:, :, 4:] - out[:, :, :2])
         sensors = np.ascontiguousarray(sensors.transpose(0, 2, 1))
         self.rig.read_leads(sensors, self.data.face, m["params"], self._bounds)
-        if effects.has_sensor_effect(m["params"]):
-            effects.apply_sensors(G, sensors, m["params"])  # each draw's own step instants
+        lags = self.rig.sensor_lags(self.data.face, m["params"])
+        if effects.has_sensor_effect(m["params"], lags):
+            effects.apply_sensors(G, sensors, m["params"], lags)  # each draw's own step instants
         o = self.obs_pos
         return dict(sensors=sensors[:, :, o], voltage=volt[:, o], t_hot=out[:, o, 2], t_cold=out[:, o, 3], steps=steps)
 

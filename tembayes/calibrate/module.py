@@ -314,8 +314,8 @@ def positive_coordinates(space: ParameterSpace) -> list[int]:
     return [j for j, pr in enumerate(space.priors) if pr.kind == "reciprocal"]
 
 
-def share_coordinates(space: ParameterSpace, rig: RigDescription) -> dict[int, tuple[float, float]]:
-    """The lead shares' coordinates and their flat priors' ranges: the robust carry-over keeps them inside.
+def flat_coordinates(space: ParameterSpace, rig: RigDescription) -> dict[int, tuple[float, float]]:
+    """The flat priors' coordinates and ranges (lead shares, own response times): the carry-over keeps them inside.
 
     A share sampled as itself sits near its floor; moved additively it crossed zero in a few
     draws, and moved relatively past one (reference-faces, where a sensor's depth and its lead
@@ -325,7 +325,7 @@ def share_coordinates(space: ParameterSpace, rig: RigDescription) -> dict[int, t
     return {
         j: (pr.center - pr.scale, pr.center + pr.scale)
         for j, pr in enumerate(space.priors)
-        if pr.name in rig.lead_parameters
+        if pr.name in rig.lead_parameters | rig.lag_parameters
     }
 
 
@@ -369,17 +369,19 @@ def parameter_space(
         )
     nuis = [p for p in rig.parameters if p.high / p.low > form.min_range and not p.held]
     fixed = {p.name: p.nominal for p in rig.parameters if p not in nuis}
+    # a rig whose every sensor has its own response time leaves the form's common one nothing to act on
+    own_lags = bool(rig.sensors) and set(rig.lags) == set(rig.sensors)
     pri = (
         list(module_law_priors(datasheet, law_prior))
         + [
             rig_prior(
                 p,
-                linear=p.name in rig.lead_parameters,
+                linear=p.name in rig.lead_parameters | rig.lag_parameters,
                 shunt=p.unit == "W/K" and rig.face_heat_share(p.name) < SHUNT_SHARE,
             )
             for p in nuis
         ]
-        + list(form.priors)
+        + [p for p in form.priors if not (own_lags and p.name == "sensor_tau_s")]
         + list(effect_priors(effects))
     )
     pri.append(ParameterPrior(SHIFT, "uniform", 0.0, shift_bound))
@@ -1161,7 +1163,7 @@ def _posterior(prob, st, levels) -> _Posterior:
             prob.model, prob.model_space, flat[:, :p].mean(axis=0), st.lin.J, prob.data.noise, held
         )
         xi = spread.draw(st.rng, len(flat))
-        flat = spread.apply(flat, xi, relative=positive_coordinates(space), shares=share_coordinates(space, prob.rig))
+        flat = spread.apply(flat, xi, relative=positive_coordinates(space), shares=flat_coordinates(space, prob.rig))
         held_draws = spread.values(xi)
         discrepancy["held_sd_over_posterior_sd"] = spread.to_json(space.names, laws, law_sd)
         if spread.not_carried:

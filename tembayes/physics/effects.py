@@ -190,15 +190,21 @@ def _network_ambient(net, rig, params):
 STEP_FRACTIONS = (1 / 64, 1 / 32, 1 / 16, 1 / 8, 1 / 4, 3 / 8, 1 / 2, 5 / 8, 3 / 4, 7 / 8)
 
 
-def _sensor_lag(time, Y, params):
+def _sensor_lag(time, Y, params, own=None):
     """First-order sensor lag on ``Y`` (nd, nch, nt), in place (compiled: a hot path).
 
-    ``time``: ``(nt,)`` or each draw's own ``(nd, nt)`` [s].
+    ``time``: ``(nt,)`` or each draw's own ``(nd, nt)`` [s].  ``own``: ``(nd, nch)``
+    time constants of sensors that have their own (a rig file's ``lag``), NaN
+    where a channel takes ``sensor_tau_s``.
     """
-    tau = _get(params, "sensor_tau_s", Y.shape[0], nonnegative=True)
+    nd, nch = Y.shape[0], Y.shape[1]
+    tau = np.repeat(_get(params, "sensor_tau_s", nd, nonnegative=True)[:, None], nch, axis=1)
+    if own is not None:
+        own = np.broadcast_to(np.asarray(own, np.float64), (nd, nch))
+        tau = np.where(np.isnan(own), tau, np.maximum(own, 0.0))
     if np.any(tau):
-        t = np.broadcast_to(np.asarray(time, np.float64), (Y.shape[0], Y.shape[2]))
-        K.first_order_lag(K.writable(t, np.float64), Y, K.writable(tau, np.float64))
+        t = np.broadcast_to(np.asarray(time, np.float64), (nd, Y.shape[2]))
+        K.first_order_lag(K.writable(t, np.float64), Y, np.ascontiguousarray(tau, np.float64))
 
 
 CATALOGUE = {
@@ -327,18 +333,27 @@ def apply_network(net: Network, rig: RigDescription, params: Mapping[str, float 
             e.hook(net, rig, params)
 
 
-def apply_sensors(time: np.ndarray, Y: np.ndarray, params: Mapping[str, float | np.ndarray]) -> None:
+def apply_sensors(
+    time: np.ndarray,
+    Y: np.ndarray,
+    params: Mapping[str, float | np.ndarray],
+    own_lags: np.ndarray | None = None,
+) -> None:
     """Apply every ``sensors`` effect to the sensor readings ``Y`` (nd, nch, nt) in place.
 
     ``time``: the sample times ``(nt,)``, or each draw's ``(nd, nt)`` when the draws' grids differ [s].
+    ``own_lags``: ``(nd, nch)`` response times [s] of sensors with their own
+    (:meth:`~tembayes.physics.rig.RigDescription.sensor_lags`), NaN for the others.
     """
     for e in CATALOGUE.values():
         if e.stage == "sensors":
-            e.hook(time, Y, params)
+            e.hook(time, Y, params, own_lags)
 
 
-def has_sensor_effect(params: Mapping[str, float | np.ndarray]) -> bool:
-    """True if a sensor-stage effect has a non-zero parameter in ``params``."""
+def has_sensor_effect(params: Mapping[str, float | np.ndarray], own_lags: np.ndarray | None = None) -> bool:
+    """True if a sensor-stage effect has a non-zero parameter in ``params`` or a sensor lags on its own."""
+    if own_lags is not None and np.any(np.nan_to_num(np.asarray(own_lags, float)) > 0):
+        return True
     return any(
         e.stage == "sensors" and any(np.any(np.asarray(params.get(p.name, 0.0)) != 0) for p in e.parameters)
         for e in CATALOGUE.values()

@@ -688,22 +688,23 @@ def first_order_lag(time: np.ndarray, Y: np.ndarray, tau: np.ndarray) -> None:
     time : ndarray, shape (nd, nt)
         Each draw's sample times [s] (a draw's step points move with its own step shift).
     Y : ndarray, shape (nd, nch, nt)
-        Signals; replaced by the lagged ones.  Draws with ``tau <= 0`` are left alone.
-    tau : ndarray, shape (nd,)
-        Time constants [s].
+        Signals; replaced by the lagged ones.  Signals with ``tau <= 0`` are left alone.
+    tau : ndarray, shape (nd, nch)
+        Each draw's and channel's time constant [s].
     """
     nd, nch, nt = Y.shape
     for d in range(nd):
-        if tau[d] <= 0.0:
-            continue
         for c in range(nch):
+            tc = tau[d, c]
+            if tc <= 0.0:
+                continue
             u_prev = Y[d, c, 0]
             y = u_prev
             for n in range(nt - 1):
                 h = time[d, n + 1] - time[d, n]
                 u = Y[d, c, n + 1]
                 m = (u - u_prev) / h
-                a = np.exp(-h / tau[d])
-                y = u - m * tau[d] + (y - u_prev + m * tau[d]) * a
+                a = np.exp(-h / tc)
+                y = u - m * tc + (y - u_prev + m * tc) * a
                 Y[d, c, n + 1] = y
                 u_prev = u

@@ -100,5 +100,5 @@ def simulate_reference(
         volt[d] = [K.tem_voltage(np.ascontiguousarray(chain[:, n]), i_true[n], p) for n in range(len(t))]
         steps[d] = sol.t.size if sol.nfev is None else sol.nfev
     rig.read_leads(sensors, channels, m["params"], inputs.boundaries)
-    effects.apply_sensors(t, sensors, m["params"])
+    effects.apply_sensors(t, sensors, m["params"], rig.sensor_lags(channels, m["params"]))
     return Simulation(t, channels, sensors, volt, t_hot, t_cold, steps)

@@ -186,6 +186,10 @@ class RigDescription:
     leads : mapping of str to str
         Sensors whose leads conduct to the room: column -> the share
         parameter (see :meth:`lead_shares`); the others read their node alone.
+    lags : mapping of str to str
+        Sensors with a response time of their own: column -> its parameter [s]
+        (see :meth:`sensor_lags`); the others respond with the model's
+        ``sensor_tau_s``, if it has one.
     faces : tuple of str
         ``(hot face, cold face)``: the module's outer nodes, where it meets the
         rig, for plates resolved into layers (the alumina outside the
@@ -205,6 +209,7 @@ class RigDescription:
     physics: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
     depths: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
     leads: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
+    lags: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
     faces: tuple = ()
     boundaries: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
 
@@ -248,8 +253,14 @@ class RigDescription:
                 raise ModelError(
                     f"rig '{self.name}': the lead of {ch} needs a sensor and a share parameter; got {share}"
                 )
+        for ch, tau in self.lags.items():
+            if ch not in self.sensors or tau not in names:
+                raise ModelError(
+                    f"rig '{self.name}': the lag of {ch} needs a sensor and a time-constant parameter; got {tau}"
+                )
         object.__setattr__(self, "sensors", MappingProxyType(dict(self.sensors)))
         object.__setattr__(self, "leads", MappingProxyType(dict(self.leads)))
+        object.__setattr__(self, "lags", MappingProxyType(dict(self.lags)))
         object.__setattr__(self, "physics", MappingProxyType(dict(self.physics)))
         object.__setattr__(self, "depths", MappingProxyType(dict(self.depths)))
         object.__setattr__(self, "boundaries", MappingProxyType(dict(self.boundaries)))
@@ -366,6 +377,30 @@ class RigDescription:
     def lead_parameters(self) -> frozenset:
         """Names of the share parameters the sensors' leads read (:attr:`leads`' values)."""
         return frozenset(self.leads.values())
+
+    @property
+    def lag_parameters(self) -> frozenset:
+        """Names of the sensors' own response times (:attr:`lags`' values)."""
+        return frozenset(self.lags.values())
+
+    def sensor_lags(
+        self, channels: Sequence[str], values: Mapping[str, float | np.ndarray] | None = None
+    ) -> np.ndarray | None:
+        """Each channel's own response time [s], ``(nd, nch)``, NaN where it has none; None if no channel has one.
+
+        The value goes to :func:`~tembayes.physics.effects.apply_sensors`, which lags those
+        channels by their own time and the others by ``sensor_tau_s``.
+        """
+        if not any(c in self.lags for c in channels):
+            return None
+        values = values or {}
+        cols = [
+            np.atleast_1d(np.asarray(values.get(p, self.parameter(p).nominal), float))
+            if (p := self.lags.get(c))
+            else np.full(1, np.nan)
+            for c in channels
+        ]
+        return np.column_stack(np.broadcast_arrays(*cols))
 
     def read_leads(
         self,

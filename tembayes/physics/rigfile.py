@@ -27,6 +27,9 @@ a sensor table, ``T1_C = {node = ..., depth = ..., toward = ..., centre = ..., s
     A sensor whose depth is a (held) parameter: it reads the temperature
     profile between its node's centre (at depth ``centre``) and the
     neighbouring cell ``toward``, ``spacing`` metres away.
+    Optionally ``lead = "SHARE"`` (its leads draw that share of the reading
+    from the room) and ``lag = "TIME"`` (it responds with that time of its own,
+    in seconds, instead of the model's ``sensor_tau_s``), with or without a depth.
 """
 
 from __future__ import annotations
@@ -82,7 +85,7 @@ class Block:
 
 @dataclass(frozen=True)
 class SensorSpec:
-    """A sensor: the node it reads, where a depth parameter places it between two cells, its leads' share."""
+    """A sensor: the node it reads, its depth between two cells, its leads' share, its own response time."""
 
     node: str
     depth: str | None = None
@@ -90,6 +93,7 @@ class SensorSpec:
     centre: float = 0.0
     spacing: float = 0.0
     lead: str | None = None
+    lag: str | None = None
 
 
 @dataclass(frozen=True)
@@ -167,6 +171,7 @@ class RigFile:
             faces=faces,
             depths=depths,
             leads={col: s.lead for col, s in self.sensors.items() if s.lead is not None},
+            lags={col: s.lag for col, s in self.sensors.items() if s.lag is not None},
             boundaries=dict(self.boundaries),
         )
 

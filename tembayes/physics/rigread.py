@@ -42,7 +42,7 @@ TOP_KEYS = ("name", "description", "module", "parameters", "boundaries", "nodes"
 PARAMETER_KEYS = ("nominal", "low", "high", "unit", "doc", "held")
 LINK_KEYS = ("a", "b", "g", "spread")
 BLOCK_KEYS = ("cells", "g_cell", "g_face")
-SENSOR_KEYS = ("node", "depth", "toward", "centre", "spacing", "lead")
+SENSOR_KEYS = ("node", "depth", "toward", "centre", "spacing", "lead", "lag")
 
 
 @functools.lru_cache(maxsize=None)
@@ -357,15 +357,16 @@ class _Reader:
         self.known(spec, SENSOR_KEYS, key + ".")
         node = self.node(f"{key}.node", spec.get("node"))
         lead = self.lead(key, spec["lead"]) if "lead" in spec else None
+        lag = self.lag(key, spec["lag"]) if "lag" in spec else None
         if "depth" not in spec:
-            extra = sorted(set(spec) - {"node", "lead"})
+            extra = sorted(set(spec) - {"node", "lead", "lag"})
             if extra:
                 self.fail(
                     f"{key}.{extra[0]}",
                     f"{key}.{extra[0]} is given without a depth parameter",
                     'Add depth = "PARAMETER" or remove it',
                 )
-            return SensorSpec(node, lead=lead)
+            return SensorSpec(node, lead=lead, lag=lag)
         depth = self.text(f"{key}.depth", spec["depth"])
         if depth not in self.params:
             self.fail(
@@ -390,7 +391,24 @@ class _Reader:
                     f"{key}.{k}", f"{key}.{k} must be a positive length [m], found {v!r}", f"Give the {k} in metres"
                 )
             nums[k] = float(v)
-        return SensorSpec(node, depth, toward, nums["centre"], nums["spacing"], lead)
+        return SensorSpec(node, depth, toward, nums["centre"], nums["spacing"], lead, lag)
+
+    def lag(self, key: str, name) -> str:
+        """The response time of a sensor of its own (``sensors.COLUMN.lag``): unit "s"."""
+        name = self.text(f"{key}.lag", name)
+        p = self.params.get(name)
+        if p is None:
+            self.fail(
+                f"{key}.lag", f"{key}.lag names unknown parameter '{name}'", "Define it under [parameters] (in s)"
+            )
+        if p.unit != "s":
+            self.fail(
+                f"{key}.lag",
+                f"{key}.lag names '{name}' (unit {p.unit!r}): a sensor's response time is in seconds",
+                'Give that parameter unit = "s" (e.g. nominal = 1.0, low = 0.1, high = 3.0)',
+            )
+        self.used.add(name)
+        return name
 
     def lead(self, key: str, name) -> str:
         """The share parameter of a sensor's leads (``sensors.COLUMN.lead``): unit "1", its range inside 0..1."""

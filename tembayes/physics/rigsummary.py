@@ -65,6 +65,7 @@ class RigSummary:
             "boundaries": dict(r.boundaries),
             "sensors": {c: s.node for c, s in r.sensors.items()},
             "sensor_leads": {c: s.lead for c, s in r.sensors.items() if s.lead is not None},
+            "sensor_lags": {c: s.lag for c, s in r.sensors.items() if s.lag is not None},
             "csv_columns": ["time_s", "current_A", "voltage_V", *r.sensors, *r.boundaries.values()],
             "nodes": [{"name": n, "capacity_J_per_K": c} for n, c in self.nodes],
             "links": [{"a": a, "b": b, "conductance_W_per_K": g} for a, b, g in self.links],

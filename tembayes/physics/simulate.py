@@ -265,7 +265,7 @@ def simulate(
     sensors = out[:, :, :nch] + f[:, None, :] * (out[:, :, nch + 2 :] - out[:, :, :nch])
     sensors = np.ascontiguousarray(sensors.transpose(0, 2, 1))
     rig.read_leads(sensors, channels, m["params"], inputs.boundaries)
-    effects.apply_sensors(inputs.time, sensors, m["params"])
+    effects.apply_sensors(inputs.time, sensors, m["params"], rig.sensor_lags(channels, m["params"]))
     return Simulation(
         time=inputs.time,
         channels=channels,

@@ -241,8 +241,9 @@ class RunModel:
         sensors = out[:, :, :nch] + f[:, None, :] * (out[:, :, nch:] - out[:, :, :nch])
         sensors = np.ascontiguousarray(sensors.transpose(0, 2, 1))
         self.rig.read_leads(sensors, self.sensor_channels, m["params"], bounds)
-        if effects.has_sensor_effect(m["params"]):
-            effects.apply_sensors(G, sensors, m["params"])  # each draw's own step instants
+        lags = self.rig.sensor_lags(self.sensor_channels, m["params"])
+        if effects.has_sensor_effect(m["params"], lags):
+            effects.apply_sensors(G, sensors, m["params"], lags)  # each draw's own step instants
         sensors, volt = sensors[:, :, 1:], volt[:, 1:]
         o = self._obs_pos
         sensors, volt = sensors[:, :, o], volt[:, o]
