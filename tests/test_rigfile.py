@@ -138,23 +138,6 @@ HEATSINK_TOML = shipped_rig("heatsink-al").path.read_text()
 LEAD = 'T_hot_C = {node = "hot_plate", lead = "lead_share"}'
 
 
-@pytest.mark.parametrize(
-    "new, words",
-    [
-        ('T_hot_C = {node = "hot_plate", lead = "lead_shar"}', "unknown parameter 'lead_shar'"),
-        ('T_hot_C = {node = "hot_plate", lead = "g_paste"}', "a lead's share is a fraction"),
-        ('T_hot_C = {node = "hot_plate", lead = 0.01}', "must be a name in quotes"),
-    ],
-)
-def test_a_sensors_lead_must_name_a_share(tmp_path, new, words):
-    assert LEAD in HEATSINK_TOML
-    path = _write(tmp_path, HEATSINK_TOML.replace(LEAD, new))
-    with pytest.raises(DataError) as err:
-        read_rig_file(path)
-    assert err.value.column == "sensors.T_hot_C.lead"
-    assert words in str(err.value) and str(path) in str(err.value)
-
-
 def test_a_lead_share_no_sensor_names_is_unused(tmp_path):
     text = HEATSINK_TOML
     for col, node in (("T_hot_C", "hot_plate"), ("T_cold_C", "cold_plate"), ("T_load_C", "load")):
@@ -168,20 +151,26 @@ FACES_TOML = shipped_rig("reference-faces").path.read_text()
 LAG = 'spacing = 0.005, lag = "tau_T2"}'
 
 
+# (rig file, its sensor entry, the entry broken, the key named, the words)
+SENSOR_PARAMETER_REFUSALS = [
+    (HEATSINK_TOML, LEAD, 'T_hot_C = {node = "hot_plate", lead = "lead_shar"}', "sensors.T_hot_C.lead", "unknown parameter 'lead_shar'"),
+    (HEATSINK_TOML, LEAD, 'T_hot_C = {node = "hot_plate", lead = "g_paste"}', "sensors.T_hot_C.lead", "a lead's share is a fraction"),
+    (HEATSINK_TOML, LEAD, 'T_hot_C = {node = "hot_plate", lead = 0.01}', "sensors.T_hot_C.lead", "must be a name in quotes"),
+    (FACES_TOML, LAG, 'spacing = 0.005, lag = "tau_T"}', "sensors.T2_C.lag", "unknown parameter 'tau_T'"),
+    (FACES_TOML, LAG, 'spacing = 0.005, lag = "depth_T3"}', "sensors.T2_C.lag", "a sensor's response time is in seconds"),
+    (FACES_TOML, LAG, "spacing = 0.005, lag = 1.0}", "sensors.T2_C.lag", "must be a name in quotes"),
+]  # fmt: skip
+
+
 @pytest.mark.parametrize(
-    "new, words",
-    [
-        ('spacing = 0.005, lag = "tau_T"}', "unknown parameter 'tau_T'"),
-        ('spacing = 0.005, lag = "depth_T3"}', "a sensor's response time is in seconds"),
-        ("spacing = 0.005, lag = 1.0}", "must be a name in quotes"),
-    ],
+    "text, old, new, key, words", SENSOR_PARAMETER_REFUSALS, ids=[r[4] for r in SENSOR_PARAMETER_REFUSALS]
 )
-def test_a_sensors_lag_must_name_a_time(tmp_path, new, words):
-    assert FACES_TOML.count(LAG) == 1
-    path = _write(tmp_path, FACES_TOML.replace(LAG, new))
+def test_a_sensors_lead_must_name_a_share_and_its_lag_a_time(tmp_path, text, old, new, key, words):
+    assert text.count(old) == 1
+    path = _write(tmp_path, text.replace(old, new))
     with pytest.raises(DataError) as err:
         read_rig_file(path)
-    assert err.value.column == "sensors.T2_C.lag"
+    assert err.value.column == key
     assert words in str(err.value) and str(path) in str(err.value)
 
 

@@ -364,14 +364,7 @@ class RigDescription:
         it touches and the room in proportion to the two conductances, ``s =
         g_lead / (g_contact + g_lead)``.  The room is the layout's (:attr:`Layout.room_index`).
         """
-        values = values or {}
-        cols = [
-            np.atleast_1d(np.asarray(values.get(p, self.parameter(p).nominal), float))
-            if (p := self.leads.get(c))
-            else np.zeros(1)
-            for c in channels
-        ]
-        return np.column_stack(np.broadcast_arrays(*cols)) if cols else np.zeros((1, 0))
+        return self._per_channel(self.leads, channels, values, 0.0)
 
     @property
     def lead_parameters(self) -> frozenset:
@@ -393,14 +386,18 @@ class RigDescription:
         """
         if not any(c in self.lags for c in channels):
             return None
+        return self._per_channel(self.lags, channels, values, np.nan)
+
+    def _per_channel(self, names: Mapping[str, str], channels, values, without: float) -> np.ndarray:
+        """``(nd, nch)``: each channel's parameter ``names[channel]`` (nominal if not in ``values``), else ``without``."""
         values = values or {}
         cols = [
             np.atleast_1d(np.asarray(values.get(p, self.parameter(p).nominal), float))
-            if (p := self.lags.get(c))
-            else np.full(1, np.nan)
+            if (p := names.get(c))
+            else np.full(1, without)
             for c in channels
         ]
-        return np.column_stack(np.broadcast_arrays(*cols))
+        return np.column_stack(np.broadcast_arrays(*cols)) if cols else np.zeros((1, 0))
 
     def read_leads(
         self,

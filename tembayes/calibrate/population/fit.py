@@ -203,8 +203,8 @@ def fit_population(
         Sample the batch again without each module whose leave-one-out
         reweighting is unreliable (Pareto k above 0.7).  False keeps the
         reweighted deviation for it, its ``k_hat`` saying how far to trust
-        it (quicker: 10-40 s a refit in a batch of three).  The refits draw
-        from streams of their own, so the batch's draws stay the same.
+        it (quicker: 10-40 s a refit in a batch of three).  Each refit has a
+        random stream of its own, so the batch's draws stay the same.
     convergence : tembayes.calibrate.sampler.Targets
         Convergence targets; default :data:`~tembayes.calibrate.population.sampling.POPULATION_TARGETS`
         (the modules' rule on a chain of 150 autocorrelation times), looser for quick looks.
